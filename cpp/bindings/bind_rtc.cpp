@@ -1,0 +1,103 @@
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include "checks.hpp"
+#include "soulctl/rtc.hpp"
+
+namespace py = pybind11;
+using namespace soulctl;
+using namespace soulctl::bind;
+
+namespace {
+
+using MapR = Eigen::Map<const RowMatrixXf>;
+
+RealTimeController make_rtc(const py::array& lambda, const py::array& xi, const py::array& sigma, int n_threads) {
+    auto l = matrix_input(lambda, "Lambda");
+    auto x = matrix_input(xi, "Xi");
+    auto s = matrix_input(sigma, "Sigma");
+    try {
+        return RealTimeController(MapR(l.data(), l.shape(0), l.shape(1)), MapR(x.data(), x.shape(0), x.shape(1)),
+                                  MapR(s.data(), s.shape(0), s.shape(1)), n_threads);
+    } catch (const std::invalid_argument& e) {
+        throw py::value_error(e.what());
+    }
+}
+
+py::array_t<float> output_or_new(py::object out, std::vector<py::ssize_t> shape, const char* name) {
+    if (out.is_none()) return py::array_t<float>(shape);
+    py::array o = py::array::ensure(out);
+    if (!o) throw py::value_error(std::string(name) + ": expected a numpy array");
+    check_output(o, shape, name);
+    return py::reinterpret_borrow<py::array_t<float>>(o);
+}
+
+py::array_t<float> vec(const Eigen::VectorXf& v) { return py::array_t<float>(v.size(), v.data()); }
+
+}  // namespace
+
+void bind_rtc(py::module_& m) {
+    py::class_<RealTimeController>(m, "RealTimeController", R"doc(
+The SOUL RTC equation:  zeta(k) = Lambda zeta(k-1) + Delta Xi s(k),  c(k) = Sigma zeta(k).
+
+Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are
+fixed at construction (float32 or float64, stored as float32).  Delta is diagonal: set its
+diagonal with set_gains(); it may change between any two steps.  n_threads: OpenMP threads
+for step() (0 = automatic, at most 4).
+)doc")
+        .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg("n_threads") = 0)
+        .def(
+            "set_gains",
+            [](RealTimeController& r, const py::array& delta) {
+                auto d = float32_input(delta, {r.n_states()}, "gains");
+                r.set_gains(d.data());
+            },
+            py::arg("delta"), "Set the diagonal of Delta (float32, n_states); used from the next step on.")
+        .def_property_readonly("gains", [](const RealTimeController& r) { return vec(r.gains()); },
+                               "The diagonal of Delta (a copy).")
+        .def_property_readonly("state", [](const RealTimeController& r) { return vec(r.state()); },
+                               "The state zeta after the last step (a copy).")
+        .def("reset", &RealTimeController::reset, "Set the state zeta to zero.")
+        .def(
+            "step",
+            [](RealTimeController& r, const py::array& slopes, py::object out) {
+                auto s = float32_input(slopes, {r.n_slopes()}, "slopes");
+                auto c = output_or_new(out, {r.n_commands()}, "out");
+                r.step(s.data(), c.mutable_data());
+                return c;
+            },
+            py::arg("slopes"), py::arg("out") = py::none(),
+            "One frame: slopes (float32, n_slopes) -> commands (float32, n_commands).")
+        .def(
+            "run",
+            [](RealTimeController& r, const py::array& slopes, py::object gains) {
+                auto s = float32_input(slopes, {-1, r.n_slopes()}, "slopes");
+                const py::ssize_t n = s.shape(0);
+                py::array_t<float> c({n, static_cast<py::ssize_t>(r.n_commands())});
+                const float* g = nullptr;
+                py::array_t<float, py::array::c_style> gk;
+                if (!gains.is_none()) {
+                    gk = float32_input(py::array::ensure(gains), {n, r.n_states()}, "gains");
+                    g = gk.data();
+                }
+                r.run(s.data(), static_cast<int>(n), c.mutable_data(), g);
+                return c;
+            },
+            py::arg("slopes"), py::arg("gains") = py::none(),
+            "A block of frames for offline replays: slopes (n_steps, n_slopes) -> commands (n_steps, n_commands).\n"
+            "gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.")
+        .def_property_readonly("n_states", &RealTimeController::n_states)
+        .def_property_readonly("n_slopes", &RealTimeController::n_slopes)
+        .def_property_readonly("n_commands", &RealTimeController::n_commands)
+        .def_property_readonly("n_threads", &RealTimeController::n_threads)
+        .def_property_readonly("structure", [](const RealTimeController& r) {
+            py::list sizes;
+            for (const auto& b : r.blocks()) sizes.append(b.size);
+            py::dict d;
+            d["diagonal_states"] = r.n_diagonal_states();
+            d["block_sizes"] = sizes;
+            d["input_rows"] = r.n_input_rows();
+            d["output_states"] = r.n_output_states();
+            return d;
+        }, "The structure found at construction: diagonal states, dense block sizes, non-zero Xi rows, non-zero Sigma columns.");
+}

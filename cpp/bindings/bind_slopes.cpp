@@ -1,0 +1,120 @@
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include "checks.hpp"
+#include "soulctl/slopes.hpp"
+
+namespace py = pybind11;
+using namespace soulctl;
+using namespace soulctl::bind;
+
+namespace {
+
+SlopeComputer make_slope_computer(const py::array& pixels, std::pair<int, int> frame_shape,
+                                  const std::string& normalization) {
+    if (!(has_dtype<int32_t>(pixels) || has_dtype<int64_t>(pixels)))
+        throw py::value_error("pixels: expected an integer array (int32 or int64), got " + dtype_str(pixels));
+    require_shape(pixels, {-1, 4, 2}, "pixels");
+    Normalization norm;
+    if (normalization == "global") norm = Normalization::Global;
+    else if (normalization == "subaperture") norm = Normalization::Subaperture;
+    else throw py::value_error("normalization: expected 'global' or 'subaperture', got '" + normalization + "'");
+    auto p = py::array_t<int64_t, py::array::c_style | py::array::forcecast>::ensure(pixels);
+    const py::ssize_t n = p.shape(0) * 4;
+    std::vector<int32_t> rows(n), cols(n);
+    auto v = p.unchecked<3>();
+    for (py::ssize_t i = 0; i < p.shape(0); ++i)
+        for (int q = 0; q < 4; ++q) {
+            const int64_t r = v(i, q, 0), c = v(i, q, 1);
+            // Out-of-range values (also beyond int32) are reported by the constructor.
+            rows[4 * i + q] = (r < 0 || r > INT32_MAX) ? -1 : static_cast<int32_t>(r);
+            cols[4 * i + q] = (c < 0 || c > INT32_MAX) ? -1 : static_cast<int32_t>(c);
+        }
+    try {
+        return SlopeComputer(rows, cols, frame_shape.first, frame_shape.second, norm);
+    } catch (const std::invalid_argument& e) {
+        throw py::value_error(e.what());
+    }
+}
+
+py::array_t<float> compute(SlopeComputer& sc, const py::array& frame, py::object out) {
+    const std::vector<py::ssize_t> fshape{sc.frame_rows(), sc.frame_cols()};
+    const py::ssize_t ns = 2 * static_cast<py::ssize_t>(sc.n_subapertures());
+    py::array_t<float> result;
+    if (out.is_none()) {
+        result = py::array_t<float>(ns);
+    } else {
+        py::array o = py::array::ensure(out);
+        if (!o) throw py::value_error("out: expected a numpy array");
+        check_output(o, {ns}, "out");
+        result = py::reinterpret_borrow<py::array_t<float>>(o);
+    }
+    float* dst = result.mutable_data();
+    if (has_dtype<float>(frame)) {
+        require_shape(frame, fshape, "frame");
+        auto f = py::array_t<float, py::array::c_style>::ensure(frame);
+        sc.compute<float>(f.data(), dst);
+    } else if (has_dtype<uint16_t>(frame)) {
+        require_shape(frame, fshape, "frame");
+        auto f = py::array_t<uint16_t, py::array::c_style>::ensure(frame);
+        sc.compute<uint16_t>(f.data(), dst);
+    } else {
+        throw py::value_error("frame: expected dtype float32 or uint16, got " + dtype_str(frame));
+    }
+    return result;
+}
+
+}  // namespace
+
+void bind_slopes(py::module_& m) {
+    py::class_<SlopeComputer>(m, "SlopeComputer", R"doc(
+PWFS slope computer: detector frame -> slopes, at full rate.
+
+pixels: int array (n_subapertures, 4, 2) with the (row, col) of pupil image 1..4 of each
+valid sub-aperture, at the frame's binning.  Pupil images: 1 = (+x, +y), 2 = (+x, -y),
+3 = (-x, +y), 4 = (-x, -y), x along columns, y along rows, so
+    sx = (I1 + I2 - I3 - I4) / N,   sy = (I1 - I2 + I3 - I4) / N.
+normalization: 'global' (N = mean flux per valid sub-aperture, default) or 'subaperture'
+(N = the sub-aperture's own flux).  Slopes come out as [sx_0..sx_{n-1}, sy_0..sy_{n-1}].
+Zero, negative or non-finite flux gives zero slopes and sets flux_ok False / n_dark.
+)doc")
+        .def(py::init(&make_slope_computer), py::arg("pixels"), py::arg("frame_shape"),
+             py::arg("normalization") = "global")
+        .def("compute", &compute, py::arg("frame"), py::arg("out") = py::none(),
+             "Slopes of a frame (float32 or uint16, shape frame_shape) as float32 (2*n_subapertures,).")
+        .def(
+            "set_background",
+            [](SlopeComputer& sc, const py::array& frame) {
+                auto f = float32_input(frame, {sc.frame_rows(), sc.frame_cols()}, "background");
+                sc.set_background(f.data());
+            },
+            py::arg("frame"), "Background frame (float32, shape frame_shape) subtracted before the slopes.")
+        .def("clear_background", &SlopeComputer::clear_background)
+        .def(
+            "set_reference",
+            [](SlopeComputer& sc, const py::array& slopes) {
+                auto s = float32_input(slopes, {2 * static_cast<py::ssize_t>(sc.n_subapertures())}, "reference");
+                sc.set_reference(s.data());
+            },
+            py::arg("slopes"), "Reference slopes (float32, 2*n_subapertures) subtracted after normalisation.")
+        .def("clear_reference", &SlopeComputer::clear_reference)
+        .def_property_readonly("n_subapertures", &SlopeComputer::n_subapertures)
+        .def_property_readonly("frame_shape", [](const SlopeComputer& sc) {
+            return py::make_tuple(sc.frame_rows(), sc.frame_cols());
+        })
+        .def_property_readonly("normalization", [](const SlopeComputer& sc) {
+            return sc.normalization() == Normalization::Global ? "global" : "subaperture";
+        })
+        .def_property_readonly("has_background", &SlopeComputer::has_background)
+        .def_property_readonly("has_reference", &SlopeComputer::has_reference)
+        .def_property_readonly("total_flux", [](const SlopeComputer& sc) { return sc.last_status().total_flux; },
+                               "Background-subtracted flux over the valid sub-apertures in the last frame.")
+        .def_property_readonly("flux_ok", [](const SlopeComputer& sc) { return sc.last_status().flux_ok; },
+                               "False if the last frame's normalising flux was zero, negative or not finite.")
+        .def_property_readonly("n_dark", [](const SlopeComputer& sc) { return sc.last_status().n_dark; },
+                               "Sub-apertures whose slopes were zeroed in the last frame.")
+        .def_property_readonly("subaperture_flux", [](const SlopeComputer& sc) {
+            const auto& f = sc.subaperture_flux();
+            return py::array_t<float>(f.size(), f.data());
+        }, "Flux of each valid sub-aperture in the last frame (a copy).");
+}

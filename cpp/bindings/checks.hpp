@@ -1,0 +1,72 @@
+// Argument checks shared by the bindings: every wrong shape or dtype becomes a ValueError
+// that names what was expected and what was given.
+#pragma once
+
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <string>
+#include <vector>
+
+namespace soulctl::bind {
+
+namespace py = pybind11;
+
+inline std::string shape_str(const std::vector<py::ssize_t>& s) {
+    std::string out = "(";
+    for (size_t i = 0; i < s.size(); ++i) out += (i ? ", " : "") + std::to_string(s[i]);
+    return out + (s.size() == 1 ? ",)" : ")");
+}
+
+inline std::string shape_str(const py::array& a) {
+    return shape_str(std::vector<py::ssize_t>(a.shape(), a.shape() + a.ndim()));
+}
+
+inline std::string dtype_str(const py::array& a) { return py::str(a.dtype()).cast<std::string>(); }
+
+// -1 in `expected` accepts any size on that axis.
+inline void require_shape(const py::array& a, const std::vector<py::ssize_t>& expected, const char* name) {
+    bool ok = a.ndim() == static_cast<py::ssize_t>(expected.size());
+    for (size_t i = 0; ok && i < expected.size(); ++i) ok = expected[i] < 0 || a.shape(i) == expected[i];
+    if (!ok) {
+        std::string e = "(";
+        for (size_t i = 0; i < expected.size(); ++i)
+            e += (i ? ", " : "") + (expected[i] < 0 ? std::string("any") : std::to_string(expected[i]));
+        e += expected.size() == 1 ? ",)" : ")";
+        throw py::value_error(std::string(name) + ": expected shape " + e + ", got " + shape_str(a));
+    }
+}
+
+template <typename T>
+inline bool has_dtype(const py::array& a) {
+    return a.dtype().is(py::dtype::of<T>());
+}
+
+// A float32 array of the given shape, C-contiguous (a contiguous copy is made only when the
+// given array is a non-contiguous view; a different dtype is an error, never a silent cast).
+inline py::array_t<float, py::array::c_style> float32_input(const py::array& a,
+                                                             const std::vector<py::ssize_t>& shape,
+                                                             const char* name) {
+    if (!has_dtype<float>(a))
+        throw py::value_error(std::string(name) + ": expected dtype float32, got " + dtype_str(a));
+    require_shape(a, shape, name);
+    return py::array_t<float, py::array::c_style>::ensure(a);
+}
+
+// An output array: float32, C-contiguous, writeable, of exactly this shape.
+inline void check_output(const py::array& a, const std::vector<py::ssize_t>& shape, const char* name) {
+    if (!has_dtype<float>(a)) throw py::value_error(std::string(name) + ": expected dtype float32, got " + dtype_str(a));
+    require_shape(a, shape, name);
+    if (!(a.flags() & py::array::c_style)) throw py::value_error(std::string(name) + ": must be C-contiguous");
+    if (!a.writeable()) throw py::value_error(std::string(name) + ": must be writeable");
+}
+
+// Matrices given at construction: float32 or float64 accepted (copied to float32 anyway).
+inline py::array_t<float, py::array::c_style> matrix_input(const py::array& a, const char* name) {
+    if (!has_dtype<float>(a) && !has_dtype<double>(a))
+        throw py::value_error(std::string(name) + ": expected dtype float32 or float64, got " + dtype_str(a));
+    if (a.ndim() != 2) throw py::value_error(std::string(name) + ": expected a 2-D matrix, got shape " + shape_str(a));
+    return py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(a);
+}
+
+}  // namespace soulctl::bind

@@ -1,0 +1,17 @@
+#include <pybind11/pybind11.h>
+
+namespace py = pybind11;
+
+void bind_slopes(py::module_& m);
+void bind_rtc(py::module_& m);
+
+PYBIND11_MODULE(_core, m) {
+    m.doc() = "soulctl real-time core: PWFS slope computation and the SOUL RTC state update (float32).";
+    bind_slopes(m);
+    bind_rtc(m);
+#ifdef SOULCTL_HAVE_OPENMP
+    m.attr("openmp") = true;
+#else
+    m.attr("openmp") = false;
+#endif
+}

@@ -1,0 +1,66 @@
+// PWFS slope computation from a detector frame (the first half of the real-time path).
+//
+// Quadrant convention (documented in docs/physics.md): the four pupil images of a
+// sub-aperture are numbered 1..4 with
+//   1 = (+x, +y)   2 = (+x, -y)   3 = (-x, +y)   4 = (-x, -y)
+// where +x is increasing column index and +y is increasing row index of the frame, so
+//   sx = (I1 + I2 - I3 - I4) / N,   sy = (I1 - I2 + I3 - I4) / N.
+// N is either the mean flux per valid sub-aperture (global normalisation, the default)
+// or the sub-aperture's own flux.  The output vector is [sx_0..sx_{n-1}, sy_0..sy_{n-1}].
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+namespace soulctl {
+
+enum class Normalization { Global, Subaperture };
+
+struct SlopeStatus {
+    double total_flux = 0.0;  // background-subtracted flux summed over valid sub-apertures
+    bool flux_ok = true;      // false when the normalising flux was zero, negative or not finite
+    int n_dark = 0;           // sub-apertures whose slopes were set to zero for lack of flux
+};
+
+class SlopeComputer {
+public:
+    // pixels: n_sub*4 (row, col) pairs, sub-aperture major, pupil image 1..4 minor.
+    SlopeComputer(const std::vector<int32_t>& rows, const std::vector<int32_t>& cols,
+                  int frame_rows, int frame_cols, Normalization norm);
+
+    int n_subapertures() const { return n_sub_; }
+    int frame_rows() const { return frame_rows_; }
+    int frame_cols() const { return frame_cols_; }
+    Normalization normalization() const { return norm_; }
+
+    // background: a full frame (frame_rows*frame_cols); only the used pixels are kept.
+    void set_background(const float* frame);
+    void clear_background();
+    bool has_background() const { return has_background_; }
+
+    // reference slopes (2*n_sub), subtracted after normalisation.
+    void set_reference(const float* slopes);
+    void clear_reference();
+    bool has_reference() const { return has_reference_; }
+
+    // Computes 2*n_sub slopes into out. T is float or uint16_t.
+    template <typename T>
+    SlopeStatus compute(const T* frame, float* out);
+
+    const std::vector<float>& subaperture_flux() const { return flux_; }
+    const SlopeStatus& last_status() const { return status_; }
+
+private:
+    int n_sub_;
+    int frame_rows_, frame_cols_;
+    Normalization norm_;
+    std::vector<int32_t> index_;       // flat pixel index, n_sub*4
+    std::vector<float> background_;    // background at the used pixels, n_sub*4
+    std::vector<float> reference_;     // 2*n_sub
+    std::vector<float> dx_, dy_, flux_;
+    bool has_background_ = false;
+    bool has_reference_ = false;
+    SlopeStatus status_;
+};
+
+}  // namespace soulctl

@@ -1,0 +1,1 @@
+"""The soulctl command line: one module per command group."""

@@ -1,0 +1,81 @@
+"""``soulctl configure``: the observation set-up for a guide star, from the look-up table."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .. import tables
+from ..errors import InputError
+from ..observation import Observation, observation_for_magnitude
+
+
+def parse_magnitude(text: str) -> float:
+    """The --mag value as a finite number inside the look-up table's range."""
+    lo, hi = tables.magnitude_range(tables.magnitude_table())
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
+    return value
+
+
+def render(obs: Observation, console: Console) -> None:
+    t = Table(title=f"SOUL configuration for an R = {obs.magnitude_r:g} guide star", title_justify="left")
+    t.add_column("parameter")
+    t.add_column("value", justify="right")
+    t.add_column("source", style="dim")
+    band = tables.band_for_magnitude(obs.magnitude_r, tables.magnitude_table())
+    row = f"look-up table row {band.label}"
+    t.add_row("binning", f"{obs.binning}", row)
+    t.add_row("sub-apertures across", f"{obs.subapertures} x {obs.subapertures}", row)
+    t.add_row("controlled modes", f"{obs.modes}", row)
+    rate_src = (
+        "fixed by the row"
+        if band.frame_rate_max_hz == band.frame_rate_min_hz
+        else f"flux rule in {band.frame_rate_max_hz:g}..{band.frame_rate_min_hz:g} Hz"
+    )
+    t.add_row("frame rate", f"{obs.frame_rate_hz:g} Hz", rate_src)
+    t.add_row("modulation radius", f"{obs.modulation_lambda_over_d:g} λ/D", row)
+    if obs.tt_control == "iir":
+        t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"roots table at {obs.tt_filter_rate_hz:g} Hz")
+        t.add_row("  zeros", " ".join(f"{z:+.3f}" for z in obs.tt_zeros), "")
+        t.add_row("  poles", " ".join(f"{p:+.3f}" for p in obs.tt_poles), "")
+    else:
+        t.add_row("Tip/Tilt control", "integrator", "frame rate below 750 Hz")
+    t.add_row("other modes", "leaky integrators", "")
+    t.add_row("loop delay", f"{obs.delay_s * 1e3:.2f} ms = {obs.delay_frames:.2f} frames", "delay model")
+    t.add_row("photons / sub-aperture / frame", f"{obs.photons_per_subaperture_per_frame:.1f}", "WFS zero point")
+    console.print(t)
+
+
+def configure(
+    mag: str = typer.Option(..., "--mag", metavar="R", help="Guide star R magnitude (0 to 18.5)."),
+    out: Path | None = typer.Option(None, "--out", help="Write the configuration as TOML (for --config of later commands)."),
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+) -> None:
+    """Set up an observation for a guide star of R magnitude from the SOUL look-up table:
+    binning, sub-apertures, controlled modes, frame rate, modulation, Tip/Tilt filter, loop delay
+    and expected photons per sub-aperture per frame.
+
+    Example: soulctl configure --mag 13 --out obs.toml
+    """
+    obs = observation_for_magnitude(parse_magnitude(mag))
+    if out is not None:
+        if out.is_dir():
+            raise InputError(f"--out must be a file path, got the directory {out}")
+        if not out.parent.exists():
+            raise InputError(f"--out: the folder {out.parent} does not exist")
+        obs.write_toml(out)
+    if json_output:
+        typer.echo(obs.to_json())
+    else:
+        render(obs, Console())
+        if out is not None:
+            Console().print(f"written {out}")

@@ -1,0 +1,1 @@
+"""Temporal control: filters as data, the loop delay model, RTC matrix assembly."""

@@ -1,0 +1,236 @@
+"""An observation's configuration, set up from the magnitude look-up table (paper, Sec. 2.1:
+"register the amount of detected flux ... and, based on this value, choose the configuration").
+
+Frame-rate rule (where a table row gives a range): within a row the frame rate follows the
+detected flux F as a power law, f = f_max (F / F_bright)^p, with p fixed by the row's own ends
+(the row's brightest star gets f_max, its faintest f_min).  Since F = F0 10^(-0.4 R), this is
+log f linear in R between the row's edges.  See docs/physics.md for the comparison with the
+operating points quoted in the paper.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomli_w
+
+from . import tables
+from .control.delay import DelayModel
+from .errors import InputError
+from .optics.photometry import WfsPhotometry
+
+IIR_MIN_RATE_HZ = 750.0  # the lowest rate of the roots table; below it an integrator (paper, Sec. 2.3)
+TT_CONTROLS = ("iir", "int")
+BINNINGS = {1: 40, 2: 20, 3: 13, 4: 10}  # binning -> sub-apertures across the pupil (paper, Tab. params)
+
+
+def frame_rate(magnitude_r: float, band: tables.MagnitudeBand) -> float:
+    """Frame rate (Hz, rounded to 1 Hz) for a star in a table row: the flux power law above."""
+    f_max, f_min = band.frame_rate_max_hz, band.frame_rate_min_hz
+    if f_max == f_min:
+        return float(f_max)
+    x = (magnitude_r - band.r_min) / (band.r_max - band.r_min)  # 0 at the bright edge, 1 at the faint
+    x = min(max(x, 0.0), 1.0)
+    return float(round(f_max * (f_min / f_max) ** x))
+
+
+def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...]) -> tables.IIRRoots | None:
+    """The Tip/Tilt IIR of the roots table at the tabulated rate nearest to ``frame_rate_hz``
+    (ties to the higher rate), or None below 750 Hz where an integrator is used."""
+    if frame_rate_hz < IIR_MIN_RATE_HZ:
+        return None
+    return min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    """Write text to path via a temporary file in the same folder and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _require(cond: bool, message: str) -> None:
+    if not cond:
+        raise InputError(message)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """The free parameters of an observation (paper, Sec. 2.1) and the models that derive the rest."""
+
+    magnitude_r: float
+    binning: int
+    modes: int
+    frame_rate_hz: float
+    modulation_lambda_over_d: float
+    tt_control: str  # "iir" or "int"
+    tt_filter_rate_hz: float | None = None  # rate of the roots-table row used, for provenance
+    tt_zeros: tuple[float, ...] = ()
+    tt_poles: tuple[float, ...] = ()
+    delay_model: DelayModel = field(default_factory=DelayModel.from_table)
+    photometry: WfsPhotometry = field(default_factory=WfsPhotometry.from_table)
+
+    def __post_init__(self):
+        _require(math.isfinite(self.magnitude_r), f"magnitude_r must be a number, got {self.magnitude_r}")
+        _require(self.binning in BINNINGS, f"binning must be one of 1, 2, 3, 4, got {self.binning}")
+        _require(1 <= self.modes <= 672, f"modes must be in 1..672, got {self.modes}")
+        _require(
+            math.isfinite(self.frame_rate_hz) and 10.0 <= self.frame_rate_hz <= 2000.0,
+            f"frame_rate_hz must be in 10..2000 Hz, got {self.frame_rate_hz}",
+        )
+        _require(
+            math.isfinite(self.modulation_lambda_over_d) and 0.0 <= self.modulation_lambda_over_d <= 20.0,
+            f"modulation_lambda_over_d must be in 0..20, got {self.modulation_lambda_over_d}",
+        )
+        _require(self.tt_control in TT_CONTROLS, f"tt_control must be 'iir' or 'int', got '{self.tt_control}'")
+        if self.tt_control == "iir":
+            _require(
+                len(self.tt_zeros) == 4 and len(self.tt_poles) == 4,
+                "tt_control 'iir' needs 4 tt_zeros and 4 tt_poles",
+            )
+
+    # Derived quantities: computed, never stored.
+    @property
+    def subapertures(self) -> int:
+        """Sub-apertures across the pupil at this binning."""
+        return BINNINGS[self.binning]
+
+    @property
+    def delay_s(self) -> float:
+        return self.delay_model.total_s(self.frame_rate_hz)
+
+    @property
+    def delay_frames(self) -> float:
+        return self.delay_model.frames(self.frame_rate_hz)
+
+    @property
+    def photons_per_subaperture_per_frame(self) -> float:
+        return self.photometry.photons_per_frame(self.magnitude_r, self.binning, self.frame_rate_hz)
+
+    def to_dict(self) -> dict:
+        """A JSON/TOML-ready dict: free parameters by section, derived values under 'derived'."""
+        d = {
+            "star": {"magnitude_r": self.magnitude_r},
+            "wfs": {
+                "binning": self.binning,
+                "frame_rate_hz": self.frame_rate_hz,
+                "modulation_lambda_over_d": self.modulation_lambda_over_d,
+            },
+            "control": {"modes": self.modes, "tt_control": self.tt_control},
+            "delay": {
+                "t_readout_ms": self.delay_model.t_readout_s * 1e3,
+                "t_computation_ms": self.delay_model.t_computation_s * 1e3,
+                "t_asm_ms": self.delay_model.t_asm_s * 1e3,
+            },
+            "photometry": {"zero_point_ph_s_per_subaperture": self.photometry.zero_point_ph_s},
+            "derived": {
+                "subapertures": self.subapertures,
+                "delay_ms": round(self.delay_s * 1e3, 4),
+                "delay_frames": round(self.delay_frames, 4),
+                "photons_per_subaperture_per_frame": round(self.photons_per_subaperture_per_frame, 3),
+            },
+        }
+        if self.tt_control == "iir":
+            d["control"].update(
+                tt_filter_rate_hz=self.tt_filter_rate_hz,
+                tt_zeros=list(self.tt_zeros),
+                tt_poles=list(self.tt_poles),
+            )
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Observation":
+        """Inverse of to_dict; 'derived' is ignored and recomputed."""
+        try:
+            star, wfs, control = d["star"], d["wfs"], d["control"]
+            delay = d.get("delay", {})
+            default_delay = DelayModel.from_table()
+            delay_model = DelayModel(
+                t_readout_s=float(delay.get("t_readout_ms", default_delay.t_readout_s * 1e3)) * 1e-3,
+                t_computation_s=float(delay.get("t_computation_ms", default_delay.t_computation_s * 1e3)) * 1e-3,
+                t_asm_s=float(delay.get("t_asm_ms", default_delay.t_asm_s * 1e3)) * 1e-3,
+                source=default_delay.source if not delay else "configuration file",
+            )
+            phot = WfsPhotometry.from_table()
+            zp = d.get("photometry", {}).get("zero_point_ph_s_per_subaperture")
+            if zp is not None:
+                phot = WfsPhotometry(float(zp), phot.reference_subapertures, phot.pupil_diameter_m, "configuration file")
+            return cls(
+                magnitude_r=float(star["magnitude_r"]),
+                binning=int(wfs["binning"]),
+                modes=int(control["modes"]),
+                frame_rate_hz=float(wfs["frame_rate_hz"]),
+                modulation_lambda_over_d=float(wfs["modulation_lambda_over_d"]),
+                tt_control=str(control["tt_control"]),
+                tt_filter_rate_hz=(
+                    float(control["tt_filter_rate_hz"]) if control.get("tt_filter_rate_hz") is not None else None
+                ),
+                tt_zeros=tuple(float(z) for z in control.get("tt_zeros", ())),
+                tt_poles=tuple(float(p) for p in control.get("tt_poles", ())),
+                delay_model=delay_model,
+                photometry=phot,
+            )
+        except InputError:
+            raise
+        except KeyError as e:
+            raise InputError(f"configuration is missing the key {e.args[0]!r}") from None
+        except (TypeError, ValueError) as e:
+            raise InputError(f"configuration has a value of the wrong type: {e}") from None
+
+    def to_toml(self) -> str:
+        header = (
+            "# soulctl observation configuration (soulctl configure --out).\n"
+            "# [derived] is informational: it is recomputed from the other sections when read.\n"
+        )
+        return header + tomli_w.dumps(self.to_dict())
+
+    def write_toml(self, path: str | Path) -> None:
+        """Write the TOML file atomically (temporary file, then rename)."""
+        _atomic_write(Path(path), self.to_toml())
+
+    @classmethod
+    def read_toml(cls, path: str | Path) -> "Observation":
+        try:
+            with open(path, "rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError:
+            raise InputError(f"configuration file not found: {path}") from None
+        except tomllib.TOMLDecodeError as e:
+            raise InputError(f"configuration file {path} is not valid TOML: {e}") from None
+        return cls.from_dict(data)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+
+def observation_for_magnitude(magnitude_r: float) -> Observation:
+    """The configuration the look-up table gives for a guide star of R magnitude."""
+    bands = tables.magnitude_table()
+    band = tables.band_for_magnitude(magnitude_r, bands)
+    rate = frame_rate(magnitude_r, band)
+    roots = tt_filter_roots(rate, tables.tt_iir_table())
+    return Observation(
+        magnitude_r=float(magnitude_r),
+        binning=band.binning,
+        modes=band.modes,
+        frame_rate_hz=rate,
+        modulation_lambda_over_d=band.modulation_lambda_over_d,
+        tt_control="iir" if roots else "int",
+        tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
+        tt_zeros=roots.zeros if roots else (),
+        tt_poles=roots.poles if roots else (),
+    )
+

@@ -1,0 +1,1 @@
+"""Optical models: photometry now; pupil, ASM modes, atmosphere, PWFS and detector to come."""
