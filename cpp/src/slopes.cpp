@@ -75,12 +75,13 @@ SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
     const float* ry = reference_.data() + n;
     if (norm_ == Normalization::Global) {
         const double mean = total / n;
-        if (!(mean > 0.0) || !std::isfinite(mean)) {
+        // A denormal mean passes "> 0" but its float reciprocal overflows: test the reciprocal.
+        const float inv = static_cast<float>(1.0 / mean);
+        if (!(mean > 0.0) || !std::isfinite(mean) || !std::isfinite(inv)) {
             std::fill(out, out + 2 * n, 0.0f);
             st.flux_ok = false;
             st.n_dark = n;
         } else {
-            const float inv = static_cast<float>(1.0 / mean);
             for (int i = 0; i < n; ++i) {
                 sx[i] = dx_[i] * inv - rx[i];
                 sy[i] = dy_[i] * inv - ry[i];
@@ -89,12 +90,12 @@ SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
     } else {
         for (int i = 0; i < n; ++i) {
             const float f = flux_[i];
-            if (!(f > 0.0f) || !std::isfinite(f)) {
+            const float inv = 1.0f / f;
+            if (!(f > 0.0f) || !std::isfinite(f) || !std::isfinite(inv)) {
                 sx[i] = 0.0f;
                 sy[i] = 0.0f;
                 ++st.n_dark;
             } else {
-                const float inv = 1.0f / f;
                 sx[i] = dx_[i] * inv - rx[i];
                 sy[i] = dy_[i] * inv - ry[i];
             }

@@ -9,14 +9,18 @@ g prod(z - beta) / prod(z - alpha).  For the leaky integrator (no zero, one pole
 state space A = alpha, B = g, C = 1 gives g / (1 - alpha z^-1) = g z / (z - alpha): the z-form
 of Eq. tfIIR lacks that factor z, and soulctl follows the state space, as the RTC does.
 
-State-space realisation (paper, Eq. stateIIR, with null feed-forward matrix): with
-N_alpha poles and N_beta zeros the state holds the N_alpha latest outputs and the N_beta latest
-inputs scaled by the gain,
+State-space realisation (paper, Eq. stateIIR, with null feed-forward matrix), N_f = N_alpha +
+N_beta states, A independent of g and B = G(g) B_unit with G(g) = g I, so that only the RTC's
+Delta carries the gain and it may change between two steps:
 
-    x(k) = [y(k), ..., y(k-N_alpha+1), g u(k), ..., g u(k-N_beta+1)],
-
-so that A does not depend on g and B = G(g) B_unit with G(g) = g I: only the RTC's Delta
-carries the gain, and it may change between two steps.
+* no pole at z = 1: direct form, the N_alpha latest outputs and N_beta latest inputs scaled by
+  the gain, x(k) = [y(k), ..., y(k-N_alpha+1), g u(k), ..., g u(k-N_beta+1)] (the paper's "N_f/2
+  past values of u and y");
+* a pole at z = 1 (integral action, all Tip/Tilt filters of the paper): the integrator is kept
+  as its own state, y(k) = y(k-1) + w(k), with w the direct form of the other poles,
+  x(k) = [w(k), ..., w(k-N_alpha+2), g u(k), ..., g u(k-N_beta+1), y(k)].  Its 1.0 in Lambda is
+  exact in float32; in a float32 direct form the rounded coefficients move that pole, to
+  1 + 3.8e-6 for the paper's 1350 Hz filter (a slow divergence of the integrator).
 """
 
 from __future__ import annotations
@@ -83,20 +87,38 @@ class Filter:
     def unit_state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A, B_unit, C) of the realisation above: x(k) = A x(k-1) + g B_unit u(k), y(k) = C x(k)."""
         b = _real_poly(self.zeros, "zeros")  # monic: b[0] = 1
-        a = _real_poly(self.poles, "poles")
-        na, nb = len(self.poles), len(self.zeros)
-        n = na + nb
+        poles = list(self.poles)
+        integrator = 1.0 in poles
+        if integrator:
+            poles.remove(1.0)
+        a = _real_poly(tuple(poles), "poles")
+        na, nb = len(poles), len(self.zeros)
+        n = self.n_states
         A = np.zeros((n, n))
-        A[0, :na] = -a[1:]
-        A[0, na:] = b[1:]
-        for k in range(1, na):  # y(k-k) <- y(k-k+1)
-            A[k, k - 1] = 1.0
-        for k in range(1, nb):  # g u(k-k) <- g u(k-k+1)
-            A[na + k, na + k - 1] = 1.0
         B = np.zeros(n)
-        B[0] = b[0]
+        # Direct-form row of the recursion (y, or w when the integrator is split off): it reads
+        # the na latest outputs at 0..na-1 and the nb latest scaled inputs at na..na+nb-1.
+        row = np.zeros(n)
+        row[:na] = -a[1:]
+        row[na : na + nb] = b[1:]
+        for k in range(1, na):
+            A[k, k - 1] = 1.0
+        for k in range(1, nb):
+            A[na + k, na + k - 1] = 1.0
         if nb:
             B[na] = 1.0
         C = np.zeros(n)
-        C[0] = 1.0
+        if integrator:
+            iy = n - 1  # y(k) = y(k-1) + w(k)
+            if na:
+                A[0] = row
+                B[0] = b[0]
+            A[iy] = row
+            A[iy, iy] = 1.0
+            B[iy] = b[0]
+            C[iy] = 1.0
+        else:
+            A[0] = row
+            B[0] = b[0]
+            C[0] = 1.0
         return A, B, C
