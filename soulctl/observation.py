@@ -131,9 +131,9 @@ class Observation:
             },
             "control": {"modes": self.modes, "tt_control": self.tt_control},
             "delay": {
-                "t_readout_ms": self.delay_model.t_readout_s * 1e3,
-                "t_computation_ms": self.delay_model.t_computation_s * 1e3,
-                "t_asm_ms": self.delay_model.t_asm_s * 1e3,
+                "t_readout_ms": self.delay_model.t_readout_ms,
+                "t_computation_ms": self.delay_model.t_computation_ms,
+                "t_asm_ms": self.delay_model.t_asm_ms,
             },
             "photometry": {"zero_point_ph_s_per_subaperture": self.photometry.zero_point_ph_s},
             "derived": {
@@ -157,12 +157,12 @@ class Observation:
         try:
             star, wfs, control = d["star"], d["wfs"], d["control"]
             delay = d.get("delay", {})
-            default_delay = DelayModel.from_table()
+            default = DelayModel.from_table()
             delay_model = DelayModel(
-                t_readout_s=float(delay.get("t_readout_ms", default_delay.t_readout_s * 1e3)) * 1e-3,
-                t_computation_s=float(delay.get("t_computation_ms", default_delay.t_computation_s * 1e3)) * 1e-3,
-                t_asm_s=float(delay.get("t_asm_ms", default_delay.t_asm_s * 1e3)) * 1e-3,
-                source=default_delay.source if not delay else "configuration file",
+                t_readout_ms=float(delay.get("t_readout_ms", default.t_readout_ms)),
+                t_computation_ms=float(delay.get("t_computation_ms", default.t_computation_ms)),
+                t_asm_ms=float(delay.get("t_asm_ms", default.t_asm_ms)),
+                source="configuration file" if delay else default.source,
             )
             phot = WfsPhotometry.from_table()
             zp = d.get("photometry", {}).get("zero_point_ph_s_per_subaperture")

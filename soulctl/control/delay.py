@@ -17,25 +17,33 @@ from ..errors import InputError
 
 @dataclass(frozen=True)
 class DelayModel:
-    t_readout_s: float
-    t_computation_s: float
-    t_asm_s: float
+    """The delay terms in milliseconds, as in tables/delay_model.toml and configuration files."""
+
+    t_readout_ms: float
+    t_computation_ms: float
+    t_asm_ms: float
     source: str = ""
+
+    def __post_init__(self):
+        for name in ("t_readout_ms", "t_computation_ms", "t_asm_ms"):
+            value = getattr(self, name)
+            if not (value >= 0 and value < 1e3):
+                raise InputError(f"delay term {name} must be in 0..1000 ms, got {value}")
 
     @classmethod
     def from_table(cls, system: str = "soul") -> "DelayModel":
         t = tables.delay_terms(system)
         return cls(
-            t_readout_s=float(t["t_readout_ms"]) * 1e-3,
-            t_computation_s=float(t["t_computation_ms"]) * 1e-3,
-            t_asm_s=float(t["t_asm_ms"]) * 1e-3,
+            t_readout_ms=float(t["t_readout_ms"]),
+            t_computation_ms=float(t["t_computation_ms"]),
+            t_asm_ms=float(t["t_asm_ms"]),
             source=str(t.get("source", "")),
         )
 
     @property
     def latency_s(self) -> float:
         """The part of the delay that does not scale with the frame period."""
-        return self.t_readout_s + self.t_computation_s + 0.5 * self.t_asm_s
+        return (self.t_readout_ms + self.t_computation_ms + 0.5 * self.t_asm_ms) * 1e-3
 
     def total_s(self, frame_rate_hz: float) -> float:
         """Total loop delay in seconds."""

@@ -1,0 +1,77 @@
+"""`soulctl configure`: output, files, and the one-line errors with exit status 2."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from soulctl.cli.app import main
+from soulctl.observation import Observation
+
+
+def run(args, capsys):
+    status = main(args)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_json_is_one_object_with_the_configuration(capsys):
+    status, out, err = run(["configure", "--mag", "13", "--json"], capsys)
+    assert status == 0 and err == ""
+    d = json.loads(out)
+    assert d["wfs"]["binning"] == 2 and d["derived"]["subapertures"] == 20
+    assert d["control"]["modes"] == 250 and d["control"]["tt_control"] == "iir"
+    assert d["derived"]["delay_frames"] == pytest.approx(d["derived"]["delay_ms"] * 1e-3 * d["wfs"]["frame_rate_hz"], rel=1e-3)
+    assert 4 < d["derived"]["photons_per_subaperture_per_frame"] < 8
+
+
+def test_table_output(capsys):
+    status, out, _ = run(["configure", "--mag", "16.9"], capsys)
+    assert status == 0
+    for text in ("binning", "10 x 10", "integrator", "loop delay", "photons"):
+        assert text in out
+
+
+def test_out_writes_a_readable_toml(tmp_path, capsys):
+    path = tmp_path / "obs.toml"
+    status, out, _ = run(["configure", "--mag", "11.5", "--out", str(path), "--json"], capsys)
+    assert status == 0
+    assert Observation.read_toml(path).to_dict() == json.loads(out)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--mag", "19"], "R magnitude 19 is outside the look-up table: accepted range 0 <= R <= 18.5"),
+        (["--mag", "-1"], "accepted range 0 <= R <= 18.5"),
+        (["--mag", "abc"], "--mag must be a number, got 'abc': accepted range 0 <= R <= 18.5"),
+        (["--mag", "nan"], "accepted range 0 <= R <= 18.5"),
+        (["--mag", "12", "--frobnicate"], "No such option: --frobnicate"),
+        ([], "Missing option '--mag'"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_nothing_written(args, message, tmp_path, capsys):
+    path = tmp_path / "obs.toml"
+    status, out, err = run(["configure", *args, "--out", str(path)], capsys)
+    assert status == 2
+    assert err.count("\n") == 1 and err.startswith("soulctl: error: ") and message in err
+    assert not path.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_out_into_missing_folder(tmp_path, capsys):
+    status, _, err = run(["configure", "--mag", "12", "--out", str(tmp_path / "no" / "obs.toml")], capsys)
+    assert status == 2 and "does not exist" in err
+
+
+def test_console_script_has_no_traceback():
+    """The installed entry point, as a user runs it."""
+    proc = subprocess.run(
+        [sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "x"],
+        capture_output=True, text=True,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
+    ok = subprocess.run([sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "9.7"],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0 and "1700 Hz" in ok.stdout
