@@ -1,6 +1,8 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <memory>
+
 #include "checks.hpp"
 #include "soulctl/slopes.hpp"
 
@@ -67,7 +69,7 @@ py::array_t<float> compute(SlopeComputer& sc, const py::array& frame, py::object
 }  // namespace
 
 void bind_slopes(py::module_& m) {
-    py::class_<SlopeComputer>(m, "SlopeComputer", R"doc(
+    py::class_<SlopeComputer, std::shared_ptr<SlopeComputer>>(m, "SlopeComputer", R"doc(
 PWFS slope computer: detector frame -> slopes, at full rate.
 
 pixels: int array (n_subapertures, 4, 2) with the (row, col) of pupil image 1..4 of each

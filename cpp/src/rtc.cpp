@@ -187,6 +187,11 @@ void RealTimeController::output_range(const Range& r, float* c) const {
     if (n > 0) Eigen::Map<Eigen::VectorXf>(c + r.cmd_begin, n).noalias() = sigma_.middleRows(r.cmd_begin, n) * zout_;
 }
 
+void RealTimeController::advance(int r, const float* s) {
+    input_range(ranges_[r], s);
+    update_range(ranges_[r], u_.data(), delta_.data());
+}
+
 void RealTimeController::step(const float* s, float* c) {
 #ifdef SOULCTL_HAVE_OPENMP
     if (n_threads_ > 1) {
@@ -194,21 +199,15 @@ void RealTimeController::step(const float* s, float* c) {
 #pragma omp parallel num_threads(n_threads_)
         {
             const int tid = omp_get_thread_num(), nt = omp_get_num_threads();
-            for (int t = tid; t < n_threads_; t += nt) {
-                input_range(ranges_[t], s);
-                update_range(ranges_[t], u_.data(), delta_.data());
-            }
+            for (int t = tid; t < n_threads_; t += nt) advance(t, s);
 #pragma omp barrier
-            for (int t = tid; t < n_threads_; t += nt) output_range(ranges_[t], c);
+            for (int t = tid; t < n_threads_; t += nt) output(t, c);
         }
         return;
     }
 #endif
-    for (Range& r : ranges_) {
-        input_range(r, s);
-        update_range(r, u_.data(), delta_.data());
-    }
-    for (const Range& r : ranges_) output_range(r, c);
+    for (int t = 0; t < n_threads_; ++t) advance(t, s);
+    for (int t = 0; t < n_threads_; ++t) output(t, c);
 }
 
 void RealTimeController::run(const float* S, int n_steps, float* C, const float* gains) {

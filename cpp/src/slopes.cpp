@@ -1,5 +1,6 @@
 #include "soulctl/slopes.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -15,28 +16,39 @@ SlopeComputer::SlopeComputer(const std::vector<int32_t>& rows, const std::vector
     if (rows.size() != cols.size() || rows.size() % 4 != 0 || rows.empty())
         throw std::invalid_argument("pixels must hold 4 (row, col) pairs per sub-aperture and at least one sub-aperture");
     n_sub_ = static_cast<int>(rows.size() / 4);
-    index_.resize(rows.size());
+    for (int q = 0; q < 4; ++q) {
+        index_[q].resize(n_sub_);
+        background_[q].assign(n_sub_, 0.0f);
+    }
     for (size_t k = 0; k < rows.size(); ++k) {
         if (rows[k] < 0 || rows[k] >= frame_rows || cols[k] < 0 || cols[k] >= frame_cols)
             throw std::invalid_argument("pixel (" + std::to_string(rows[k]) + ", " + std::to_string(cols[k]) +
                                         ") of sub-aperture " + std::to_string(k / 4) + " is outside the frame of shape (" +
                                         std::to_string(frame_rows) + ", " + std::to_string(frame_cols) + ")");
-        index_[k] = rows[k] * frame_cols + cols[k];
+        index_[k % 4][k / 4] = rows[k] * frame_cols + cols[k];
     }
-    background_.assign(index_.size(), 0.0f);
+    for (int q = 0; q < 4; ++q) {
+        intensity_[q].assign(n_sub_, 0.0f);
+        for (int i = 0; i < n_sub_; ++i) {
+            if (i > 0 && index_[q][i] == index_[q][i - 1] + 1) ++runs_[q].back().length;
+            else runs_[q].push_back({i, index_[q][i], 1});
+        }
+    }
     reference_.assign(2 * static_cast<size_t>(n_sub_), 0.0f);
     dx_.resize(n_sub_);
     dy_.resize(n_sub_);
     flux_.resize(n_sub_);
+    dark_.assign(n_sub_, 0);
 }
 
 void SlopeComputer::set_background(const float* frame) {
-    for (size_t k = 0; k < index_.size(); ++k) background_[k] = frame[index_[k]];
+    for (int q = 0; q < 4; ++q)
+        for (int i = 0; i < n_sub_; ++i) background_[q][i] = frame[index_[q][i]];
     has_background_ = true;
 }
 
 void SlopeComputer::clear_background() {
-    std::fill(background_.begin(), background_.end(), 0.0f);
+    for (auto& b : background_) std::fill(b.begin(), b.end(), 0.0f);
     has_background_ = false;
 }
 
@@ -50,25 +62,46 @@ void SlopeComputer::clear_reference() {
     has_reference_ = false;
 }
 
+// Pixels are read run by run (sub-apertures along a detector row sit on contiguous pixels),
+// so the loads and conversions vectorise; then the four images are combined element-wise.
 template <typename T>
-SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
-    const int n = n_sub_;
-    const int32_t* idx = index_.data();
-    const float* bg = background_.data();
-    double total = 0.0;
-    for (int i = 0; i < n; ++i) {
-        const int k = 4 * i;
-        const float i1 = static_cast<float>(frame[idx[k]]) - bg[k];
-        const float i2 = static_cast<float>(frame[idx[k + 1]]) - bg[k + 1];
-        const float i3 = static_cast<float>(frame[idx[k + 2]]) - bg[k + 2];
-        const float i4 = static_cast<float>(frame[idx[k + 3]]) - bg[k + 3];
-        dx_[i] = (i1 + i2) - (i3 + i4);
-        dy_[i] = (i1 + i3) - (i2 + i4);
-        flux_[i] = (i1 + i2) + (i3 + i4);
-        total += flux_[i];
+double SlopeComputer::gather(const T* frame) {
+    const int begin = 0, end = n_sub_;
+    for (int q = 0; q < 4; ++q) {
+        float* iq = intensity_[q].data();
+        const float* bq = background_[q].data();
+        for (const Run& r : runs_[q]) {
+            const int a = std::max(begin, r.sub), b = std::min(end, r.sub + r.length);
+            if (a >= b) continue;
+            const T* src = frame + r.pixel + (a - r.sub);
+#pragma omp simd
+            for (int i = a; i < b; ++i) iq[i] = static_cast<float>(src[i - a]) - bq[i];
+        }
     }
-    SlopeStatus st;
-    st.total_flux = total;
+    const float *i1 = intensity_[0].data(), *i2 = intensity_[1].data(), *i3 = intensity_[2].data(),
+                *i4 = intensity_[3].data();
+    float* dx = dx_.data();
+    float* dy = dy_.data();
+    float* fl = flux_.data();
+    double total = 0.0;
+    for (int b0 = begin; b0 < end; b0 += kBlock) {
+        const int b1e = std::min(end, b0 + kBlock);
+        float partial = 0.0f;  // short float sums, added in double
+#pragma omp simd reduction(+ : partial)
+        for (int i = b0; i < b1e; ++i) {
+            dx[i] = (i1[i] + i2[i]) - (i3[i] + i4[i]);
+            dy[i] = (i1[i] + i3[i]) - (i2[i] + i4[i]);
+            fl[i] = (i1[i] + i2[i]) + (i3[i] + i4[i]);
+            partial += fl[i];
+        }
+        total += partial;
+    }
+    return total;
+}
+
+void SlopeComputer::normalise(double total, float* out) {
+    const int begin = 0, end = n_sub_;
+    const int n = n_sub_;
     float* sx = out;
     float* sy = out + n;
     const float* rx = reference_.data();
@@ -78,32 +111,48 @@ SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
         // A denormal mean passes "> 0" but its float reciprocal overflows: test the reciprocal.
         const float inv = static_cast<float>(1.0 / mean);
         if (!(mean > 0.0) || !std::isfinite(mean) || !std::isfinite(inv)) {
-            std::fill(out, out + 2 * n, 0.0f);
-            st.flux_ok = false;
-            st.n_dark = n;
-        } else {
-            for (int i = 0; i < n; ++i) {
-                sx[i] = dx_[i] * inv - rx[i];
-                sy[i] = dy_[i] * inv - ry[i];
-            }
+            std::fill(sx + begin, sx + end, 0.0f);
+            std::fill(sy + begin, sy + end, 0.0f);
+            return;
+        }
+#pragma omp simd
+        for (int i = begin; i < end; ++i) {
+            sx[i] = dx_[i] * inv - rx[i];
+            sy[i] = dy_[i] * inv - ry[i];
         }
     } else {
-        for (int i = 0; i < n; ++i) {
+        for (int i = begin; i < end; ++i) {
             const float f = flux_[i];
             const float inv = 1.0f / f;
-            if (!(f > 0.0f) || !std::isfinite(f) || !std::isfinite(inv)) {
-                sx[i] = 0.0f;
-                sy[i] = 0.0f;
-                ++st.n_dark;
-            } else {
-                sx[i] = dx_[i] * inv - rx[i];
-                sy[i] = dy_[i] * inv - ry[i];
-            }
+            const bool dark = !(f > 0.0f) || !std::isfinite(f) || !std::isfinite(inv);
+            dark_[i] = dark;
+            sx[i] = dark ? 0.0f : dx_[i] * inv - rx[i];
+            sy[i] = dark ? 0.0f : dy_[i] * inv - ry[i];
         }
+    }
+}
+
+SlopeStatus SlopeComputer::finish_status(double total) {
+    SlopeStatus st;
+    st.total_flux = total;
+    if (norm_ == Normalization::Global) {
+        const double mean = total / n_sub_;
+        const float inv = static_cast<float>(1.0 / mean);
+        st.flux_ok = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv);
+        st.n_dark = st.flux_ok ? 0 : n_sub_;
+    } else {
+        for (int d : dark_) st.n_dark += d;
         st.flux_ok = st.n_dark == 0;
     }
     status_ = st;
     return st;
+}
+
+template <typename T>
+SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
+    const double total = gather(frame);
+    normalise(total, out);
+    return finish_status(total);
 }
 
 template SlopeStatus SlopeComputer::compute<float>(const float*, float*);

@@ -11,8 +11,9 @@
 //  * Rows of Xi that are entirely zero (IIR states that do not take the input) and
 //    columns of Sigma that are entirely zero (states that are not an output) are dropped.
 //  * With n_threads > 1 the state is split into contiguous ranges on block boundaries,
-//    balancing the Xi rows; each OpenMP thread updates its range, then each thread
-//    computes a slice of the commands.
+//    balancing the Xi rows; each OpenMP thread updates its range, then, after a barrier,
+//    computes a slice of the commands (rows of Sigma: long dot products, which measured
+//    faster than splitting Sigma by columns and summing partial commands).
 #pragma once
 
 #include <Eigen/Dense>
@@ -71,6 +72,8 @@ private:
     void update_range(Range& r, const float* u, const float* delta);
     void input_range(const Range& r, const float* s);   // u = Xi s on the range's rows
     void output_range(const Range& r, float* c) const;  // c = Sigma zeta on the range's commands
+    void advance(int r, const float* s);                // input_range + update_range of range r
+    void output(int r, float* c) const { output_range(ranges_[r], c); }
 
     int n_states_, n_slopes_, n_commands_, n_threads_;
     Eigen::VectorXf lambda_diag_;      // n_states (only used on diagonal states)

@@ -24,6 +24,7 @@ struct SlopeStatus {
 
 class SlopeComputer {
 public:
+
     // pixels: n_sub*4 (row, col) pairs, sub-aperture major, pupil image 1..4 minor.
     SlopeComputer(const std::vector<int32_t>& rows, const std::vector<int32_t>& cols,
                   int frame_rows, int frame_cols, Normalization norm);
@@ -51,16 +52,29 @@ public:
     const SlopeStatus& last_status() const { return status_; }
 
 private:
+    // compute() = gather (pixels -> dx, dy, flux; returns the total flux), normalise, status.
+    template <typename T>
+    double gather(const T* frame);
+    void normalise(double total_flux, float* out);
+    SlopeStatus finish_status(double total_flux);
+    static constexpr int kBlock = 256;  // the flux is summed in float over blocks, then in double
+
     int n_sub_;
     int frame_rows_, frame_cols_;
     Normalization norm_;
-    std::vector<int32_t> index_;       // flat pixel index, n_sub*4
-    std::vector<float> background_;    // background at the used pixels, n_sub*4
+    struct Run {  // sub-apertures [sub, sub+length) of one pupil image sit on contiguous pixels
+        int sub, pixel, length;
+    };
+    std::vector<int32_t> index_[4];    // flat pixel index of pupil image q of each sub-aperture
+    std::vector<Run> runs_[4];         // the same as runs of contiguous pixels
+    std::vector<float> intensity_[4];  // I_q of each sub-aperture in the last frame
+    std::vector<float> background_[4]; // background at those pixels
     std::vector<float> reference_;     // 2*n_sub
     std::vector<float> dx_, dy_, flux_;
     bool has_background_ = false;
     bool has_reference_ = false;
     SlopeStatus status_;
+    std::vector<int> dark_;  // per sub-aperture: zeroed in the last frame (subaperture mode)
 };
 
 }  // namespace soulctl
