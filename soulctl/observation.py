@@ -53,6 +53,7 @@ def _atomic_write(path: Path, text: str) -> None:
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
     try:
+        os.fchmod(fd, 0o644)  # mkstemp makes 0600; a configuration file is for everyone to read
         with os.fdopen(fd, "w") as f:
             f.write(text)
         os.replace(tmp, path)

@@ -55,9 +55,9 @@ class MagnitudeBand:
         lower_ok = magnitude >= self.r_min if first else magnitude > self.r_min
         return lower_ok and magnitude <= self.r_max
 
-    @property
-    def label(self) -> str:
-        return f"{self.r_min:g} < R <= {self.r_max:g}"
+    def label(self, first: bool = False) -> str:
+        """The row's range as the paper writes it (the first row is closed at both ends)."""
+        return f"{self.r_min:g} <= R <= {self.r_max:g}" if first else f"{self.r_min:g} < R <= {self.r_max:g}"
 
 
 @dataclass(frozen=True)

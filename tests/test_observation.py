@@ -73,6 +73,7 @@ def test_toml_round_trip(tmp_path):
         assert back.to_dict() == obs.to_dict()
         assert math.isclose(back.delay_frames, obs.delay_frames)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"obs{m}.toml" for m in (5.0, 11.2, 13.0, 15.5, 18.0))
+    assert all(p.stat().st_mode & 0o777 == 0o644 for p in tmp_path.iterdir())
 
 
 def test_edited_toml_is_revalidated_and_derived_values_recomputed(tmp_path):

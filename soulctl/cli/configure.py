@@ -27,31 +27,36 @@ def parse_magnitude(text: str) -> float:
 
 
 def render(obs: Observation, console: Console) -> None:
-    t = Table(title=f"SOUL configuration for an R = {obs.magnitude_r:g} guide star", title_justify="left")
+    bands = tables.magnitude_table()
+    band = tables.band_for_magnitude(obs.magnitude_r, bands)
+    t = Table(
+        title=f"SOUL configuration for an R = {obs.magnitude_r:g} guide star\n"
+        f"(look-up table row {band.label(first=band == bands[0])})",
+        title_justify="left",
+    )
     t.add_column("parameter")
     t.add_column("value", justify="right")
     t.add_column("source", style="dim")
-    band = tables.band_for_magnitude(obs.magnitude_r, tables.magnitude_table())
-    row = f"look-up table row {band.label}"
+    row = "look-up table"
     t.add_row("binning", f"{obs.binning}", row)
     t.add_row("sub-apertures across", f"{obs.subapertures} x {obs.subapertures}", row)
     t.add_row("controlled modes", f"{obs.modes}", row)
     rate_src = (
         "fixed by the row"
         if band.frame_rate_max_hz == band.frame_rate_min_hz
-        else f"flux rule in {band.frame_rate_max_hz:g}..{band.frame_rate_min_hz:g} Hz"
+        else f"flux rule, {band.frame_rate_max_hz:g}..{band.frame_rate_min_hz:g} Hz"
     )
     t.add_row("frame rate", f"{obs.frame_rate_hz:g} Hz", rate_src)
     t.add_row("modulation radius", f"{obs.modulation_lambda_over_d:g} λ/D", row)
     if obs.tt_control == "iir":
-        t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"roots table at {obs.tt_filter_rate_hz:g} Hz")
+        t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"roots at {obs.tt_filter_rate_hz:g} Hz")
         t.add_row("  zeros", " ".join(f"{z:+.3f}" for z in obs.tt_zeros), "")
         t.add_row("  poles", " ".join(f"{p:+.3f}" for p in obs.tt_poles), "")
     else:
-        t.add_row("Tip/Tilt control", "integrator", "frame rate below 750 Hz")
+        t.add_row("Tip/Tilt control", "integrator", "rate < 750 Hz")
     t.add_row("other modes", "leaky integrators", "")
     t.add_row("loop delay", f"{obs.delay_s * 1e3:.2f} ms = {obs.delay_frames:.2f} frames", "delay model")
-    t.add_row("photons / sub-aperture / frame", f"{obs.photons_per_subaperture_per_frame:.1f}", "WFS zero point")
+    t.add_row("photons/sub-ap./frame", f"{obs.photons_per_subaperture_per_frame:.1f}", "WFS zero point")
     console.print(t)
 
 

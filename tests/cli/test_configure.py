@@ -29,8 +29,10 @@ def test_json_is_one_object_with_the_configuration(capsys):
 def test_table_output(capsys):
     status, out, _ = run(["configure", "--mag", "16.9"], capsys)
     assert status == 0
-    for text in ("binning", "10 x 10", "integrator", "loop delay", "photons"):
+    for text in ("binning", "10 x 10", "integrator", "loop delay", "photons", "16.5 < R <= 18.5"):
         assert text in out
+    status, out, _ = run(["configure", "--mag", "3"], capsys)
+    assert "0 <= R <= 10.5" in out
 
 
 def test_out_writes_a_readable_toml(tmp_path, capsys):
