@@ -26,14 +26,6 @@ RealTimeController make_rtc(const py::array& lambda, const py::array& xi, const 
     }
 }
 
-py::array_t<float> output_or_new(py::object out, std::vector<py::ssize_t> shape, const char* name) {
-    if (out.is_none()) return py::array_t<float>(shape);
-    py::array o = py::array::ensure(out);
-    if (!o) throw py::value_error(std::string(name) + ": expected a numpy array");
-    check_output(o, shape, name);
-    return py::reinterpret_borrow<py::array_t<float>>(o);
-}
-
 py::array_t<float> vec(const Eigen::VectorXf& v) { return py::array_t<float>(v.size(), v.data()); }
 
 }  // namespace

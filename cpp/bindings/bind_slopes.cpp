@@ -42,15 +42,7 @@ SlopeComputer make_slope_computer(const py::array& pixels, std::pair<int, int> f
 py::array_t<float> compute(SlopeComputer& sc, const py::array& frame, py::object out) {
     const std::vector<py::ssize_t> fshape{sc.frame_rows(), sc.frame_cols()};
     const py::ssize_t ns = 2 * static_cast<py::ssize_t>(sc.n_subapertures());
-    py::array_t<float> result;
-    if (out.is_none()) {
-        result = py::array_t<float>(ns);
-    } else {
-        py::array o = py::array::ensure(out);
-        if (!o) throw py::value_error("out: expected a numpy array");
-        check_output(o, {ns}, "out");
-        result = py::reinterpret_borrow<py::array_t<float>>(o);
-    }
+    py::array_t<float> result = output_or_new(out, {ns}, "out");
     float* dst = result.mutable_data();
     if (has_dtype<float>(frame)) {
         require_shape(frame, fshape, "frame");

@@ -61,6 +61,16 @@ inline void check_output(const py::array& a, const std::vector<py::ssize_t>& sha
     if (!a.writeable()) throw py::value_error(std::string(name) + ": must be writeable");
 }
 
+// The `out=` argument of a computing method: a new float32 array when None, else the given
+// array after check_output.
+inline py::array_t<float> output_or_new(py::object out, const std::vector<py::ssize_t>& shape, const char* name) {
+    if (out.is_none()) return py::array_t<float>(shape);
+    py::array o = py::array::ensure(out);
+    if (!o) throw py::value_error(std::string(name) + ": expected a numpy array");
+    check_output(o, shape, name);
+    return py::reinterpret_borrow<py::array_t<float>>(o);
+}
+
 // Matrices given at construction: float32 or float64 accepted (copied to float32 anyway).
 inline py::array_t<float, py::array::c_style> matrix_input(const py::array& a, const char* name) {
     if (!has_dtype<float>(a) && !has_dtype<double>(a))

@@ -201,13 +201,13 @@ void RealTimeController::step(const float* s, float* c) {
             const int tid = omp_get_thread_num(), nt = omp_get_num_threads();
             for (int t = tid; t < n_threads_; t += nt) advance(t, s);
 #pragma omp barrier
-            for (int t = tid; t < n_threads_; t += nt) output(t, c);
+            for (int t = tid; t < n_threads_; t += nt) output_range(ranges_[t], c);
         }
         return;
     }
 #endif
     for (int t = 0; t < n_threads_; ++t) advance(t, s);
-    for (int t = 0; t < n_threads_; ++t) output(t, c);
+    for (const Range& r : ranges_) output_range(r, c);
 }
 
 void RealTimeController::run(const float* S, int n_steps, float* C, const float* gains) {

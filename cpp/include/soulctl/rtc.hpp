@@ -73,7 +73,6 @@ private:
     void input_range(const Range& r, const float* s);   // u = Xi s on the range's rows
     void output_range(const Range& r, float* c) const;  // c = Sigma zeta on the range's commands
     void advance(int r, const float* s);                // input_range + update_range of range r
-    void output(int r, float* c) const { output_range(ranges_[r], c); }
 
     int n_states_, n_slopes_, n_commands_, n_threads_;
     Eigen::VectorXf lambda_diag_;      // n_states (only used on diagonal states)
