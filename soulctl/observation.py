@@ -51,7 +51,7 @@ def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...]) ->
 def _atomic_write(path: Path, text: str) -> None:
     """Write text to path via a temporary file in the same folder and a rename."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp", dir=path.parent or ".")
     try:
         os.fchmod(fd, 0o644)  # mkstemp makes 0600; a configuration file is for everyone to read
         with os.fdopen(fd, "w") as f:
@@ -66,6 +66,35 @@ def _atomic_write(path: Path, text: str) -> None:
 def _require(cond: bool, message: str) -> None:
     if not cond:
         raise InputError(message)
+
+
+def _number(section: dict, key: str, where: str) -> float:
+    """A real number (int or float, not bool) from a configuration section."""
+    value = section[key]
+    _require(isinstance(value, (int, float)) and not isinstance(value, bool),
+             f"{where}.{key} must be a number, got {value!r}")
+    return float(value)
+
+
+def _integer(section: dict, key: str, where: str) -> int:
+    value = section[key]
+    _require(isinstance(value, int) and not isinstance(value, bool), f"{where}.{key} must be an integer, got {value!r}")
+    return value
+
+
+def _numbers(section: dict, key: str, where: str) -> tuple[float, ...]:
+    value = section.get(key, [])
+    _require(isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value),
+             f"{where}.{key} must be a list of numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
+def _section(d: dict, key: str, required: bool = True) -> dict:
+    if key not in d and not required:
+        return {}
+    value = d[key]
+    _require(isinstance(value, dict), f"[{key}] must be a table, got {value!r}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -101,6 +130,11 @@ class Observation:
             _require(
                 len(self.tt_zeros) == 4 and len(self.tt_poles) == 4,
                 "tt_control 'iir' needs 4 tt_zeros and 4 tt_poles",
+            )
+            _require(all(math.isfinite(z) for z in self.tt_zeros), f"tt_zeros must be finite, got {list(self.tt_zeros)}")
+            _require(
+                all(math.isfinite(p) and abs(p) <= 1.0 for p in self.tt_poles),
+                f"tt_poles must be finite and in -1..1, got {list(self.tt_poles)}",
             )
 
     # Derived quantities: computed, never stored.
@@ -156,40 +190,39 @@ class Observation:
     def from_dict(cls, d: dict) -> "Observation":
         """Inverse of to_dict; 'derived' is ignored and recomputed."""
         try:
-            star, wfs, control = d["star"], d["wfs"], d["control"]
-            delay = d.get("delay", {})
+            star, wfs, control = _section(d, "star"), _section(d, "wfs"), _section(d, "control")
+            delay, phot_section = _section(d, "delay", required=False), _section(d, "photometry", required=False)
             default = DelayModel.from_table()
             delay_model = DelayModel(
-                t_readout_ms=float(delay.get("t_readout_ms", default.t_readout_ms)),
-                t_computation_ms=float(delay.get("t_computation_ms", default.t_computation_ms)),
-                t_asm_ms=float(delay.get("t_asm_ms", default.t_asm_ms)),
+                t_readout_ms=_number(delay, "t_readout_ms", "delay") if "t_readout_ms" in delay else default.t_readout_ms,
+                t_computation_ms=(
+                    _number(delay, "t_computation_ms", "delay") if "t_computation_ms" in delay else default.t_computation_ms
+                ),
+                t_asm_ms=_number(delay, "t_asm_ms", "delay") if "t_asm_ms" in delay else default.t_asm_ms,
                 source="configuration file" if delay else default.source,
             )
             phot = WfsPhotometry.from_table()
-            zp = d.get("photometry", {}).get("zero_point_ph_s_per_subaperture")
-            if zp is not None:
-                phot = WfsPhotometry(float(zp), phot.reference_subapertures, phot.pupil_diameter_m, "configuration file")
+            if "zero_point_ph_s_per_subaperture" in phot_section:
+                zp = _number(phot_section, "zero_point_ph_s_per_subaperture", "photometry")
+                phot = WfsPhotometry(zp, phot.reference_subapertures, phot.pupil_diameter_m, "configuration file")
+            tt_control = control["tt_control"]
+            _require(isinstance(tt_control, str), f"control.tt_control must be 'iir' or 'int', got {tt_control!r}")
+            rate = control.get("tt_filter_rate_hz")
             return cls(
-                magnitude_r=float(star["magnitude_r"]),
-                binning=int(wfs["binning"]),
-                modes=int(control["modes"]),
-                frame_rate_hz=float(wfs["frame_rate_hz"]),
-                modulation_lambda_over_d=float(wfs["modulation_lambda_over_d"]),
-                tt_control=str(control["tt_control"]),
-                tt_filter_rate_hz=(
-                    float(control["tt_filter_rate_hz"]) if control.get("tt_filter_rate_hz") is not None else None
-                ),
-                tt_zeros=tuple(float(z) for z in control.get("tt_zeros", ())),
-                tt_poles=tuple(float(p) for p in control.get("tt_poles", ())),
+                magnitude_r=_number(star, "magnitude_r", "star"),
+                binning=_integer(wfs, "binning", "wfs"),
+                modes=_integer(control, "modes", "control"),
+                frame_rate_hz=_number(wfs, "frame_rate_hz", "wfs"),
+                modulation_lambda_over_d=_number(wfs, "modulation_lambda_over_d", "wfs"),
+                tt_control=tt_control,
+                tt_filter_rate_hz=_number(control, "tt_filter_rate_hz", "control") if rate is not None else None,
+                tt_zeros=_numbers(control, "tt_zeros", "control"),
+                tt_poles=_numbers(control, "tt_poles", "control"),
                 delay_model=delay_model,
                 photometry=phot,
             )
-        except InputError:
-            raise
         except KeyError as e:
             raise InputError(f"configuration is missing the key {e.args[0]!r}") from None
-        except (TypeError, ValueError) as e:
-            raise InputError(f"configuration has a value of the wrong type: {e}") from None
 
     def to_toml(self) -> str:
         header = (
@@ -209,8 +242,10 @@ class Observation:
                 data = tomllib.load(f)
         except FileNotFoundError:
             raise InputError(f"configuration file not found: {path}") from None
-        except tomllib.TOMLDecodeError as e:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise InputError(f"configuration file {path} is not valid TOML: {e}") from None
+        except OSError as e:
+            raise InputError(f"cannot read configuration file {path}: {e.strerror or e}") from None
         return cls.from_dict(data)
 
     def to_json(self) -> str:

@@ -101,7 +101,7 @@ def band_for_magnitude(magnitude: float, bands: tuple[MagnitudeBand, ...]) -> Ma
         if band.contains(magnitude, first=(i == 0)):
             return band
     lo, hi = magnitude_range(bands)
-    raise InputError(f"R magnitude {magnitude:g} is outside the look-up table: accepted range {lo:g} <= R <= {hi:g}")
+    raise InputError(f"R magnitude {magnitude:.10g} is outside the look-up table: accepted range {lo:g} <= R <= {hi:g}")
 
 
 def tt_iir_table() -> tuple[IIRRoots, ...]:

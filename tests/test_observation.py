@@ -1,6 +1,7 @@
 """Observation set-up from the look-up table: frame-rate rule, Tip/Tilt controller, TOML."""
 
 import math
+import re
 
 import pytest
 
@@ -92,5 +93,42 @@ def test_edited_toml_is_revalidated_and_derived_values_recomputed(tmp_path):
     path.write_text("not = [toml")
     with pytest.raises(InputError, match="not valid TOML"):
         Observation.read_toml(path)
+    path.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(InputError, match="not valid TOML"):
+        Observation.read_toml(path)
+    with pytest.raises(InputError, match="cannot read configuration file"):
+        Observation.read_toml(tmp_path)
     with pytest.raises(InputError, match="not found"):
         Observation.read_toml(tmp_path / "missing.toml")
+
+
+ZEROS_1000 = "tt_zeros = [\n    0.337,\n    0.345,\n    0.345,\n    0.353,\n]"
+PHOTOMETRY = "[photometry]\nzero_point_ph_s_per_subaperture = 264700000.0\n"
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda t: t.replace(ZEROS_1000, 'tt_zeros = "1234"'), "control.tt_zeros must be a list of numbers"),
+        (lambda t: t.replace("binning = 2", "binning = true"), "wfs.binning must be an integer"),
+        (lambda t: t.replace("modes = 250", "modes = 250.7"), "control.modes must be an integer"),
+        (lambda t: t.replace("= 264700000.0", "= -1.0"), "zero point must be a positive"),
+        (lambda t: "photometry = [1]\n" + t.replace(PHOTOMETRY, ""), "[photometry] must be a table"),
+    ],
+)
+def test_wrong_types_in_a_configuration_file_are_refused(edit, message, tmp_path):
+    path = tmp_path / "obs.toml"
+    observation_for_magnitude(13.0).write_toml(path)
+    text = path.read_text()
+    edited = edit(text)
+    assert edited != text
+    path.write_text(edited)
+    with pytest.raises(InputError, match=re.escape(message)):
+        Observation.read_toml(path)
+
+
+def test_non_finite_or_unstable_poles_are_refused():
+    obs = observation_for_magnitude(9.7).to_dict()
+    obs["control"]["tt_poles"] = [0.1, 0.2, float("nan"), 1.0]
+    with pytest.raises(InputError, match="tt_poles must be finite and in -1..1"):
+        Observation.from_dict(obs)

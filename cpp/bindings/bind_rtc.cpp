@@ -44,6 +44,7 @@ for step() (0 = automatic, at most 4).
             "set_gains",
             [](RealTimeController& r, const py::array& delta) {
                 auto d = float32_input(delta, {r.n_states()}, "gains");
+                require_finite(d.data(), r.n_states(), "gains");
                 r.set_gains(d.data());
             },
             py::arg("delta"), "Set the diagonal of Delta (float32, n_states); used from the next step on.")
@@ -67,11 +68,14 @@ for step() (0 = automatic, at most 4).
             [](RealTimeController& r, const py::array& slopes, py::object gains) {
                 auto s = float32_input(slopes, {-1, r.n_slopes()}, "slopes");
                 const py::ssize_t n = s.shape(0);
+                if (n > INT32_MAX) throw py::value_error("slopes: at most 2147483647 steps per run, got " + std::to_string(n));
                 py::array_t<float> c({n, static_cast<py::ssize_t>(r.n_commands())});
                 const float* g = nullptr;
                 py::array_t<float, py::array::c_style> gk;
                 if (!gains.is_none()) {
-                    gk = float32_input(py::array::ensure(gains), {n, r.n_states()}, "gains");
+                    if (!py::isinstance<py::array>(gains)) throw py::value_error("gains: expected a numpy array");
+                    gk = float32_input(py::reinterpret_borrow<py::array>(gains), {n, r.n_states()}, "gains");
+                    require_finite(gk.data(), n * r.n_states(), "gains");
                     g = gk.data();
                 }
                 r.run(s.data(), static_cast<int>(n), c.mutable_data(), g);

@@ -28,9 +28,12 @@ SlopeComputer make_slope_computer(const py::array& pixels, std::pair<int, int> f
     for (py::ssize_t i = 0; i < p.shape(0); ++i)
         for (int q = 0; q < 4; ++q) {
             const int64_t r = v(i, q, 0), c = v(i, q, 1);
-            // Out-of-range values (also beyond int32) are reported by the constructor.
-            rows[4 * i + q] = (r < 0 || r > INT32_MAX) ? -1 : static_cast<int32_t>(r);
-            cols[4 * i + q] = (c < 0 || c > INT32_MAX) ? -1 : static_cast<int32_t>(c);
+            if (r < 0 || r >= frame_shape.first || c < 0 || c >= frame_shape.second)
+                throw py::value_error("pixel (" + std::to_string(r) + ", " + std::to_string(c) + ") of sub-aperture " +
+                                      std::to_string(i) + " is outside the frame of shape (" +
+                                      std::to_string(frame_shape.first) + ", " + std::to_string(frame_shape.second) + ")");
+            rows[4 * i + q] = static_cast<int32_t>(r);
+            cols[4 * i + q] = static_cast<int32_t>(c);
         }
     try {
         return SlopeComputer(rows, cols, frame_shape.first, frame_shape.second, norm);

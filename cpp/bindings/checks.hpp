@@ -5,6 +5,7 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <cmath>
 #include <string>
 #include <vector>
 
@@ -61,12 +62,19 @@ inline void check_output(const py::array& a, const std::vector<py::ssize_t>& sha
     if (!a.writeable()) throw py::value_error(std::string(name) + ": must be writeable");
 }
 
+// Values that must be finite (gains: a NaN would stay in the integrators for good).
+inline void require_finite(const float* data, py::ssize_t n, const char* name) {
+    for (py::ssize_t i = 0; i < n; ++i)
+        if (!std::isfinite(data[i])) throw py::value_error(std::string(name) + ": values must be finite");
+}
+
 // The `out=` argument of a computing method: a new float32 array when None, else the given
 // array after check_output.
 inline py::array_t<float> output_or_new(py::object out, const std::vector<py::ssize_t>& shape, const char* name) {
     if (out.is_none()) return py::array_t<float>(shape);
-    py::array o = py::array::ensure(out);
-    if (!o) throw py::value_error(std::string(name) + ": expected a numpy array");
+    // Only a real ndarray: anything else would be converted to a temporary and never filled.
+    if (!py::isinstance<py::array>(out)) throw py::value_error(std::string(name) + ": expected a numpy array");
+    py::array o = py::reinterpret_borrow<py::array>(out);
     check_output(o, shape, name);
     return py::reinterpret_borrow<py::array_t<float>>(o);
 }

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
@@ -15,6 +17,9 @@ SlopeComputer::SlopeComputer(const std::vector<int32_t>& rows, const std::vector
                                     ", " + std::to_string(frame_cols) + ")");
     if (rows.size() != cols.size() || rows.size() % 4 != 0 || rows.empty())
         throw std::invalid_argument("pixels must hold 4 (row, col) pairs per sub-aperture and at least one sub-aperture");
+    if (static_cast<int64_t>(frame_rows) * frame_cols > INT32_MAX)
+        throw std::invalid_argument("frame shape (" + std::to_string(frame_rows) + ", " + std::to_string(frame_cols) +
+                                    ") has more than 2^31-1 pixels");
     n_sub_ = static_cast<int>(rows.size() / 4);
     for (int q = 0; q < 4; ++q) {
         index_[q].resize(n_sub_);
@@ -110,24 +115,36 @@ void SlopeComputer::normalise(double total, float* out) {
         const double mean = total / n;
         // A denormal mean passes "> 0" but its float reciprocal overflows: test the reciprocal.
         const float inv = static_cast<float>(1.0 / mean);
-        if (!(mean > 0.0) || !std::isfinite(mean) || !std::isfinite(inv)) {
+        global_ok_ = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv);
+        if (!global_ok_) {
             std::fill(sx + begin, sx + end, 0.0f);
             std::fill(sy + begin, sy + end, 0.0f);
             return;
         }
-#pragma omp simd
+        // Negative pixels (after background) can make |dx| exceed the flux: a large dx over a
+        // tiny mean flux overflows.  Then the frame is unusable, like a dark one.
+        const float big = std::numeric_limits<float>::max();
+        bool finite = true;
+#pragma omp simd reduction(&& : finite)
         for (int i = begin; i < end; ++i) {
             sx[i] = dx_[i] * inv - rx[i];
             sy[i] = dy_[i] * inv - ry[i];
+            finite = finite && std::fabs(sx[i]) <= big && std::fabs(sy[i]) <= big;
+        }
+        if (!finite) {
+            std::fill(sx + begin, sx + end, 0.0f);
+            std::fill(sy + begin, sy + end, 0.0f);
+            global_ok_ = false;
         }
     } else {
         for (int i = begin; i < end; ++i) {
             const float f = flux_[i];
             const float inv = 1.0f / f;
-            const bool dark = !(f > 0.0f) || !std::isfinite(f) || !std::isfinite(inv);
+            const float x = dx_[i] * inv - rx[i], y = dy_[i] * inv - ry[i];
+            const bool dark = !(f > 0.0f) || !std::isfinite(f) || !std::isfinite(x) || !std::isfinite(y);
             dark_[i] = dark;
-            sx[i] = dark ? 0.0f : dx_[i] * inv - rx[i];
-            sy[i] = dark ? 0.0f : dy_[i] * inv - ry[i];
+            sx[i] = dark ? 0.0f : x;
+            sy[i] = dark ? 0.0f : y;
         }
     }
 }
@@ -136,9 +153,7 @@ SlopeStatus SlopeComputer::finish_status(double total) {
     SlopeStatus st;
     st.total_flux = total;
     if (norm_ == Normalization::Global) {
-        const double mean = total / n_sub_;
-        const float inv = static_cast<float>(1.0 / mean);
-        st.flux_ok = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv);
+        st.flux_ok = global_ok_;
         st.n_dark = st.flux_ok ? 0 : n_sub_;
     } else {
         for (int d : dark_) st.n_dark += d;

@@ -69,6 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         status = _fail(str(e))
     except KeyboardInterrupt:
         status = _fail("interrupted", 130)
+    except BrokenPipeError:
+        status = 1  # the reader went away (e.g. `soulctl ... | head`): nothing to say
+    except OSError as e:  # e.g. stdout on a full disk: one line, not a traceback
+        status = _fail(f"{e.strerror or e}", 1)
     except Exception as e:
         status = _status_of_cli_exception(e)
         if status is None:

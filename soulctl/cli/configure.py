@@ -23,7 +23,7 @@ def parse_magnitude(text: str) -> float:
         value = math.nan
     if not math.isfinite(value):
         raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
-    return value
+    return value + 0.0  # -0 -> 0
 
 
 def render(obs: Observation, console: Console) -> None:
@@ -77,10 +77,14 @@ def configure(
             raise InputError(f"--out must be a file path, got the directory {out}")
         if not out.parent.exists():
             raise InputError(f"--out: the folder {out.parent} does not exist")
-        obs.write_toml(out)
+        try:
+            obs.write_toml(out)
+        except OSError as e:
+            raise InputError(f"--out: cannot write {out}: {e.strerror or e}") from None
     if json_output:
         typer.echo(obs.to_json())
     else:
-        render(obs, Console())
+        console = Console()
+        render(obs, console)
         if out is not None:
-            Console().print(f"written {out}")
+            console.print(f"written {out}", markup=False, highlight=False)

@@ -47,7 +47,7 @@ class DelayModel:
 
     def total_s(self, frame_rate_hz: float) -> float:
         """Total loop delay in seconds."""
-        if not frame_rate_hz > 0:
+        if not (frame_rate_hz > 0 and math.isfinite(frame_rate_hz)):
             raise InputError(f"frame rate must be > 0 Hz, got {frame_rate_hz:g}")
         return 1.0 / frame_rate_hz + self.latency_s
 
@@ -58,7 +58,7 @@ class DelayModel:
 
 def fractional_taps(delay_frames: float) -> tuple[int, float]:
     """(n, e) such that z^-d = z^-n ((1 - e) + e z^-1), n = floor(d), 0 <= e < 1."""
-    if not delay_frames >= 0:
-        raise InputError(f"delay must be >= 0 frames, got {delay_frames:g}")
+    if not (delay_frames >= 0 and math.isfinite(delay_frames)):
+        raise InputError(f"delay must be a finite number >= 0 frames, got {delay_frames:g}")
     n = math.floor(delay_frames)
     return n, delay_frames - n

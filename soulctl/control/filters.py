@@ -51,6 +51,8 @@ class Filter:
             raise InputError("a control filter needs at least one pole (the RTC realises IIR filters)")
         if not np.isfinite(self.gain):
             raise InputError(f"filter gain must be finite, got {self.gain}")
+        if not all(np.isfinite(complex(r)) for r in (*self.zeros, *self.poles)):
+            raise InputError(f"filter zeros and poles must be finite, got {list(self.zeros)} and {list(self.poles)}")
         # Validates the conjugate-pair condition early.
         _real_poly(self.zeros, "zeros")
         _real_poly(self.poles, "poles")

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 from .. import tables
+from ..errors import InputError
 
 
 @dataclass(frozen=True)
@@ -18,6 +19,10 @@ class WfsPhotometry:
     reference_subapertures: int = 40
     pupil_diameter_m: float = 8.222
     source: str = ""
+
+    def __post_init__(self):
+        if not (self.zero_point_ph_s > 0 and math.isfinite(self.zero_point_ph_s)):
+            raise InputError(f"zero point must be a positive number of photons per second, got {self.zero_point_ph_s}")
 
     @classmethod
     def from_table(cls) -> "WfsPhotometry":

@@ -61,6 +61,38 @@ def test_bad_input_is_one_line_exit_2_nothing_written(args, message, tmp_path, c
     assert not path.exists() and list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("mag, shown", [("18.5000001", "R magnitude 18.5000001 is outside"), ("-0.0000001", "R magnitude -1e-07 is outside")])
+def test_out_of_range_message_shows_the_value_given(mag, shown, capsys):
+    status, _, err = run(["configure", "--mag", mag], capsys)
+    assert status == 2 and shown in err
+
+
+def test_minus_zero_is_zero(capsys):
+    status, out, _ = run(["configure", "--mag", "-0", "--json"], capsys)
+    assert status == 0 and '"magnitude_r": 0.0' in out
+
+
+@pytest.mark.parametrize("make_target", [
+    lambda d: d / "a_file" / "obs.toml",  # parent is a file
+    lambda d: d / ("x" * 250 + ".toml"),  # a valid name; a temporary named after it would be too long
+])
+def test_unwritable_out_is_one_line_exit_2(make_target, tmp_path, capsys):
+    (tmp_path / "a_file").write_text("")
+    target = make_target(tmp_path)
+    status, _, err = run(["configure", "--mag", "12", "--out", str(target)], capsys)
+    if status == 0:  # the long name is writable on this file system
+        assert target.exists()
+        return
+    assert status == 2 and err.count("\n") == 1 and "--out" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_paths_are_printed_verbatim(tmp_path, capsys):
+    target = tmp_path / "y[bold].toml"
+    status, out, _ = run(["configure", "--mag", "12", "--out", str(target)], capsys)
+    assert status == 0 and target.exists() and f"written {target}" in out.replace("\n", "")
+
+
 def test_out_into_missing_folder(tmp_path, capsys):
     status, _, err = run(["configure", "--mag", "12", "--out", str(tmp_path / "no" / "obs.toml")], capsys)
     assert status == 2 and "does not exist" in err

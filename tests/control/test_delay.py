@@ -33,6 +33,8 @@ def test_fractional_taps():
     with pytest.raises(InputError):
         fractional_taps(-1)
     with pytest.raises(InputError):
+        fractional_taps(float("inf"))
+    with pytest.raises(InputError):
         DelayModel.from_table().total_s(0)
 
 

@@ -32,6 +32,10 @@ def paper_filters():
         Filter.iir([0.5], [1.0], 0.2),  # PI-like: one zero, integral action
         Filter.iir([0.2, 0.3], [0.5, 0.6], 1.1),  # no integral action
         Filter.iir([0.5 + 0.3j, 0.5 - 0.3j, 0.1], [0.4 + 0.2j, 0.4 - 0.2j, 1.0], 0.6),  # conjugate pairs
+        Filter.iir([0.2, -0.4, 0.6], [0.5], 0.8),  # more zeros than poles
+        Filter.iir([0.3, 0.7], [1.0], 0.5),  # a lone integrator with zeros
+        Filter.iir([0.3], [1.0, 1.0, 0.5], 0.05),  # repeated poles at 1
+        Filter.iir([1.5, 0.2], [0.9, 0.1], 0.4),  # a zero outside the unit circle
     ]
 
 
@@ -81,3 +85,6 @@ def test_invalid_filters():
         Filter.leaky(1.2, 0.5)
     with pytest.raises(InputError, match="finite"):
         Filter.integrator(float("nan"))
+    for roots in ([float("nan")], [float("inf")], [0.5 + float("nan") * 1j]):
+        with pytest.raises(InputError, match="zeros and poles must be finite"):
+            Filter.iir([], roots, 1.0)

@@ -199,6 +199,24 @@ def test_errors_name_expected_and_given_shapes():
         RealTimeController(np.full((3, 3), np.nan), np.zeros((3, 5)), np.zeros((2, 3)))
 
 
+def test_non_finite_gains_are_refused_and_leave_delta_unchanged():
+    rng = np.random.default_rng(18)
+    mats = mixed_rtc(rng)
+    rtc = mats.controller()
+    before = rtc.gains
+    bad = before.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match="gains: values must be finite"):
+        rtc.set_gains(bad)
+    np.testing.assert_array_equal(rtc.gains, before)
+    per_step = np.tile(before, (4, 1))
+    per_step[2, 0] = np.inf
+    with pytest.raises(ValueError, match="gains: values must be finite"):
+        rtc.run(np.zeros((4, 60), np.float32), gains=per_step)
+    with pytest.raises(ValueError, match="out: expected a numpy array"):
+        rtc.step(np.zeros(60, np.float32), out=[0.0] * 30)
+
+
 def test_non_contiguous_slopes_are_accepted():
     rng = np.random.default_rng(17)
     mats = mixed_rtc(rng)

@@ -148,9 +148,30 @@ def test_never_nan_or_inf(frame, normalization):
 
 def test_out_array_is_filled_in_place():
     pix = pixel_map(4)
-    out = np.empty(8, np.float32)
-    res = SlopeComputer(pix, SHAPE).compute(np.ones(SHAPE, np.float32), out=out)
-    assert res is out or np.shares_memory(res, out)
+    rng = np.random.default_rng(5)
+    frame = rng.uniform(1, 100, SHAPE).astype(np.float32)
+    out = np.full(8, np.nan, np.float32)
+    res = SlopeComputer(pix, SHAPE).compute(frame, out=out)
+    assert np.shares_memory(res, out)
+    np.testing.assert_allclose(out, reference_slopes(frame, pix)[0], rtol=2e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="out: expected a numpy array"):
+        SlopeComputer(pix, SHAPE).compute(frame, out=[0.0] * 8)  # would be a temporary, never seen
+
+
+@pytest.mark.parametrize("normalization", ["global", "subaperture"])
+def test_overflowing_slopes_are_zero_and_flagged(normalization):
+    """Negative pixels can make |dx| exceed a tiny flux: the slopes overflow, so the frame (global)
+    or the sub-aperture (own flux) is unusable, never inf."""
+    pix = pixel_map(2)
+    frame = np.zeros(SHAPE, np.float32)
+    frame[tuple(pix[0, 0])], frame[tuple(pix[0, 2])] = 1e4, -1e4  # sub-aperture 0: dx = 2e4, flux 0
+    frame[tuple(pix[1, 0])] = 1e-35  # sub-aperture 1: a tiny flux
+    frame[tuple(pix[0, 1])] = 1e-35
+    sc = SlopeComputer(pix, SHAPE, normalization=normalization)
+    s = sc.compute(frame)
+    assert np.all(np.isfinite(s)) and not sc.flux_ok
+    if normalization == "global":
+        assert np.all(s == 0) and sc.n_dark == 2
 
 
 @pytest.mark.parametrize(
@@ -166,6 +187,14 @@ def test_bad_frame_is_a_value_error_naming_expected_and_given(frame, message):
     with pytest.raises(ValueError) as e:
         sc.compute(frame)
     assert str(e.value) == message
+
+
+def test_frames_beyond_32_bit_indexing_are_refused():
+    pix = np.array([[[46340, 46340], [0, 1], [1, 0], [1, 1]]])
+    with pytest.raises(ValueError, match="more than 2\\^31-1 pixels"):
+        SlopeComputer(pix, (46341, 46341))
+    with pytest.raises(ValueError, match=r"pixel \(1099511627776, 0\) of sub-aperture 0 is outside"):
+        SlopeComputer(np.array([[[2**40, 0], [0, 1], [1, 0], [1, 1]]]), SHAPE)
 
 
 def test_bad_construction_and_arguments():

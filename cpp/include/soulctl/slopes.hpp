@@ -18,7 +18,8 @@ enum class Normalization { Global, Subaperture };
 
 struct SlopeStatus {
     double total_flux = 0.0;  // background-subtracted flux summed over valid sub-apertures
-    bool flux_ok = true;      // false when the normalising flux was zero, negative or not finite
+    bool flux_ok = true;      // false when the normalising flux was zero, negative or not finite,
+                              // or the slopes overflowed (then they are all zero)
     int n_dark = 0;           // sub-apertures whose slopes were set to zero for lack of flux
 };
 
@@ -73,6 +74,7 @@ private:
     std::vector<float> dx_, dy_, flux_;
     bool has_background_ = false;
     bool has_reference_ = false;
+    bool global_ok_ = true;  // global normalisation: the last frame gave usable slopes
     SlopeStatus status_;
     std::vector<int> dark_;  // per sub-aperture: zeroed in the last frame (subaperture mode)
 };
