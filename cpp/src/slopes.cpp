@@ -59,11 +59,14 @@ void SlopeComputer::clear_background() {
 
 void SlopeComputer::set_reference(const float* slopes) {
     std::copy(slopes, slopes + reference_.size(), reference_.begin());
+    largest_reference_ = 0.0;
+    for (float r : reference_) largest_reference_ = std::max(largest_reference_, static_cast<double>(std::fabs(r)));
     has_reference_ = true;
 }
 
 void SlopeComputer::clear_reference() {
     std::fill(reference_.begin(), reference_.end(), 0.0f);
+    largest_reference_ = 0.0;
     has_reference_ = false;
 }
 
@@ -89,18 +92,21 @@ double SlopeComputer::gather(const T* frame) {
     float* dy = dy_.data();
     float* fl = flux_.data();
     double total = 0.0;
+    float largest = 0.0f;  // max |dx|, |dy|: tells normalise() whether the slopes can overflow
     for (int b0 = begin; b0 < end; b0 += kBlock) {
         const int b1e = std::min(end, b0 + kBlock);
         float partial = 0.0f;  // short float sums, added in double
-#pragma omp simd reduction(+ : partial)
+#pragma omp simd reduction(+ : partial) reduction(max : largest)
         for (int i = b0; i < b1e; ++i) {
             dx[i] = (i1[i] + i2[i]) - (i3[i] + i4[i]);
             dy[i] = (i1[i] + i3[i]) - (i2[i] + i4[i]);
             fl[i] = (i1[i] + i2[i]) + (i3[i] + i4[i]);
             partial += fl[i];
+            largest = std::max(largest, std::max(std::fabs(dx[i]), std::fabs(dy[i])));
         }
         total += partial;
     }
+    largest_difference_ = largest;
     return total;
 }
 
@@ -115,26 +121,21 @@ void SlopeComputer::normalise(double total, float* out) {
         const double mean = total / n;
         // A denormal mean passes "> 0" but its float reciprocal overflows: test the reciprocal.
         const float inv = static_cast<float>(1.0 / mean);
-        global_ok_ = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv);
+        // Negative pixels (after background) can make |dx| exceed the flux, and a large dx over
+        // a tiny mean flux overflows: such a frame is unusable, like a dark one.  The bound is
+        // checked once, in double, from the largest |dx|, |dy| and |reference|.
+        global_ok_ = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv) &&
+                     static_cast<double>(largest_difference_) / mean + largest_reference_ <=
+                         std::numeric_limits<float>::max();
         if (!global_ok_) {
             std::fill(sx + begin, sx + end, 0.0f);
             std::fill(sy + begin, sy + end, 0.0f);
             return;
         }
-        // Negative pixels (after background) can make |dx| exceed the flux: a large dx over a
-        // tiny mean flux overflows.  Then the frame is unusable, like a dark one.
-        const float big = std::numeric_limits<float>::max();
-        bool finite = true;
-#pragma omp simd reduction(&& : finite)
+#pragma omp simd
         for (int i = begin; i < end; ++i) {
             sx[i] = dx_[i] * inv - rx[i];
             sy[i] = dy_[i] * inv - ry[i];
-            finite = finite && std::fabs(sx[i]) <= big && std::fabs(sy[i]) <= big;
-        }
-        if (!finite) {
-            std::fill(sx + begin, sx + end, 0.0f);
-            std::fill(sy + begin, sy + end, 0.0f);
-            global_ok_ = false;
         }
     } else {
         for (int i = begin; i < end; ++i) {

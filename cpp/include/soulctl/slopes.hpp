@@ -75,6 +75,8 @@ private:
     bool has_background_ = false;
     bool has_reference_ = false;
     bool global_ok_ = true;  // global normalisation: the last frame gave usable slopes
+    float largest_difference_ = 0.0f;  // max |dx|, |dy| of the last frame
+    double largest_reference_ = 0.0;   // max |reference slope|
     SlopeStatus status_;
     std::vector<int> dark_;  // per sub-aperture: zeroed in the last frame (subaperture mode)
 };
