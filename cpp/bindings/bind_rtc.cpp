@@ -1,8 +1,6 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-#include <memory>
-
 #include "checks.hpp"
 #include "soulctl/rtc.hpp"
 
@@ -31,7 +29,7 @@ py::array_t<float> vec(const Eigen::VectorXf& v) { return py::array_t<float>(v.s
 }  // namespace
 
 void bind_rtc(py::module_& m) {
-    py::class_<RealTimeController, std::shared_ptr<RealTimeController>>(m, "RealTimeController", R"doc(
+    py::class_<RealTimeController>(m, "RealTimeController", R"doc(
 The SOUL RTC equation:  zeta(k) = Lambda zeta(k-1) + Delta Xi s(k),  c(k) = Sigma zeta(k).
 
 Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are

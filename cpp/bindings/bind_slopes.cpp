@@ -1,8 +1,6 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-#include <memory>
-
 #include "checks.hpp"
 #include "soulctl/slopes.hpp"
 
@@ -23,17 +21,12 @@ SlopeComputer make_slope_computer(const py::array& pixels, std::pair<int, int> f
     else throw py::value_error("normalization: expected 'global' or 'subaperture', got '" + normalization + "'");
     auto p = py::array_t<int64_t, py::array::c_style | py::array::forcecast>::ensure(pixels);
     const py::ssize_t n = p.shape(0) * 4;
-    std::vector<int32_t> rows(n), cols(n);
+    std::vector<int64_t> rows(n), cols(n);
     auto v = p.unchecked<3>();
     for (py::ssize_t i = 0; i < p.shape(0); ++i)
         for (int q = 0; q < 4; ++q) {
-            const int64_t r = v(i, q, 0), c = v(i, q, 1);
-            if (r < 0 || r >= frame_shape.first || c < 0 || c >= frame_shape.second)
-                throw py::value_error("pixel (" + std::to_string(r) + ", " + std::to_string(c) + ") of sub-aperture " +
-                                      std::to_string(i) + " is outside the frame of shape (" +
-                                      std::to_string(frame_shape.first) + ", " + std::to_string(frame_shape.second) + ")");
-            rows[4 * i + q] = static_cast<int32_t>(r);
-            cols[4 * i + q] = static_cast<int32_t>(c);
+            rows[4 * i + q] = v(i, q, 0);  // bounds are checked by the constructor
+            cols[4 * i + q] = v(i, q, 1);
         }
     try {
         return SlopeComputer(rows, cols, frame_shape.first, frame_shape.second, norm);
@@ -64,7 +57,7 @@ py::array_t<float> compute(SlopeComputer& sc, const py::array& frame, py::object
 }  // namespace
 
 void bind_slopes(py::module_& m) {
-    py::class_<SlopeComputer, std::shared_ptr<SlopeComputer>>(m, "SlopeComputer", R"doc(
+    py::class_<SlopeComputer>(m, "SlopeComputer", R"doc(
 PWFS slope computer: detector frame -> slopes, at full rate.
 
 pixels: int array (n_subapertures, 4, 2) with the (row, col) of pupil image 1..4 of each

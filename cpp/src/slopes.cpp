@@ -9,7 +9,7 @@
 
 namespace soulctl {
 
-SlopeComputer::SlopeComputer(const std::vector<int32_t>& rows, const std::vector<int32_t>& cols,
+SlopeComputer::SlopeComputer(const std::vector<int64_t>& rows, const std::vector<int64_t>& cols,
                              int frame_rows, int frame_cols, Normalization norm)
     : frame_rows_(frame_rows), frame_cols_(frame_cols), norm_(norm) {
     if (frame_rows <= 0 || frame_cols <= 0)
@@ -30,7 +30,7 @@ SlopeComputer::SlopeComputer(const std::vector<int32_t>& rows, const std::vector
             throw std::invalid_argument("pixel (" + std::to_string(rows[k]) + ", " + std::to_string(cols[k]) +
                                         ") of sub-aperture " + std::to_string(k / 4) + " is outside the frame of shape (" +
                                         std::to_string(frame_rows) + ", " + std::to_string(frame_cols) + ")");
-        index_[k % 4][k / 4] = rows[k] * frame_cols + cols[k];
+        index_[k % 4][k / 4] = static_cast<int32_t>(rows[k] * frame_cols + cols[k]);  // < 2^31: checked above
     }
     for (int q = 0; q < 4; ++q) {
         intensity_[q].assign(n_sub_, 0.0f);
@@ -43,7 +43,6 @@ SlopeComputer::SlopeComputer(const std::vector<int32_t>& rows, const std::vector
     dx_.resize(n_sub_);
     dy_.resize(n_sub_);
     flux_.resize(n_sub_);
-    dark_.assign(n_sub_, 0);
 }
 
 void SlopeComputer::set_background(const float* frame) {
@@ -73,17 +72,16 @@ void SlopeComputer::clear_reference() {
 // Pixels are read run by run (sub-apertures along a detector row sit on contiguous pixels),
 // so the loads and conversions vectorise; then the four images are combined element-wise.
 template <typename T>
-double SlopeComputer::gather(const T* frame) {
-    const int begin = 0, end = n_sub_;
+double SlopeComputer::gather(const T* frame, float& largest_difference) {
     for (int q = 0; q < 4; ++q) {
         float* iq = intensity_[q].data();
         const float* bq = background_[q].data();
         for (const Run& r : runs_[q]) {
-            const int a = std::max(begin, r.sub), b = std::min(end, r.sub + r.length);
-            if (a >= b) continue;
-            const T* src = frame + r.pixel + (a - r.sub);
+            const T* src = frame + r.pixel;
+            float* dst = iq + r.sub;
+            const float* bg = bq + r.sub;
 #pragma omp simd
-            for (int i = a; i < b; ++i) iq[i] = static_cast<float>(src[i - a]) - bq[i];
+            for (int j = 0; j < r.length; ++j) dst[j] = static_cast<float>(src[j]) - bg[j];
         }
     }
     const float *i1 = intensity_[0].data(), *i2 = intensity_[1].data(), *i3 = intensity_[2].data(),
@@ -93,11 +91,11 @@ double SlopeComputer::gather(const T* frame) {
     float* fl = flux_.data();
     double total = 0.0;
     float largest = 0.0f;  // max |dx|, |dy|: tells normalise() whether the slopes can overflow
-    for (int b0 = begin; b0 < end; b0 += kBlock) {
-        const int b1e = std::min(end, b0 + kBlock);
+    for (int b0 = 0; b0 < n_sub_; b0 += kBlock) {
+        const int b1 = std::min(n_sub_, b0 + kBlock);
         float partial = 0.0f;  // short float sums, added in double
 #pragma omp simd reduction(+ : partial) reduction(max : largest)
-        for (int i = b0; i < b1e; ++i) {
+        for (int i = b0; i < b1; ++i) {
             dx[i] = (i1[i] + i2[i]) - (i3[i] + i4[i]);
             dy[i] = (i1[i] + i3[i]) - (i2[i] + i4[i]);
             fl[i] = (i1[i] + i2[i]) + (i3[i] + i4[i]);
@@ -106,17 +104,18 @@ double SlopeComputer::gather(const T* frame) {
         }
         total += partial;
     }
-    largest_difference_ = largest;
+    largest_difference = largest;
     return total;
 }
 
-void SlopeComputer::normalise(double total, float* out) {
-    const int begin = 0, end = n_sub_;
+SlopeStatus SlopeComputer::normalise(double total, float largest_difference, float* out) {
     const int n = n_sub_;
     float* sx = out;
     float* sy = out + n;
     const float* rx = reference_.data();
     const float* ry = reference_.data() + n;
+    SlopeStatus st;
+    st.total_flux = total;
     if (norm_ == Normalization::Global) {
         const double mean = total / n;
         // A denormal mean passes "> 0" but its float reciprocal overflows: test the reciprocal.
@@ -124,51 +123,40 @@ void SlopeComputer::normalise(double total, float* out) {
         // Negative pixels (after background) can make |dx| exceed the flux, and a large dx over
         // a tiny mean flux overflows: such a frame is unusable, like a dark one.  The bound is
         // checked once, in double, from the largest |dx|, |dy| and |reference|.
-        global_ok_ = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv) &&
-                     static_cast<double>(largest_difference_) / mean + largest_reference_ <=
+        st.flux_ok = (mean > 0.0) && std::isfinite(mean) && std::isfinite(inv) &&
+                     static_cast<double>(largest_difference) / mean + largest_reference_ <=
                          std::numeric_limits<float>::max();
-        if (!global_ok_) {
-            std::fill(sx + begin, sx + end, 0.0f);
-            std::fill(sy + begin, sy + end, 0.0f);
-            return;
+        if (!st.flux_ok) {
+            std::fill(out, out + 2 * n, 0.0f);
+            st.n_dark = n;
+            return st;
         }
 #pragma omp simd
-        for (int i = begin; i < end; ++i) {
+        for (int i = 0; i < n; ++i) {
             sx[i] = dx_[i] * inv - rx[i];
             sy[i] = dy_[i] * inv - ry[i];
         }
     } else {
-        for (int i = begin; i < end; ++i) {
+        for (int i = 0; i < n; ++i) {
             const float f = flux_[i];
             const float inv = 1.0f / f;
             const float x = dx_[i] * inv - rx[i], y = dy_[i] * inv - ry[i];
             const bool dark = !(f > 0.0f) || !std::isfinite(f) || !std::isfinite(x) || !std::isfinite(y);
-            dark_[i] = dark;
+            st.n_dark += dark;
             sx[i] = dark ? 0.0f : x;
             sy[i] = dark ? 0.0f : y;
         }
-    }
-}
-
-SlopeStatus SlopeComputer::finish_status(double total) {
-    SlopeStatus st;
-    st.total_flux = total;
-    if (norm_ == Normalization::Global) {
-        st.flux_ok = global_ok_;
-        st.n_dark = st.flux_ok ? 0 : n_sub_;
-    } else {
-        for (int d : dark_) st.n_dark += d;
         st.flux_ok = st.n_dark == 0;
     }
-    status_ = st;
     return st;
 }
 
 template <typename T>
 SlopeStatus SlopeComputer::compute(const T* frame, float* out) {
-    const double total = gather(frame);
-    normalise(total, out);
-    return finish_status(total);
+    float largest_difference = 0.0f;
+    const double total = gather(frame, largest_difference);
+    status_ = normalise(total, largest_difference, out);
+    return status_;
 }
 
 template SlopeStatus SlopeComputer::compute<float>(const float*, float*);

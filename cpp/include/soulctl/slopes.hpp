@@ -25,9 +25,8 @@ struct SlopeStatus {
 
 class SlopeComputer {
 public:
-
     // pixels: n_sub*4 (row, col) pairs, sub-aperture major, pupil image 1..4 minor.
-    SlopeComputer(const std::vector<int32_t>& rows, const std::vector<int32_t>& cols,
+    SlopeComputer(const std::vector<int64_t>& rows, const std::vector<int64_t>& cols,
                   int frame_rows, int frame_cols, Normalization norm);
 
     int n_subapertures() const { return n_sub_; }
@@ -53,11 +52,10 @@ public:
     const SlopeStatus& last_status() const { return status_; }
 
 private:
-    // compute() = gather (pixels -> dx, dy, flux; returns the total flux), normalise, status.
+    // compute() = gather (pixels -> dx, dy, flux; the total flux and max |dx|, |dy|), normalise.
     template <typename T>
-    double gather(const T* frame);
-    void normalise(double total_flux, float* out);
-    SlopeStatus finish_status(double total_flux);
+    double gather(const T* frame, float& largest_difference);
+    SlopeStatus normalise(double total_flux, float largest_difference, float* out);
     static constexpr int kBlock = 256;  // the flux is summed in float over blocks, then in double
 
     int n_sub_;
@@ -74,11 +72,8 @@ private:
     std::vector<float> dx_, dy_, flux_;
     bool has_background_ = false;
     bool has_reference_ = false;
-    bool global_ok_ = true;  // global normalisation: the last frame gave usable slopes
-    float largest_difference_ = 0.0f;  // max |dx|, |dy| of the last frame
-    double largest_reference_ = 0.0;   // max |reference slope|
+    double largest_reference_ = 0.0;  // max |reference slope|
     SlopeStatus status_;
-    std::vector<int> dark_;  // per sub-aperture: zeroed in the last frame (subaperture mode)
 };
 
 }  // namespace soulctl
