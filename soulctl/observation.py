@@ -68,11 +68,14 @@ def _require(cond: bool, message: str) -> None:
         raise InputError(message)
 
 
+def _is_number(value) -> bool:
+    """A real number as TOML gives it: int or float, not bool."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _number(section: dict, key: str, where: str) -> float:
-    """A real number (int or float, not bool) from a configuration section."""
     value = section[key]
-    _require(isinstance(value, (int, float)) and not isinstance(value, bool),
-             f"{where}.{key} must be a number, got {value!r}")
+    _require(_is_number(value), f"{where}.{key} must be a number, got {value!r}")
     return float(value)
 
 
@@ -84,7 +87,7 @@ def _integer(section: dict, key: str, where: str) -> int:
 
 def _numbers(section: dict, key: str, where: str) -> tuple[float, ...]:
     value = section.get(key, [])
-    _require(isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value),
+    _require(isinstance(value, list) and all(_is_number(v) for v in value),
              f"{where}.{key} must be a list of numbers, got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -193,14 +196,11 @@ class Observation:
             star, wfs, control = _section(d, "star"), _section(d, "wfs"), _section(d, "control")
             delay, phot_section = _section(d, "delay", required=False), _section(d, "photometry", required=False)
             default = DelayModel.from_table()
-            delay_model = DelayModel(
-                t_readout_ms=_number(delay, "t_readout_ms", "delay") if "t_readout_ms" in delay else default.t_readout_ms,
-                t_computation_ms=(
-                    _number(delay, "t_computation_ms", "delay") if "t_computation_ms" in delay else default.t_computation_ms
-                ),
-                t_asm_ms=_number(delay, "t_asm_ms", "delay") if "t_asm_ms" in delay else default.t_asm_ms,
-                source="configuration file" if delay else default.source,
-            )
+            terms = {
+                key: _number(delay, key, "delay") if key in delay else getattr(default, key)
+                for key in ("t_readout_ms", "t_computation_ms", "t_asm_ms")
+            }
+            delay_model = DelayModel(**terms, source="configuration file" if delay else default.source)
             phot = WfsPhotometry.from_table()
             if "zero_point_ph_s_per_subaperture" in phot_section:
                 zp = _number(phot_section, "zero_point_ph_s_per_subaperture", "photometry")

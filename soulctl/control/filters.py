@@ -110,17 +110,13 @@ class Filter:
         if nb:
             B[na] = 1.0
         C = np.zeros(n)
+        if na:  # state 0: y(k), or w(k) when the integrator is split off
+            A[0] = row
+            B[0] = b[0]
         if integrator:
             iy = n - 1  # y(k) = y(k-1) + w(k)
-            if na:
-                A[0] = row
-                B[0] = b[0]
             A[iy] = row
             A[iy, iy] = 1.0
             B[iy] = b[0]
-            C[iy] = 1.0
-        else:
-            A[0] = row
-            B[0] = b[0]
-            C[0] = 1.0
+        C[n - 1 if integrator else 0] = 1.0
         return A, B, C
