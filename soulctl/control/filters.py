@@ -86,6 +86,25 @@ class Filter:
         """(b, a) in powers of z^-1, gain included in b: H = (b0 + b1 z^-1 + ...)/(1 + a1 z^-1 + ...)."""
         return self.gain * _real_poly(self.zeros, "zeros"), _real_poly(self.poles, "poles")
 
+    def frequency_response(self, w) -> np.ndarray:
+        """H(e^{jw}) from the zeros, poles and gain (paper, Eq. tfIIR); w in rad/frame, 0..pi."""
+        zi = np.exp(-1j * np.asarray(w, dtype=float))
+        h = np.full(zi.shape, complex(self.gain))
+        for beta in self.zeros:
+            h *= 1.0 - beta * zi
+        for alpha in self.poles:
+            h /= 1.0 - alpha * zi
+        return h
+
+    def state_space_frequency_response(self, w) -> np.ndarray:
+        """H(e^{jw}) = g C (I - A e^{-jw})^-1 B_unit from the RTC realisation (paper, Eq. stateIIR)."""
+        A, B, C = self.unit_state_space()
+        zi = np.exp(-1j * np.asarray(w, dtype=float))
+        eye = np.eye(A.shape[0])
+        systems = eye[None] - A[None] * zi.reshape(-1, 1, 1)
+        x = np.linalg.solve(systems, np.broadcast_to(B, (zi.size, B.size))[..., None])[..., 0]
+        return (self.gain * (x @ C)).reshape(zi.shape)
+
     def unit_state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A, B_unit, C) of the realisation above: x(k) = A x(k-1) + g B_unit u(k), y(k) = C x(k)."""
         b = _real_poly(self.zeros, "zeros")  # monic: b[0] = 1

@@ -88,3 +88,10 @@ def test_invalid_filters():
     for roots in ([float("nan")], [float("inf")], [0.5 + float("nan") * 1j]):
         with pytest.raises(InputError, match="zeros and poles must be finite"):
             Filter.iir([], roots, 1.0)
+
+
+@pytest.mark.parametrize("f", paper_filters())
+def test_package_responses_state_space_equals_zeros_poles_gain(f):
+    """The two representations the package offers (one object, one truth)."""
+    np.testing.assert_allclose(f.state_space_frequency_response(W), f.frequency_response(W), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(f.frequency_response(W), zpk_response(f), rtol=1e-12)
