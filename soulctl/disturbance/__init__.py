@@ -1,0 +1,1 @@
+"""Disturbance models as temporal power spectral densities: turbulent Tip/Tilt and telescope vibrations."""

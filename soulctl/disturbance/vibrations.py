@@ -1,0 +1,107 @@
+"""Telescope vibrations on Tip/Tilt as damped oscillator lines (tables/lbt_vibrations.toml).
+
+Each line is a second-order oscillator w0^2 / (s^2 + 2 zeta w0 s + w0^2) driven by white
+noise, scaled to its RMS: one-sided PSD
+
+    Phi(f) = sigma^2 (8 zeta / w0) |w0^2 / (w0^2 - w^2 + 2j zeta w0 w)|^2,   w = 2 pi f,
+
+whose integral over 0 < f < infinity is sigma^2.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import tables
+from ..errors import InputError
+
+AXES = ("tip", "tilt", "mean")
+
+
+@dataclass(frozen=True)
+class VibrationLine:
+    frequency_hz: float
+    damping: float
+    tip_mas: float
+    tilt_mas: float
+    note: str = ""
+
+    def __post_init__(self):
+        if not (0 < self.frequency_hz < 1e5):
+            raise InputError(f"vibration frequency must be in 0..1e5 Hz (exclusive), got {self.frequency_hz:g}")
+        if not (0 < self.damping < 1):
+            raise InputError(f"vibration damping must be in 0..1 (exclusive), got {self.damping:g}")
+        for name in ("tip_mas", "tilt_mas"):
+            value = getattr(self, name)
+            if not (0 <= value < 1e6):
+                raise InputError(f"vibration {name} must be in 0..1e6 mas, got {value:g}")
+
+    def rms_mas(self, axis: str) -> float:
+        if axis == "mean":
+            return math.sqrt(0.5 * (self.tip_mas**2 + self.tilt_mas**2))
+        return self.tip_mas if axis == "tip" else self.tilt_mas
+
+    def psd(self, f_hz, axis: str = "mean") -> np.ndarray:
+        """One-sided PSD (mas^2/Hz) on Tip, Tilt, or their mean."""
+        w = 2 * np.pi * np.asarray(f_hz, dtype=float)
+        w0, z = 2 * np.pi * self.frequency_hz, self.damping
+        h2 = w0**4 / ((w0**2 - w**2) ** 2 + (2 * z * w0 * w) ** 2)
+        return self.rms_mas(axis) ** 2 * (8 * z / w0) * h2
+
+
+@dataclass(frozen=True)
+class VibrationSpectrum:
+    lines: tuple[VibrationLine, ...]
+    source: str = ""
+
+    def psd(self, f_hz, axis: str = "mean") -> np.ndarray:
+        if axis not in AXES:
+            raise InputError(f"axis must be one of {', '.join(AXES)}, got '{axis}'")
+        f = np.asarray(f_hz, dtype=float)
+        return sum((line.psd(f, axis) for line in self.lines), np.zeros(f.shape))
+
+    def variance_mas2(self, axis: str = "mean") -> float:
+        return sum(line.rms_mas(axis) ** 2 for line in self.lines)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str) -> "VibrationSpectrum":
+        lines = data.get("line")
+        if not isinstance(lines, list) or not lines:
+            raise InputError(f"{where}: needs at least one [[line]] table (frequency_hz, damping, tip_mas, tilt_mas)")
+        out = []
+        for i, line in enumerate(lines):
+            if not isinstance(line, dict):
+                raise InputError(f"{where}: line {i + 1} must be a table")
+            try:
+                values = {k: line[k] for k in ("frequency_hz", "damping", "tip_mas", "tilt_mas")}
+            except KeyError as e:
+                raise InputError(f"{where}: line {i + 1} is missing {e.args[0]!r} "
+                                 "(each line needs frequency_hz, damping, tip_mas, tilt_mas)") from None
+            for k, v in values.items():
+                if not isinstance(v, (int, float)) or isinstance(v, bool):
+                    raise InputError(f"{where}: line {i + 1} {k} must be a number, got {v!r}")
+            out.append(VibrationLine(**{k: float(v) for k, v in values.items()}, note=str(line.get("note", ""))))
+        return cls(tuple(out), str(data.get("source", where)))
+
+    @classmethod
+    def read(cls, path: str | Path) -> "VibrationSpectrum":
+        """A vibration file in the format of tables/lbt_vibrations.toml."""
+        try:
+            with open(path, "rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError:
+            raise InputError(f"vibration file not found: {path}") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise InputError(f"vibration file {path} is not valid TOML: {e}") from None
+        except OSError as e:
+            raise InputError(f"cannot read vibration file {path}: {e.strerror or e}") from None
+        return cls.from_dict(data, str(path))
+
+    @classmethod
+    def lbt_default(cls) -> "VibrationSpectrum":
+        return cls.read(tables.tables_dir() / "lbt_vibrations.toml")

@@ -1,0 +1,58 @@
+"""Vibration lines: normalisation, shape, and the vibration file format."""
+
+import numpy as np
+import pytest
+
+from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
+from soulctl.errors import InputError
+
+
+@pytest.mark.parametrize("f0, zeta", [(13.0, 0.02), (127.0, 0.05), (3.0, 0.3)])
+def test_a_line_integrates_to_its_variance(f0, zeta):
+    line = VibrationLine(f0, zeta, tip_mas=5.0, tilt_mas=2.0)
+    f = np.union1d(np.geomspace(1e-3, 1e6, 400000), np.linspace(0.5 * f0, 1.5 * f0, 200001))
+    assert np.trapezoid(line.psd(f, "tip"), f) == pytest.approx(25.0, rel=2e-3)
+    assert np.trapezoid(line.psd(f, "tilt"), f) == pytest.approx(4.0, rel=2e-3)
+    assert np.trapezoid(line.psd(f, "mean"), f) == pytest.approx(14.5, rel=2e-3)
+
+
+def test_a_lightly_damped_line_peaks_at_its_frequency():
+    line = VibrationLine(13.0, 0.02, 7.0, 7.0)
+    f = np.linspace(10, 16, 60001)
+    assert f[np.argmax(line.psd(f))] == pytest.approx(13.0 * np.sqrt(1 - 2 * 0.02**2), abs=1e-3)
+
+
+def test_default_lbt_spectrum():
+    v = VibrationSpectrum.lbt_default()
+    strongest = max(v.lines, key=lambda l: l.rms_mas("mean"))
+    assert strongest.frequency_hz == 13.0
+    assert strongest.tip_mas != strongest.tilt_mas  # different on Tip and Tilt
+    assert "Agapito" in v.source
+
+
+def test_vibration_file_round_trip(tmp_path):
+    p = tmp_path / "vib.toml"
+    p.write_text('source = "test"\n[[line]]\nfrequency_hz = 20\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 4\n')
+    v = VibrationSpectrum.read(p)
+    assert v.lines == (VibrationLine(20.0, 0.05, 3.0, 4.0),) and v.variance_mas2("tilt") == 16.0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("source = 'x'\n", "at least one [[line]]"),
+    ("[[line]]\nfrequency_hz = 20\ndamping = 0.05\ntip_mas = 3\n", "missing 'tilt_mas'"),
+    ("[[line]]\nfrequency_hz = 'a'\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n", "must be a number"),
+    ("[[line]]\nfrequency_hz = -2\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n", "frequency must be in"),
+    ("[[line]]\nfrequency_hz = 2\ndamping = 1.5\ntip_mas = 3\ntilt_mas = 1\n", "damping must be in 0..1"),
+    ("[[line]\n", "not valid TOML"),
+])
+def test_bad_vibration_files(tmp_path, text, message):
+    p = tmp_path / "vib.toml"
+    p.write_text(text)
+    with pytest.raises(InputError) as e:
+        VibrationSpectrum.read(p)
+    assert message in str(e.value)
+
+
+def test_missing_vibration_file(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        VibrationSpectrum.read(tmp_path / "nope.toml")
