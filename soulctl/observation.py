@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,9 +21,9 @@ import tomli_w
 from . import tables
 from .control.delay import DelayModel
 from .errors import InputError
+from .files import atomic_write_text
 from .optics.photometry import WfsPhotometry
 
-IIR_MIN_RATE_HZ = 750.0  # the lowest rate of the roots table; below it an integrator (paper, Sec. 2.3)
 TT_CONTROLS = ("iir", "int")
 BINNINGS = {1: 40, 2: 20, 3: 13, 4: 10}  # binning -> sub-apertures across the pupil (paper, Tab. params)
 
@@ -42,25 +40,11 @@ def frame_rate(magnitude_r: float, band: tables.MagnitudeBand) -> float:
 
 def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...]) -> tables.IIRRoots | None:
     """The Tip/Tilt IIR of the roots table at the tabulated rate nearest to ``frame_rate_hz``
-    (ties to the higher rate), or None below 750 Hz where an integrator is used."""
-    if frame_rate_hz < IIR_MIN_RATE_HZ:
+    (ties to the higher rate), or None below the table's lowest rate (750 Hz for the paper's)
+    where an integrator is used."""
+    if frame_rate_hz < min(r.frame_rate_hz for r in roots):
         return None
     return min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    """Write text to path via a temporary file in the same folder and a rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp", dir=path.parent or ".")
-    try:
-        os.fchmod(fd, 0o644)  # mkstemp makes 0600; a configuration file is for everyone to read
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _require(cond: bool, message: str) -> None:
@@ -233,7 +217,7 @@ class Observation:
 
     def write_toml(self, path: str | Path) -> None:
         """Write the TOML file atomically (temporary file, then rename)."""
-        _atomic_write(Path(path), self.to_toml())
+        atomic_write_text(Path(path), self.to_toml())
 
     @classmethod
     def read_toml(cls, path: str | Path) -> "Observation":
@@ -252,12 +236,13 @@ class Observation:
         return json.dumps(self.to_dict())
 
 
-def observation_for_magnitude(magnitude_r: float) -> Observation:
-    """The configuration the look-up table gives for a guide star of R magnitude."""
+def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None) -> Observation:
+    """The configuration the look-up table gives for a guide star of R magnitude; the Tip/Tilt
+    filter from ``roots_table`` (default: the paper's, tables/tt_iir_roots.csv)."""
     bands = tables.magnitude_table()
     band = tables.band_for_magnitude(magnitude_r, bands)
     rate = frame_rate(magnitude_r, band)
-    roots = tt_filter_roots(rate, tables.tt_iir_table())
+    roots = tt_filter_roots(rate, roots_table or tables.tt_iir_table())
     return Observation(
         magnitude_r=float(magnitude_r),
         binning=band.binning,

@@ -7,6 +7,7 @@ top-level ``tables/`` folder is used.
 from __future__ import annotations
 
 import csv
+import math
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -26,8 +27,8 @@ def tables_dir() -> Path:
     raise FileNotFoundError("soulctl tables not found (looked in %s and %s)" % (installed, source))
 
 
-def _read_csv(name: str) -> list[dict[str, str]]:
-    path = tables_dir() / name
+def _read_csv(name: str | Path) -> list[dict[str, str]]:
+    path = tables_dir() / name  # an absolute path stays as it is
     with open(path, newline="") as f:
         lines = [line for line in f if line.strip() and not line.lstrip().startswith("#")]
     return list(csv.DictReader(lines))
@@ -104,18 +105,51 @@ def band_for_magnitude(magnitude: float, bands: tuple[MagnitudeBand, ...]) -> Ma
     raise InputError(f"R magnitude {magnitude:.10g} is outside the look-up table: accepted range {lo:g} <= R <= {hi:g}")
 
 
+ROOT_COLUMNS = ("frame_rate_hz", *(f"zero{k}" for k in range(1, 5)), *(f"pole{k}" for k in range(1, 5)))
+
+
+def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]:
+    """Roots-table rows, checked: a positive rate, finite zeros, poles in -1..1, one row per rate."""
+    if not rows:
+        raise InputError(f"{where}: the roots table has no rows (columns: {', '.join(ROOT_COLUMNS)})")
+    missing = [c for c in ROOT_COLUMNS if c not in rows[0]]
+    if missing:
+        raise InputError(f"{where}: the roots table lacks the columns {', '.join(missing)} "
+                         f"(columns: {', '.join(ROOT_COLUMNS)})")
+    out = []
+    for i, r in enumerate(rows):
+        try:
+            values = [float(r[c]) for c in ROOT_COLUMNS]
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: row {i + 1} of the roots table must hold 9 numbers "
+                             f"({', '.join(ROOT_COLUMNS)}), got {[r.get(c) for c in ROOT_COLUMNS]}") from None
+        rate, zeros, poles = values[0], tuple(values[1:5]), tuple(values[5:9])
+        if not (rate > 0 and all(map(math.isfinite, values))):
+            raise InputError(f"{where}: row {i + 1}: the frame rate must be > 0 Hz and all roots finite")
+        if not all(-1.0 <= p <= 1.0 for p in poles):
+            raise InputError(f"{where}: row {i + 1}: poles must be in -1..1, got {list(poles)}")
+        out.append(IIRRoots(frame_rate_hz=rate, zeros=zeros, poles=poles))
+    rates = [r.frame_rate_hz for r in out]
+    if len(set(rates)) != len(rates):
+        raise InputError(f"{where}: the roots table has two rows for one frame rate")
+    return tuple(sorted(out, key=lambda r: r.frame_rate_hz))
+
+
 def tt_iir_table() -> tuple[IIRRoots, ...]:
     """The Tip/Tilt IIR roots table, lowest frame rate first."""
-    rows = []
-    for r in _read_csv("tt_iir_roots.csv"):
-        rows.append(
-            IIRRoots(
-                frame_rate_hz=float(r["frame_rate_hz"]),
-                zeros=tuple(float(r[f"zero{k}"]) for k in range(1, 5)),
-                poles=tuple(float(r[f"pole{k}"]) for k in range(1, 5)),
-            )
-        )
-    return tuple(sorted(rows, key=lambda r: r.frame_rate_hz))
+    return _parse_roots(_read_csv("tt_iir_roots.csv"), "tables/tt_iir_roots.csv")
+
+
+def read_roots_table(path: str | Path) -> tuple[IIRRoots, ...]:
+    """A user roots table in the format of tables/tt_iir_roots.csv (e.g. from
+    ``soulctl filter design --out``)."""
+    try:
+        rows = _read_csv(Path(path))
+    except FileNotFoundError:
+        raise InputError(f"roots table not found: {path}") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise InputError(f"cannot read roots table {path}: {getattr(e, 'strerror', None) or e}") from None
+    return _parse_roots(rows, str(path))
 
 
 def delay_terms(system: str = "soul") -> dict:

@@ -11,6 +11,7 @@ from rich.table import Table
 
 from .. import tables
 from ..errors import InputError
+from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
 
 
@@ -26,7 +27,7 @@ def parse_magnitude(text: str) -> float:
     return value + 0.0  # -0 -> 0
 
 
-def render(obs: Observation, console: Console) -> None:
+def render(obs: Observation, console: Console, roots_source: str = "roots") -> None:
     bands = tables.magnitude_table()
     band = tables.band_for_magnitude(obs.magnitude_r, bands)
     t = Table(
@@ -49,11 +50,11 @@ def render(obs: Observation, console: Console) -> None:
     t.add_row("frame rate", f"{obs.frame_rate_hz:g} Hz", rate_src)
     t.add_row("modulation radius", f"{obs.modulation_lambda_over_d:g} λ/D", row)
     if obs.tt_control == "iir":
-        t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"roots at {obs.tt_filter_rate_hz:g} Hz")
+        t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"{roots_source} at {obs.tt_filter_rate_hz:g} Hz")
         t.add_row("  zeros", " ".join(f"{z:+.3f}" for z in obs.tt_zeros), "")
         t.add_row("  poles", " ".join(f"{p:+.3f}" for p in obs.tt_poles), "")
     else:
-        t.add_row("Tip/Tilt control", "integrator", "rate < 750 Hz")
+        t.add_row("Tip/Tilt control", "integrator", f"rate below the {roots_source} table")
     t.add_row("other modes", "leaky integrators", "")
     t.add_row("loop delay", f"{obs.delay_s * 1e3:.2f} ms = {obs.delay_frames:.2f} frames", "delay model")
     t.add_row("photons/sub-ap./frame", f"{obs.photons_per_subaperture_per_frame:.1f}", "WFS zero point")
@@ -63,6 +64,8 @@ def render(obs: Observation, console: Console) -> None:
 def configure(
     mag: str = typer.Option(..., "--mag", metavar="R", help="Guide star R magnitude (0 to 18.5)."),
     out: Path | None = typer.Option(None, "--out", help="Write the configuration as TOML (for --config of later commands)."),
+    roots: Path | None = typer.Option(None, "--roots", metavar="FILE",
+                                      help="Tip/Tilt IIR roots table to use instead of the paper's (e.g. from 'soulctl filter design --out')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Set up an observation for a guide star of R magnitude from the SOUL look-up table:
@@ -70,13 +73,12 @@ def configure(
     and expected photons per sub-aperture per frame.
 
     Example: soulctl configure --mag 13 --out obs.toml
+    (--roots FILE takes the Tip/Tilt filter from a designed roots table.)
     """
-    obs = observation_for_magnitude(parse_magnitude(mag))
+    roots_table = tables.read_roots_table(roots) if roots is not None else None
+    obs = observation_for_magnitude(parse_magnitude(mag), roots_table)
     if out is not None:
-        if out.is_dir():
-            raise InputError(f"--out must be a file path, got the directory {out}")
-        if not out.parent.exists():
-            raise InputError(f"--out: the folder {out.parent} does not exist")
+        check_output_path(out, "--out")
         try:
             obs.write_toml(out)
         except OSError as e:
@@ -85,6 +87,6 @@ def configure(
         typer.echo(obs.to_json())
     else:
         console = Console()
-        render(obs, console)
+        render(obs, console, roots_source=f"{roots.name}" if roots is not None else "roots")
         if out is not None:
             console.print(f"written {out}", markup=False, highlight=False)

@@ -1,0 +1,42 @@
+"""Writing files atomically: a temporary file in the target's folder, then a rename, so that a
+reader never sees a half-written file and a failed write leaves nothing behind."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+
+def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
+    """Call ``write(tmp_path)`` to produce the file, then rename it onto ``path`` (mode 0644)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp" + path.suffix, dir=path.parent or ".")
+    try:
+        os.fchmod(fd, 0o644)  # mkstemp makes 0600; results are for everyone to read
+        os.close(fd)
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    def write(tmp: str) -> None:
+        with open(tmp, "w") as f:
+            f.write(text)
+
+    atomic_write(path, write)
+
+
+def check_output_path(path: Path, option: str) -> None:
+    """An output path must name a file in an existing folder (InputError otherwise)."""
+    from .errors import InputError
+
+    if path.is_dir():
+        raise InputError(f"{option} must be a file path, got the directory {path}")
+    if not path.parent.exists():
+        raise InputError(f"{option}: the folder {path.parent} does not exist")
