@@ -1,7 +1,8 @@
 """The ``soulctl`` Typer application and its entry point.
 
 Exit status: 0 success; 2 bad input (one line on stderr naming the problem and the accepted
-range, nothing written); 1 an unexpected internal error.
+range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed);
+1 an unexpected internal error.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import typer
 from .. import __version__
 from ..errors import InputError
 from . import configure
+from . import filter as filter_cli
 
 app = typer.Typer(
     name="soulctl",
@@ -22,6 +24,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 app.command(name="configure")(configure.configure)
+app.add_typer(filter_cli.app, name="filter")
 
 
 def _version(value: bool) -> None:

@@ -1,0 +1,397 @@
+"""``soulctl filter analyze|design``: temporal control filters, their margins and rejection, and
+the Tip/Tilt IIR design (paper, Sec. 2.3)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import typer
+from rich import box
+from rich.console import Console
+from rich.table import Table
+
+from .. import __version__, tables
+from ..control.delay import DelayModel
+from ..control.design import DesignResult, Disturbance, design_tt_filter, roots_table_csv
+from ..control.filters import Filter
+from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, LoopAnalysis, Plant, analyze
+from ..disturbance.turbulence import TurbulenceTipTilt
+from ..disturbance.vibrations import VibrationSpectrum
+from ..errors import InputError
+from ..files import atomic_write_text, check_output_path
+
+app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).",
+                  no_args_is_help=True)
+
+UNSTABLE_EXIT = 3  # an analysed loop is unstable (its figures are still printed)
+CONTROLS = ("iir", "int", "leaky")
+SYSTEMS = ("soul", "flao")
+
+
+# ---------------------------------------------------------------- argument parsing
+
+def _values(text: str, option: str, kind: str) -> list[str]:
+    items = [t.strip() for t in str(text).split(",")]
+    if not items or any(t == "" for t in items):
+        raise InputError(f"{option} must be a comma-separated list of {kind}, got '{text}'")
+    return items
+
+
+def _numbers(text: str, option: str, lo: float, hi: float, lo_open: bool = False, what: str = "") -> list[float]:
+    """Comma-separated finite numbers in [lo, hi] (or (lo, hi] with lo_open)."""
+    lo_txt = f"{'>' if lo_open else '>='} {lo:g}"
+    accepted = f"accepted {lo_txt}" + (f" and <= {hi:g}" if math.isfinite(hi) else "") + (f" {what}" if what else "")
+    out = []
+    for t in _values(text, option, "numbers"):
+        try:
+            v = float(t)
+        except ValueError:
+            raise InputError(f"{option} must be numbers, got '{t}': {accepted}") from None
+        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
+        if not ok:
+            raise InputError(f"{option} {t} is out of range: {accepted}")
+        out.append(v + 0.0)
+    return out
+
+
+def _roots(text: str | None, option: str) -> tuple[complex, ...]:
+    if text is None or text.strip() == "":
+        return ()
+    out = []
+    for t in _values(text, option, "roots"):
+        try:
+            v = complex(t.replace(" ", ""))
+        except ValueError:
+            raise InputError(f"{option} must be numbers such as 0.5 or 0.5+0.2j, got '{t}'") from None
+        if not (math.isfinite(v.real) and math.isfinite(v.imag)):
+            raise InputError(f"{option} must be finite numbers, got '{t}'")
+        out.append(v.real if v.imag == 0 else v)
+    return tuple(out)
+
+
+def _broadcast(lists: dict[str, list]) -> int:
+    """The number of controllers: every list has one value or that many."""
+    n = max(len(v) for v in lists.values())
+    for name, v in lists.items():
+        if len(v) not in (1, n):
+            longest = max(lists, key=lambda k: len(lists[k]))
+            raise InputError(f"{name} has {len(v)} values but {longest} has {n}: give one value or {n}")
+    return n
+
+
+def _pick(values: list, i: int):
+    return values[i] if len(values) > 1 else values[0]
+
+
+# ---------------------------------------------------------------- analyze
+
+@dataclass(frozen=True)
+class AnalyzedLoop:
+    label: str
+    control: str
+    description: str
+    delay_ms: float
+    loop: Loop
+    analysis: LoopAnalysis
+
+    def to_dict(self) -> dict:
+        f = self.loop.controller
+        return {
+            "label": self.label,
+            "control": self.control,
+            "filter": self.description,
+            "zeros": [_json_root(z) for z in f.zeros],
+            "poles": [_json_root(p) for p in f.poles],
+            "delay_ms": self.delay_ms,
+            **self.analysis.to_dict(),
+        }
+
+
+def _json_root(r: complex):
+    r = complex(r)
+    return r.real if r.imag == 0 else [r.real, r.imag]
+
+
+def _tabulated_roots(rate: float) -> tables.IIRRoots:
+    """The roots-table row at the tabulated rate nearest to ``rate`` (ties to the higher)."""
+    return min(tables.tt_iir_table(), key=lambda r: (abs(r.frame_rate_hz - rate), -r.frame_rate_hz))
+
+
+def _controller(control: str, gain: float, rate: float, forgetting: float,
+                zeros: tuple, poles: tuple) -> tuple[Filter, str]:
+    if control == "int":
+        return Filter.integrator(gain), "integrator"
+    if control == "leaky":
+        return Filter.leaky(forgetting, gain), f"leaky (α = {forgetting:g})"
+    if poles:
+        return Filter.iir(zeros, poles, gain), "IIR (given roots)"
+    row = _tabulated_roots(rate)
+    return Filter.iir(row.zeros, row.poles, gain), f"IIR (table {row.frame_rate_hz:g} Hz)"
+
+
+def _fmt(x, spec: str = ".3g", none: str = "—") -> str:
+    if x is None:
+        return none
+    if isinstance(x, float) and math.isinf(x):
+        return "∞"
+    return format(x, spec)
+
+
+def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
+    t = Table(title="Loop analysis: P(z) = χ z^-d, L = H P, S = 1/(1+L), T = L/(1+L)", title_justify="left")
+    t.add_column("")
+    for a in loops:
+        t.add_column(a.label, justify="right")
+
+    def row(name, fn):
+        t.add_row(name, *[fn(a) for a in loops])
+
+    row("controller", lambda a: a.description)
+    row("frame rate", lambda a: f"{a.analysis.rate_hz:g} Hz")
+    row("gain", lambda a: f"{a.analysis.gain:g}")
+    row("delay", lambda a: f"{a.delay_ms:.3g} ms = {a.analysis.delay_frames:.3f} fr")
+    row("optical gain χ", lambda a: f"{a.analysis.optical_gain:g}")
+    row("verdict", lambda a: "[green]stable[/green]" if a.analysis.stable else "[bold red]UNSTABLE[/bold red]")
+    row("gain margin", lambda a: _fmt(a.analysis.gain_margin, ".2f"))
+    row("phase margin", lambda a: _fmt(a.analysis.phase_margin_deg, ".1f") + "°" if a.analysis.phase_margin_deg is not None else "—")
+    row("modulus margin min|1+L|", lambda a: f"{a.analysis.modulus_margin:.3f} @ {a.analysis.modulus_margin_hz:.0f} Hz")
+    row("max stable gain", lambda a: _fmt(a.analysis.max_stable_gain, ".3f"))
+    row("|S(13 Hz)| rejection", lambda a: _fmt(a.analysis.rejection_13hz, ".3f"))
+    row("|T(127 Hz)|", lambda a: _fmt(a.analysis.noise_127hz, ".3f"))
+    row("|S| -3 dB (rejection bw)", lambda a: _fmt(a.analysis.rejection_bandwidth_hz, ".1f") + " Hz")
+    row("|T| -3 dB bandwidth", lambda a: _fmt(a.analysis.bandwidth_hz, ".1f") + " Hz")
+    console.print(t)
+
+
+def analyze_command(
+    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help="Frame rate(s) in Hz (> 0)."),
+    control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s)."),
+    gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help="Loop gain(s) (> 0)."),
+    delay_frames: str | None = typer.Option(None, "--delay-frames", metavar="D[,D…]",
+                                            help="Loop delay in frames (>= 0, fractional allowed)."),
+    delay_ms: str | None = typer.Option(None, "--delay-ms", metavar="T[,T…]", help="Loop delay in ms (>= 0)."),
+    system: str = typer.Option("soul", "--system", metavar="soul|flao[,…]",
+                               help="Delay model when no delay is given (tables/delay_model.toml)."),
+    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help="Optical gain χ of the plant (> 0)."),
+    forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1)."),
+    zeros: str | None = typer.Option(None, "--zeros", metavar="B1,B2,…", help="IIR zeros (default: the roots table)."),
+    poles: str | None = typer.Option(None, "--poles", metavar="A1,A2,…", help="IIR poles, at least one."),
+    label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot."),
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot."),
+) -> int:
+    """Margins, rejection and bandwidth of one or more control loops.
+
+    Lists (comma-separated) compare controllers side by side: each option takes one value or
+    one per controller.  Prints the gain, phase and modulus margins, the maximum stable gain,
+    |S(13 Hz)|, |T(127 Hz)|, the -3 dB bandwidths and a stable/unstable verdict.  Exit status 3
+    if any loop is unstable (its figures are still printed).
+
+    Example (the paper's Fig. IIR1700TF): soulctl filter analyze --rate 1700,1700,1000
+    --control iir,int,int --gain 0.69,0.21,0.39 --system soul,soul,flao
+    --label SOUL-IIR,SOUL-INT,FLAO-INT --plot tf.png
+    """
+    if delay_frames is not None and delay_ms is not None:
+        raise InputError("give --delay-frames or --delay-ms, not both")
+    if plot is not None:
+        check_output_path(plot, "--plot")
+        from ..plots.transfer import plot_format
+
+        plot_format(plot)
+    lists = {
+        "--rate": _numbers(rate, "--rate", 0, 1e6, lo_open=True, what="Hz"),
+        "--control": _values(control.lower(), "--control", "controls"),
+        "--gain": _numbers(gain, "--gain", 0, 1e3, lo_open=True),
+        "--system": _values(system.lower(), "--system", "delay models"),
+        "--chi": _numbers(chi, "--chi", 0, 1e3, lo_open=True),
+        "--forgetting": _numbers(forgetting, "--forgetting", 0, 1),
+    }
+    for c in lists["--control"]:
+        if c not in CONTROLS:
+            raise InputError(f"--control must be iir, int or leaky, got '{c}'")
+    for s in lists["--system"]:
+        if s not in SYSTEMS:
+            raise InputError(f"--system must be soul or flao, got '{s}'")
+    if delay_frames is not None:
+        lists["--delay-frames"] = _numbers(delay_frames, "--delay-frames", 0, 1e3, what="frames")
+    if delay_ms is not None:
+        lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", 0, 1e4, what="ms")
+    if label is not None:
+        lists["--label"] = _values(label, "--label", "names")
+    z, p = _roots(zeros, "--zeros"), _roots(poles, "--poles")
+    if (zeros is not None or poles is not None) and not p:
+        raise InputError("--poles needs at least one pole (a control filter is an IIR filter)")
+    if p and "iir" not in lists["--control"]:
+        raise InputError("--zeros/--poles apply to --control iir")
+    n = _broadcast(lists)
+
+    loops = []
+    for i in range(n):
+        r, c, g = _pick(lists["--rate"], i), _pick(lists["--control"], i), _pick(lists["--gain"], i)
+        model = DelayModel.from_table(_pick(lists["--system"], i))
+        if "--delay-frames" in lists:
+            d = _pick(lists["--delay-frames"], i)
+        elif "--delay-ms" in lists:
+            d = _pick(lists["--delay-ms"], i) * 1e-3 * r
+        else:
+            d = model.frames(r)
+        H, description = _controller(c, g, r, _pick(lists["--forgetting"], i), z, p)
+        loop = Loop(H, Plant(d, _pick(lists["--chi"], i)), r)
+        name = _pick(lists["--label"], i) if "--label" in lists else f"{c.upper()} {r:g} Hz g={g:g}"
+        loops.append(AnalyzedLoop(name, c, description, d / r * 1e3, loop, analyze(loop)))
+
+    if plot is not None:
+        from ..plots.transfer import Curve, save_figure, transfer_figure
+
+        save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), plot)
+    all_stable = all(a.analysis.stable for a in loops)
+    if json_output:
+        typer.echo(json.dumps({"controllers": [a.to_dict() for a in loops], "stable": all_stable,
+                               "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ}))
+    else:
+        console = Console()
+        _render_analysis(loops, console)
+        if plot is not None:
+            console.print(f"written {plot}", markup=False, highlight=False)
+        if not all_stable:
+            console.print("[bold red]at least one loop is unstable[/bold red] (exit status 3)")
+    return 0 if all_stable else UNSTABLE_EXIT
+
+
+# ---------------------------------------------------------------- design
+
+def _render_design(results: list[DesignResult], disturbance: Disturbance, console: Console) -> None:
+    roots = Table(title="Roots (H = g ∏(1 − β z⁻¹) / ∏(1 − α z⁻¹)), designed and the paper's", title_justify="left",
+                  box=box.SIMPLE_HEAD)
+    for name in ("rate", "", "zeros β", "poles α"):
+        roots.add_column(name, justify="right" if name == "rate" else "left")
+    perf = Table(title=f"Performance under the design cost, |1 + HP| > ε = {results[0].epsilon:g} "
+                       "(the paper's filter and the integrator at their best gains)",
+                 title_justify="left", box=box.SIMPLE_HEAD)
+    for name in ("rate", "", "gain", "GM", "PM", "min|1+L|", "|S(13)|", "|T(127)|", "jitter"):
+        perf.add_column(name, justify="left" if name == "" else "right")
+    for r in results:
+        rows = [("designed", r.iir, ""), ("paper", r.table, "dim"), ("integrator", r.integrator, "dim")]
+        for name, c, style in rows:
+            if c is None:
+                continue
+            a = c.analysis
+            first = f"{r.rate_hz:g}" if name == "designed" else ""
+            if name != "integrator":
+                roots.add_row(first, name, " ".join(f"{z.real:+.3f}" for z in c.filter.zeros),
+                              " ".join(f"{p.real:+.3f}" for p in c.filter.poles), style=style)
+            perf.add_row(first, name, f"{c.filter.gain:.3f}", _fmt(a.gain_margin, ".2f"),
+                         _fmt(a.phase_margin_deg, ".0f") + "°", f"{a.modulus_margin:.3f}", f"{a.rejection_13hz:.3f}",
+                         _fmt(a.noise_127hz, ".3f"), f"{c.jitter_mas:.2f}", style=style)
+    console.print(roots)
+    console.print(perf)
+    for r in results:
+        console.print(f"{r.rate_hz:g} Hz: the designed filter rejects the 13 Hz line {r.rejection_ratio:.2f}x better than "
+                      f"the integrator; delay {r.delay_frames:.2f} frames; designed in {r.runtime_s:.1f} s",
+                      markup=False, highlight=False)
+    turb = disturbance.turbulence
+    console.print(f"jitter: residual Tip/Tilt RMS per axis (mas). Disturbance: von Kármán Tip/Tilt, seeing "
+                  f"{turb.seeing_arcsec:g}\", L0 {turb.outer_scale_m:g} m, wind {turb.wind_speed_m_s:g} m/s; "
+                  f"vibrations: {disturbance.vibrations.source}; noise {disturbance.noise_mas:g} mas/frame; "
+                  f"{disturbance.resonance_mas:g} mas line at {disturbance.resonance_hz:g} Hz weighted by |T|².",
+                  markup=False, highlight=False, style="dim")
+
+
+def design_command(
+    rate: str = typer.Option("1700,1350,1000,750", "--rate", metavar="HZ[,HZ…]",
+                             help="Frame rate(s) in Hz (> 0); default the paper's four."),
+    epsilon: float = typer.Option(0.2, "--epsilon", help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
+    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight."),
+    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Wind speed of the equivalent turbulent layer."),
+    outer_scale: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale of the von Kármán turbulence."),
+    vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE",
+                                           help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."),
+    noise: float = typer.Option(1.0, "--noise", metavar="MAS", help="White measurement noise, RMS per frame and axis."),
+    resonance_line: float = typer.Option(2.0, "--resonance-line", metavar="MAS",
+                                         help="RMS of the 127 Hz line that keeps |T(127 Hz)| low."),
+    delay_ms: float | None = typer.Option(None, "--delay-ms", help="Loop delay in ms for all rates (default: SOUL's delay model)."),
+    seed: int = typer.Option(1, "--seed", help="Seed of the differential-evolution search."),
+    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs."),
+) -> None:
+    """Design Tip/Tilt IIR filters (4 zeros, 4 poles with one at z = 1, and the gain) that
+    minimise the residual Tip/Tilt variance — temporal error on turbulence and vibrations plus
+    noise propagation — under the modulus-margin constraint |1 + H P| > ε, side by side with
+    the best integrator under the same constraint and cost.
+
+    Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
+    """
+    rates = _numbers(rate, "--rate", 0, 1e6, lo_open=True, what="Hz")
+    if len(set(rates)) != len(rates):
+        raise InputError(f"--rate lists a frame rate twice: {rate}")
+    if not (0 < epsilon < 1):
+        raise InputError(f"--epsilon must be in (0, 1) exclusive, got {epsilon:g}")
+    if delay_ms is not None and not (0 <= delay_ms <= 1e4):
+        raise InputError(f"--delay-ms must be in 0..10000 ms, got {delay_ms:g}")
+    for path, option in ((out, "--out"), (plot, "--plot")):
+        if path is not None:
+            check_output_path(path, option)
+    if plot is not None:
+        from ..plots.transfer import plot_format
+
+        plot_format(plot)
+    disturbance = Disturbance(
+        turbulence=TurbulenceTipTilt(seeing, outer_scale, wind),
+        vibrations=VibrationSpectrum.read(vibrations) if vibrations is not None else VibrationSpectrum.lbt_default(),
+        noise_mas=noise,
+        resonance_mas=resonance_line,
+    )
+    err = Console(stderr=True)
+    results = []
+    for r in rates:
+        d = None if delay_ms is None else delay_ms * 1e-3 * r
+        if json_output:
+            results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
+        else:
+            with err.status(f"designing the {r:g} Hz filter…"):
+                results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
+
+    if out is not None:
+        header = (f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
+                  f"epsilon {epsilon:g}, seeing {seeing:g} arcsec, wind {wind:g} m/s, L0 {outer_scale:g} m, "
+                  f"noise {noise:g} mas/frame, {resonance_line:g} mas line at {RESONANCE_HZ:g} Hz, seed {seed};\n"
+                  f"vibrations: {disturbance.vibrations.source};\n"
+                  f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"
+                  "H(z) = g * prod(1 - zero_k z^-1) / prod(1 - pole_l z^-1); gains at design: "
+                  + ", ".join(f"{x.rate_hz:g} Hz {x.iir.filter.gain:.3f}" for x in results))
+        atomic_write_text(out, roots_table_csv(results, header))
+    if plot is not None:
+        from ..plots.transfer import Curve, save_figure, transfer_figure
+
+        colors = ["C0", "C1", "C2", "C3", "C4", "C5", "C6", "C7"]
+        curves = []
+        for i, x in enumerate(results):
+            col = colors[i % len(colors)]
+            curves.append(Curve(f"IIR {x.rate_hz:g} Hz g={x.iir.filter.gain:.2f}", Loop(x.iir.filter, Plant(x.delay_frames), x.rate_hz), col))
+            curves.append(Curve(f"INT {x.rate_hz:g} Hz g={x.integrator.filter.gain:.2f}",
+                                Loop(x.integrator.filter, Plant(x.delay_frames), x.rate_hz), col, "--"))
+        save_figure(transfer_figure(curves, "Designed Tip/Tilt IIR filters (solid) and the best integrators (dashed)",
+                                    epsilon=epsilon), plot)
+    if json_output:
+        turb = disturbance.turbulence
+        typer.echo(json.dumps({
+            "designs": [x.to_dict() for x in results],
+            "disturbance": {"seeing_arcsec": turb.seeing_arcsec, "wind_m_s": turb.wind_speed_m_s,
+                            "outer_scale_m": turb.outer_scale_m, "vibrations": disturbance.vibrations.source,
+                            "noise_mas": noise, "resonance_line_mas": resonance_line, "resonance_hz": RESONANCE_HZ},
+            "seed": seed,
+        }))
+    else:
+        console = Console()
+        _render_design(results, disturbance, console)
+        for path in (out, plot):
+            if path is not None:
+                console.print(f"written {path}", markup=False, highlight=False)
+
+
+app.command(name="analyze")(analyze_command)
+app.command(name="design")(design_command)

@@ -1,0 +1,135 @@
+"""`soulctl filter analyze|design`: output, exit status, plots, and one-line errors."""
+
+import json
+
+import pytest
+
+from soulctl.cli.app import main
+
+
+def run(args, capsys):
+    status = main(args)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+PAPER_FIGURE = ["filter", "analyze", "--rate", "1700,1700,1000", "--control", "iir,int,int", "--gain", "0.69,0.21,0.39",
+                "--system", "soul,soul,flao", "--label", "SOUL-IIR,SOUL-INT,FLAO-INT"]
+
+
+def test_analyze_json_compares_controllers(capsys):
+    status, out, err = run([*PAPER_FIGURE, "--json"], capsys)
+    assert status == 0 and err == ""
+    d = json.loads(out)
+    assert d["stable"] is True and [c["label"] for c in d["controllers"]] == ["SOUL-IIR", "SOUL-INT", "FLAO-INT"]
+    iir, flao = d["controllers"][0], d["controllers"][2]
+    assert iir["zeros"] == [-0.31, 0.69, 0.698, 0.705] and iir["rejection_13hz"] == pytest.approx(0.11, abs=0.015)
+    assert flao["delay_ms"] == pytest.approx(3.1) and flao["delay_frames"] == pytest.approx(3.1)
+    for key in ("gain_margin", "phase_margin_deg", "modulus_margin", "max_stable_gain", "noise_127hz", "bandwidth_hz"):
+        assert isinstance(iir[key], float)
+
+
+def test_analyze_table_and_plot(tmp_path, capsys):
+    png = tmp_path / "tf.png"
+    status, out, _ = run([*PAPER_FIGURE, "--plot", str(png)], capsys)
+    assert status == 0
+    for text in ("SOUL-IIR", "gain margin", "phase margin", "|S(13 Hz)|", "|T(127 Hz)|", "stable", "written"):
+        assert text in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_analyze_given_roots_delay_and_chi(capsys):
+    status, out, _ = run(["filter", "analyze", "--rate", "1000", "--gain", "0.5", "--zeros", "0.5",
+                          "--poles", "1,0.2", "--delay-ms", "2", "--chi", "0.5", "--json"], capsys)
+    c = json.loads(out)["controllers"][0]
+    assert status == 0 and c["poles"] == [1.0, 0.2] and c["delay_frames"] == pytest.approx(2.0)
+    assert c["optical_gain"] == 0.5
+
+
+def test_analyze_leaky(capsys):
+    status, out, _ = run(["filter", "analyze", "--rate", "500", "--control", "leaky", "--forgetting", "0.9",
+                          "--gain", "0.5", "--delay-frames", "1.5", "--json"], capsys)
+    c = json.loads(out)["controllers"][0]
+    assert status == 0 and c["poles"] == [0.9] and c["rejection_13hz"] > 0.1  # no integral action
+
+
+def test_unstable_loop_exit_3_with_figures(capsys):
+    status, out, err = run(["filter", "analyze", "--rate", "1700", "--control", "int", "--gain", "0.6", "--json"], capsys)
+    assert status == 3
+    c = json.loads(out)["controllers"][0]
+    assert c["stable"] is False and c["gain_margin"] < 1
+    status, out, _ = run(["filter", "analyze", "--rate", "1700", "--control", "int", "--gain", "0.6"], capsys)
+    assert status == 3 and "UNSTABLE" in out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--rate", "0", "--gain", "0.5"], "--rate 0 is out of range: accepted > 0"),
+    (["--rate", "-5", "--gain", "0.5"], "--rate -5 is out of range"),
+    (["--rate", "1000", "--gain", "abc"], "--gain must be numbers, got 'abc'"),
+    (["--rate", "1000", "--gain", "0.5", "--delay-frames", "-1"], "--delay-frames -1 is out of range: accepted >= 0"),
+    (["--rate", "1000", "--gain", "0.5", "--delay-ms", "-2"], "--delay-ms -2 is out of range: accepted >= 0"),
+    (["--rate", "1000", "--gain", "0.5", "--delay-ms", "2", "--delay-frames", "2"], "not both"),
+    (["--rate", "1000", "--gain", "0.5", "--zeros", "0.3"], "--poles needs at least one pole"),
+    (["--rate", "1000", "--gain", "0.5", "--poles", "1,abc"], "--poles must be numbers"),
+    (["--rate", "1000", "--gain", "0.5", "--poles", "0.5+0.1j"], "conjugate pairs"),
+    (["--rate", "1000", "--gain", "0.5", "--control", "pid"], "--control must be iir, int or leaky"),
+    (["--rate", "1000,1700", "--gain", "0.5,0.2,0.3"], "--rate has 2 values but --gain has 3: give one value or 3"),
+    (["--rate", "1000", "--gain", "0.5", "--forgetting", "1.5", "--control", "leaky"], "--forgetting 1.5 is out of range"),
+    (["--rate", "1000", "--gain", "0.5", "--plot", "tf.txt"], "--plot must end in .png"),
+    (["--rate", "1000", "--gain", "0.5", "--system", "keck"], "--system must be soul or flao"),
+    (["--rate", "1000"], "Missing option '--gain'"),
+])
+def test_analyze_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    status, out, err = run(["filter", "analyze", *args], capsys)
+    assert status == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("soulctl: error: ") and message in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--epsilon", "1.5"], "--epsilon must be in (0, 1) exclusive, got 1.5"),
+    (["--epsilon", "0"], "--epsilon must be in (0, 1)"),
+    (["--rate", "0"], "--rate 0 is out of range: accepted > 0"),
+    (["--rate", "1700,1700"], "twice"),
+    (["--delay-ms", "-1"], "--delay-ms must be in 0..10000 ms"),
+    (["--seeing", "0"], "seeing must be in"),
+    (["--vibrations", "missing.toml"], "vibration file not found"),
+    (["--noise", "-1"], "noise must be in"),
+])
+def test_design_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    status, out, err = run(["filter", "design", *args, "--out", "roots.csv"], capsys)
+    assert status == 2 and out == ""
+    assert err.count("\n") == 1 and message in err
+    assert not (tmp_path / "roots.csv").exists()
+
+
+def test_design_json_out_plot_and_configure_roots(tmp_path, capsys):
+    roots, png = tmp_path / "roots.csv", tmp_path / "design.png"
+    status, out, err = run(["filter", "design", "--rate", "1000", "--json", "--out", str(roots), "--plot", str(png),
+                            "--seed", "3"], capsys)
+    assert status == 0
+    d = json.loads(out)
+    (design,) = d["designs"]
+    assert design["rate_hz"] == 1000 and design["iir"]["poles"][-1] == 1.0 and design["runtime_s"] > 0
+    assert design["integrator"]["zeros"] == [] and design["table"]["zeros"] == [0.337, 0.345, 0.345, 0.353]
+    assert d["seed"] == 3 and png.read_bytes()[:4] == b"\x89PNG"
+    # configure takes the designed filter for a star whose frame rate is nearest to 1000 Hz
+    status, out, _ = run(["configure", "--mag", "13", "--roots", str(roots), "--json"], capsys)
+    c = json.loads(out)["control"]
+    assert status == 0 and c["tt_filter_rate_hz"] == 1000
+    assert c["tt_zeros"] == pytest.approx(design["iir"]["zeros"], abs=1e-4)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("frame_rate_hz,zero1\n1000,0.1\n", "lacks the columns"),
+    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,a,0,0,0,0,0,0,1\n", "must hold 9 numbers"),
+    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,0,0,0,0,0,0,1.5,1\n", "poles must be in -1..1"),
+    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n", "no rows"),
+])
+def test_configure_malformed_roots_exit_2(text, message, tmp_path, capsys):
+    p = tmp_path / "roots.csv"
+    p.write_text(text)
+    status, out, err = run(["configure", "--mag", "9", "--roots", str(p)], capsys)
+    assert status == 2 and message in err and err.count("\n") == 1
