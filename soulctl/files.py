@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,3 +41,19 @@ def check_output_path(path: Path, option: str) -> None:
         raise InputError(f"{option} must be a file path, got the directory {path}")
     if not path.parent.exists():
         raise InputError(f"{option}: the folder {path.parent} does not exist")
+
+
+def read_toml(path: str | Path, what: str) -> dict:
+    """A TOML file as a dict; a missing, unreadable or invalid file is an InputError naming
+    ``what`` (e.g. "configuration file") and the path."""
+    from .errors import InputError
+
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(f"{what} not found: {path}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{what} {path} is not valid TOML: {e}") from None
+    except OSError as e:
+        raise InputError(f"cannot read {what} {path}: {e.strerror or e}") from None

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import tomli_w
 from . import tables
 from .control.delay import DelayModel
 from .errors import InputError
-from .files import atomic_write_text
+from .files import atomic_write_text, read_toml
 from .optics.photometry import WfsPhotometry
 
 TT_CONTROLS = ("iir", "int")
@@ -221,16 +220,7 @@ class Observation:
 
     @classmethod
     def read_toml(cls, path: str | Path) -> "Observation":
-        try:
-            with open(path, "rb") as f:
-                data = tomllib.load(f)
-        except FileNotFoundError:
-            raise InputError(f"configuration file not found: {path}") from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"configuration file {path} is not valid TOML: {e}") from None
-        except OSError as e:
-            raise InputError(f"cannot read configuration file {path}: {e.strerror or e}") from None
-        return cls.from_dict(data)
+        return cls.from_dict(read_toml(path, "configuration file"))
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())

@@ -11,7 +11,6 @@ whose integral over 0 < f < infinity is sigma^2.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 
 from .. import tables
 from ..errors import InputError
+from ..files import read_toml
 
 AXES = ("tip", "tilt", "mean")
 
@@ -91,16 +91,7 @@ class VibrationSpectrum:
     @classmethod
     def read(cls, path: str | Path) -> "VibrationSpectrum":
         """A vibration file in the format of tables/lbt_vibrations.toml."""
-        try:
-            with open(path, "rb") as f:
-                data = tomllib.load(f)
-        except FileNotFoundError:
-            raise InputError(f"vibration file not found: {path}") from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"vibration file {path} is not valid TOML: {e}") from None
-        except OSError as e:
-            raise InputError(f"cannot read vibration file {path}: {e.strerror or e}") from None
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_toml(path, "vibration file"), str(path))
 
     @classmethod
     def lbt_default(cls) -> "VibrationSpectrum":
