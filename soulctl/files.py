@@ -9,6 +9,8 @@ import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
+from .errors import InputError
+
 
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     """Call ``write(tmp_path)`` to produce the file, then rename it onto ``path`` (mode 0644)."""
@@ -35,8 +37,6 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 def check_output_path(path: Path, option: str) -> None:
     """An output path must name a file in an existing folder (InputError otherwise)."""
-    from .errors import InputError
-
     if path.is_dir():
         raise InputError(f"{option} must be a file path, got the directory {path}")
     if not path.parent.exists():
@@ -46,8 +46,6 @@ def check_output_path(path: Path, option: str) -> None:
 def read_toml(path: str | Path, what: str) -> dict:
     """A TOML file as a dict; a missing, unreadable or invalid file is an InputError naming
     ``what`` (e.g. "configuration file") and the path."""
-    from .errors import InputError
-
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)

@@ -43,7 +43,7 @@ def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...]) ->
     where an integrator is used."""
     if frame_rate_hz < min(r.frame_rate_hz for r in roots):
         return None
-    return min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
+    return tables.nearest_roots(frame_rate_hz, roots)
 
 
 def _require(cond: bool, message: str) -> None:

@@ -140,6 +140,11 @@ def tt_iir_table() -> tuple[IIRRoots, ...]:
     return _parse_roots(_read_csv("tt_iir_roots.csv"), "tables/tt_iir_roots.csv")
 
 
+def nearest_roots(frame_rate_hz: float, roots: tuple[IIRRoots, ...]) -> IIRRoots:
+    """The roots-table row at the tabulated rate nearest to ``frame_rate_hz`` (ties to the higher)."""
+    return min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
+
+
 def read_roots_table(path: str | Path) -> tuple[IIRRoots, ...]:
     """A user roots table in the format of tables/tt_iir_roots.csv (e.g. from
     ``soulctl filter design --out``)."""

@@ -115,11 +115,6 @@ def _json_root(r: complex):
     return r.real if r.imag == 0 else [r.real, r.imag]
 
 
-def _tabulated_roots(rate: float) -> tables.IIRRoots:
-    """The roots-table row at the tabulated rate nearest to ``rate`` (ties to the higher)."""
-    return min(tables.tt_iir_table(), key=lambda r: (abs(r.frame_rate_hz - rate), -r.frame_rate_hz))
-
-
 def _controller(control: str, gain: float, rate: float, forgetting: float,
                 zeros: tuple, poles: tuple) -> tuple[Filter, str]:
     if control == "int":
@@ -128,7 +123,7 @@ def _controller(control: str, gain: float, rate: float, forgetting: float,
         return Filter.leaky(forgetting, gain), f"leaky (α = {forgetting:g})"
     if poles:
         return Filter.iir(zeros, poles, gain), "IIR (given roots)"
-    row = _tabulated_roots(rate)
+    row = tables.nearest_roots(rate, tables.tt_iir_table())
     return Filter.iir(row.zeros, row.poles, gain), f"IIR (table {row.frame_rate_hz:g} Hz)"
 
 

@@ -37,6 +37,7 @@ from .. import tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
+from .delay import DelayModel
 from .filters import Filter
 from .transfer import RESONANCE_HZ, LoopAnalysis, Loop, Plant, analyze, frequency_grid, max_stable_gain
 
@@ -271,8 +272,6 @@ def design_tt_filter(rate_hz: float, disturbance: Disturbance | None = None, eps
                      popsize: int = 15) -> DesignResult:
     """Design the N_f = 8 Tip/Tilt IIR filter at one frame rate (see the module docstring).
     The delay defaults to SOUL's delay model at that rate."""
-    from .delay import DelayModel  # here, to keep the import graph one-way at module load
-
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise InputError(f"frame rate must be a finite number > 0 Hz, got {rate_hz:g}")
     start = time.perf_counter()
