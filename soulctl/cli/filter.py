@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -226,13 +227,12 @@ def analyze_command(
     loops = []
     for i in range(n):
         r, c, g = _pick(lists["--rate"], i), _pick(lists["--control"], i), _pick(lists["--gain"], i)
-        model = DelayModel.from_table(_pick(lists["--system"], i))
         if "--delay-frames" in lists:
             d = _pick(lists["--delay-frames"], i)
         elif "--delay-ms" in lists:
             d = _pick(lists["--delay-ms"], i) * 1e-3 * r
         else:
-            d = model.frames(r)
+            d = DelayModel.from_table(_pick(lists["--system"], i)).frames(r)
         H, description = _controller(c, g, r, _pick(lists["--forgetting"], i), z, p)
         loop = Loop(H, Plant(d, _pick(lists["--chi"], i)), r)
         name = _pick(lists["--label"], i) if "--label" in lists else f"{c.upper()} {r:g} Hz g={g:g}"
@@ -344,11 +344,8 @@ def design_command(
     results = []
     for r in rates:
         d = None if delay_ms is None else delay_ms * 1e-3 * r
-        if json_output:
+        with nullcontext() if json_output else err.status(f"designing the {r:g} Hz filter…"):
             results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
-        else:
-            with err.status(f"designing the {r:g} Hz filter…"):
-                results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
 
     if out is not None:
         header = (f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
