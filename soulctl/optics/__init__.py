@@ -1,1 +1,2 @@
-"""Optical models: photometry now; pupil, ASM modes, atmosphere, PWFS and detector to come."""
+"""Optical models: atmosphere, LBT pupil, adaptive secondary and modal basis, modulated pyramid
+WFS with detector, calibration and optical gains, photometry (docs/physics.md)."""

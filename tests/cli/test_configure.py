@@ -98,14 +98,15 @@ def test_out_into_missing_folder(tmp_path, capsys):
     assert status == 2 and "does not exist" in err
 
 
-def test_console_script_has_no_traceback():
-    """The installed entry point, as a user runs it."""
+def test_console_script_has_no_traceback(tmp_path):
+    """The installed entry point, as a user runs it (from another folder: ``python -c`` would
+    otherwise import the source tree, which has no compiled core)."""
     proc = subprocess.run(
         [sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "x"],
-        capture_output=True, text=True,
+        capture_output=True, text=True, cwd=tmp_path,
     )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
     ok = subprocess.run([sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "9.7"],
-                        capture_output=True, text=True)
+                        capture_output=True, text=True, cwd=tmp_path)
     assert ok.returncode == 0 and "1700 Hz" in ok.stdout

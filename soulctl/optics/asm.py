@@ -1,0 +1,158 @@
+"""The adaptive secondary (LBT672): actuator geometry, influence functions and the modal basis.
+
+* Actuators: 672 on 14 concentric rings, evenly spaced in radius between the central
+  obstruction and the pupil edge, each ring holding a number of actuators proportional to its
+  circumference (largest-remainder rounding to 672).  The projected pitch is then ~0.27 m
+  radially and ~0.31 m along the rings, the LBT672's ~0.3 m (Riccardi et al. 2003).  The exact
+  layout of the shell is not public in machine-readable form: this is a proposal with the
+  right count, rings and pitch.
+* Influence functions: Gaussian, ``exp(ln(c) (r/p)^2)`` with ``p`` the mean pitch and the
+  coupling ``c = 0.15`` at one pitch (a proposal in the range of thin-shell ASMs, where the
+  force actuators and the shell's stiffness give broad, smooth responses).
+* Commands and modal coefficients are wavefront OPD in nm (the factor 2 of a reflection is in
+  the calibration, not here); a unit modal coefficient is 1 nm RMS on the pupil.
+* Modal basis (``kl_basis``): modes 1-2 are the mirror's least-squares Tip and Tilt; the others
+  are Karhunen-Loeve modes of von Karman turbulence restricted to the mirror's space, all
+  orthonormal on the pupil, piston-free, and ordered by decreasing turbulent variance (so by
+  increasing spatial frequency): the double diagonalisation of Gendron (1995) done in the
+  whitened actuator space.  ``M`` maps modal coefficients to actuator commands and ``M_inv``
+  (``M^T G``, G the pupil Gram matrix of the influence functions) back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+
+from ..errors import InputError
+from .atmosphere import phase_covariance
+from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+
+
+@dataclass(frozen=True)
+class AsmGeometry:
+    n_actuators: int = 672
+    n_rings: int = 14
+    coupling: float = 0.15
+    diameter_m: float = LBT_DIAMETER_M
+    obstruction: float = LBT_OBSTRUCTION
+
+    def __post_init__(self):
+        if not (3 <= self.n_rings <= self.n_actuators):
+            raise InputError(f"ASM rings must be 3..{self.n_actuators}, got {self.n_rings}")
+        if not (0 < self.coupling < 1):
+            raise InputError(f"influence-function coupling must be in (0, 1), got {self.coupling}")
+
+    def ring_radii(self) -> np.ndarray:
+        """Ring radii (m): the annulus [obstruction R, R] cut into n_rings - 0.5 steps, first
+        ring half a step outside the obstruction, last ring on the pupil edge."""
+        R = self.diameter_m / 2
+        step = R * (1 - self.obstruction) / (self.n_rings - 0.5)
+        return self.obstruction * R + step * (0.5 + np.arange(self.n_rings))
+
+    def ring_counts(self) -> np.ndarray:
+        r = self.ring_radii()
+        exact = self.n_actuators * r / r.sum()
+        counts = np.floor(exact).astype(int)
+        short = self.n_actuators - counts.sum()
+        counts[np.argsort(exact - counts)[::-1][:short]] += 1
+        return counts
+
+    def positions(self) -> np.ndarray:
+        """(n_actuators, 2) x, y in metres, ring by ring, alternate rings rotated half a step."""
+        xy = []
+        for k, (r, n) in enumerate(zip(self.ring_radii(), self.ring_counts())):
+            a = 2 * np.pi * (np.arange(n) + 0.5 * (k % 2)) / n
+            xy.append(np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
+        return np.concatenate(xy)
+
+    @property
+    def pitch_m(self) -> float:
+        """Mean actuator pitch: the side of the square cell each actuator covers on the annulus."""
+        R = self.diameter_m / 2
+        area = np.pi * R**2 * (1 - self.obstruction**2)
+        return float(np.sqrt(area / self.n_actuators))
+
+    def influence_functions(self, pupil: Pupil) -> np.ndarray:
+        """(n_valid_pixels, n_actuators): each actuator's unit response on the pupil pixels."""
+        x, y = pupil.coordinates()
+        p = self.positions()
+        d2 = (x[:, None] - p[None, :, 0]) ** 2 + (y[:, None] - p[None, :, 1]) ** 2
+        return np.exp(np.log(self.coupling) * d2 / self.pitch_m**2)
+
+
+@dataclass(frozen=True)
+class ModalBasis:
+    """Modes-to-commands ``M`` (n_actuators x n_modes) and its inverse ``M_inv``.
+
+    ``variance`` is each mode's turbulent variance (rad^2 at 500 nm for r0 = 1 m; Tip/Tilt
+    included), the ordering key of the KL modes."""
+
+    M: np.ndarray
+    M_inv: np.ndarray
+    variance: np.ndarray
+    geometry: AsmGeometry
+    L0_m: float
+
+    @property
+    def n_modes(self) -> int:
+        return self.M.shape[1]
+
+    def truncated(self, n_modes: int) -> "ModalBasis":
+        if not (1 <= n_modes <= self.n_modes):
+            raise InputError(f"modes must be in 1..{self.n_modes} for this mirror, got {n_modes}")
+        return ModalBasis(self.M[:, :n_modes], self.M_inv[:n_modes], self.variance[:n_modes], self.geometry, self.L0_m)
+
+    def shapes(self, pupil: Pupil) -> np.ndarray:
+        """(n_valid_pixels, n_modes) mode shapes on ``pupil`` (OPD per unit coefficient)."""
+        return self.geometry.influence_functions(pupil) @ self.M
+
+
+def _covariance_kernel(pupil: Pupil, L0_m: float) -> np.ndarray:
+    """Phase covariance C(x - x') on the (2n)^2 grid of separations, FFT-ready (r0 = 1 m)."""
+    n = pupil.n_pixels
+    k = np.fft.fftfreq(2 * n, 1.0 / (2 * n)) * pupil.pixel_scale_m
+    r = np.hypot(*np.meshgrid(k, k))
+    return phase_covariance(r, 1.0, L0_m)
+
+
+def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = 25.0, eigen_floor: float = 1e-6) -> ModalBasis:
+    """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
+    if not (L0_m > 0 and np.isfinite(L0_m)):
+        raise InputError(f"outer scale L0 for the KL modes must be a finite number > 0 m, got {L0_m}")
+    F = geometry.influence_functions(pupil)
+    n_p = F.shape[0]
+    G = F.T @ F / n_p
+    s, U = np.linalg.eigh(G)
+    keep = s > eigen_floor * s.max()
+    W = U[:, keep] / np.sqrt(s[keep])  # whitening: F W has orthonormal columns (mean-square)
+
+    def whitened(vectors: np.ndarray) -> np.ndarray:  # pupil functions -> whitened coordinates
+        return W.T @ (F.T @ vectors) / n_p
+
+    tip, tilt = pupil.tilt()
+    piston = whitened(np.ones((n_p, 1)))
+    tt = whitened(np.stack([tip, tilt], axis=1))
+    # Piston first, then the mirror's Tip and Tilt, orthonormalised in that order.
+    Q, _ = np.linalg.qr(np.concatenate([piston, tt], axis=1))
+    Q = Q * np.sign(np.diag(Q.T @ np.concatenate([piston, tt], axis=1)))
+    # Turbulence covariance of the mirror coordinates: F^T C F / n_p^2 by FFT convolution.
+    n = pupil.n_pixels
+    images = np.zeros((F.shape[1], 2 * n, 2 * n))
+    rows, cols = np.nonzero(pupil.mask)
+    images[:, rows, cols] = F.T
+    kernel = scipy.fft.rfft2(_covariance_kernel(pupil, L0_m))
+    conv = scipy.fft.irfft2(scipy.fft.rfft2(images, workers=-1) * kernel, s=(2 * n, 2 * n), workers=-1)
+    CF = conv[:, rows, cols].T  # (n_p, n_act): C applied to each influence function
+    K = W.T @ (F.T @ CF) @ W / n_p**2
+    P = np.eye(K.shape[0]) - Q @ Q.T
+    evals, evecs = np.linalg.eigh(P @ K @ P)
+    order = np.argsort(evals)[::-1][: K.shape[0] - 3]
+    kl = evecs[:, order]
+    modes_w = np.concatenate([Q[:, 1:3], kl], axis=1)
+    variance = np.einsum("im,ij,jm->m", modes_w, K, modes_w)
+    M = W @ modes_w
+    M_inv = M.T @ G
+    return ModalBasis(M=M, M_inv=M_inv, variance=variance, geometry=geometry, L0_m=L0_m)

@@ -1,0 +1,138 @@
+"""Calibration: the modal basis on the mirror, the interaction matrix and the reconstructor.
+
+* Interaction matrix D (n_slopes x n_modes), slopes per nm RMS of each mode, by push-pull of
+  the controlled modes with ``push_nm`` around the unaberrated (diffraction-limited) reference:
+  D_i = (s(+a m_i) - s(-a m_i)) / 2a, noiseless frames through the same slope computer.
+* Reconstructor R = D^+ (Moore-Penrose pseudo-inverse, all modes kept): modes = R s.
+* Reference slopes: those of the unaberrated beam (subtracted by the slope computer).
+
+Both the basis and the calibration are cached on disk under a key of everything that
+determines them (:mod:`soulctl.optics.cache`); ``cache=ArrayCache(None)`` forces a fresh
+computation.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .asm import AsmGeometry, ModalBasis, kl_basis
+from .cache import ArrayCache, cache_key
+from .detector import Detector
+from .pupil import Pupil
+from .pwfs import Pyramid, PyramidConfig
+from .sensor import WavefrontSensor
+
+BASIS_PIXELS = 80  # pupil sampling on which the KL modes are computed (~3.5 pixels per actuator)
+
+
+@dataclass(frozen=True)
+class BasisSetup:
+    asm: AsmGeometry = field(default_factory=AsmGeometry)
+    L0_m: float = 25.0
+    pixels: int = BASIS_PIXELS
+
+    def key(self) -> str:
+        return cache_key("basis", {"asm": asdict(self.asm), "L0_m": self.L0_m, "pixels": self.pixels})
+
+
+def modal_basis(setup: BasisSetup, cache: ArrayCache = ArrayCache(None)) -> ModalBasis:
+    """The ASM's Tip/Tilt + KL basis (all its modes), from the cache when there."""
+    key = setup.key()
+    hit = cache.load(key)
+    if hit is not None:
+        return ModalBasis(hit["M"], hit["M_inv"], hit["variance"], setup.asm, setup.L0_m)
+    pupil = Pupil(setup.pixels, setup.asm.diameter_m, setup.asm.obstruction)
+    basis = kl_basis(setup.asm, pupil, setup.L0_m)
+    cache.store(key, {"M": basis.M, "M_inv": basis.M_inv, "variance": basis.variance})
+    return basis
+
+
+@dataclass(frozen=True)
+class CalibrationSetup:
+    pyramid: PyramidConfig
+    n_modes: int
+    basis: BasisSetup = field(default_factory=BasisSetup)
+    push_nm: float = 10.0
+
+    def __post_init__(self):
+        if not (0 < self.push_nm <= 100):
+            raise InputError(f"calibration push must be in (0, 100] nm RMS, got {self.push_nm}")
+        if self.n_modes < 1:
+            raise InputError(f"modes must be at least 1, got {self.n_modes}")
+
+    def key(self) -> str:
+        return cache_key(
+            "calibration",
+            {"pyramid": asdict(self.pyramid), "n_modes": self.n_modes, "basis": self.basis.key(), "push_nm": self.push_nm},
+        )
+
+
+@dataclass(frozen=True)
+class Calibration:
+    setup: CalibrationSetup
+    basis: ModalBasis  # truncated to the controlled modes
+    interaction_matrix: np.ndarray  # (n_slopes, n_modes), slopes per nm
+    reconstructor: np.ndarray  # (n_modes, n_slopes), nm per slope
+    reference_slopes: np.ndarray
+    from_cache: bool
+    seconds: float
+
+    @property
+    def singular_values(self) -> np.ndarray:
+        return np.linalg.svd(self.interaction_matrix, compute_uv=False)
+
+    @property
+    def condition_number(self) -> float:
+        s = self.singular_values
+        return float(s[0] / s[-1])
+
+
+def mode_maps(shapes: np.ndarray, pupil: Pupil) -> np.ndarray:
+    """(n_modes, n, n) OPD maps of mode shapes given on the pupil pixels (n_valid, n_modes)."""
+    maps = np.zeros((shapes.shape[1], pupil.n_pixels, pupil.n_pixels), dtype=np.float32)
+    maps[:, pupil.mask] = shapes.T
+    return maps
+
+
+def push_pull(sensor: WavefrontSensor, maps: np.ndarray, push_nm: float, around: np.ndarray | None = None) -> np.ndarray:
+    """(n_slopes, n_maps): noiseless slope response per nm to each map, by push-pull around
+    ``around`` (an OPD map; the unaberrated beam when None)."""
+    base = np.zeros(maps.shape[1:], dtype=np.float32) if around is None else np.asarray(around, dtype=np.float32)
+    out = np.empty((sensor.n_slopes, maps.shape[0]))
+    chunk = 8
+    for start in range(0, maps.shape[0], chunk):
+        m = maps[start : start + chunk] * np.float32(push_nm)
+        s = sensor.noiseless_slopes(np.concatenate([base + m, base - m]))
+        k = m.shape[0]
+        out[:, start : start + k] = ((s[:k] - s[k:]) / (2 * push_nm)).T
+    return out
+
+
+def calibration_sensor(config: PyramidConfig) -> WavefrontSensor:
+    """A noiseless sensor for calibration (normalised slopes do not depend on the flux)."""
+    return WavefrontSensor(Pyramid(config), Detector(read_noise_e=0.0, excess_noise=False), photons_per_frame=1.0)
+
+
+def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> Calibration:
+    """The interaction matrix, reconstructor and reference slopes of ``setup``, from the cache
+    when there (see the module docstring)."""
+    t0 = time.perf_counter()
+    full = modal_basis(setup.basis, cache)
+    if setup.n_modes > full.n_modes:
+        raise InputError(f"modes must be in 1..{full.n_modes} for this mirror, got {setup.n_modes}")
+    basis = full.truncated(setup.n_modes)
+    key = setup.key()
+    hit = cache.load(key)
+    if hit is not None:
+        return Calibration(setup, basis, hit["D"], hit["R"], hit["reference"], True, time.perf_counter() - t0)
+    sensor = calibration_sensor(setup.pyramid)
+    maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
+    D = push_pull(sensor, maps, setup.push_nm)
+    R = np.linalg.pinv(D)
+    ref = sensor.reference_slopes.astype(np.float64)
+    cache.store(key, {"D": D, "R": R, "reference": ref})
+    return Calibration(setup, basis, D, R, ref, False, time.perf_counter() - t0)

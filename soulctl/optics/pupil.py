@@ -1,0 +1,71 @@
+"""The LBT pupil as seen by SOUL: a disc of 8.222 m with a central obstruction of 0.111 (linear).
+
+Both figures are the pupil conjugated to the adaptive secondary (LBTO elab_lib
+``ao_global_data_init.pro``; arte ``astro/telescopes.py``).  The secondary's support spiders
+are not seen by the WFS (they sit in front of the ASM) and are not modelled.
+
+Sampling convention (used by every optical model): an ``n``-pixel grid whose pixel centres sit
+at ``(i + 0.5 - n/2) * pixel_scale`` from the pupil centre, x along columns, y along rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from ..errors import InputError
+
+LBT_DIAMETER_M = 8.222
+LBT_OBSTRUCTION = 0.111
+
+
+def grid(n: int, pixel_scale_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """x (columns) and y (rows) in metres at the pixel centres of an n x n grid."""
+    c = (np.arange(n) + 0.5 - n / 2) * pixel_scale_m
+    return np.meshgrid(c, c)
+
+
+@dataclass(frozen=True)
+class Pupil:
+    n_pixels: int
+    diameter_m: float = LBT_DIAMETER_M
+    obstruction: float = LBT_OBSTRUCTION
+
+    def __post_init__(self):
+        if not (8 <= self.n_pixels <= 4096):
+            raise InputError(f"pupil sampling must be 8..4096 pixels across, got {self.n_pixels}")
+        if not (self.diameter_m > 0):
+            raise InputError(f"pupil diameter must be > 0 m, got {self.diameter_m}")
+        if not (0 <= self.obstruction < 1):
+            raise InputError(f"central obstruction must be in [0, 1), got {self.obstruction}")
+
+    @property
+    def pixel_scale_m(self) -> float:
+        return self.diameter_m / self.n_pixels
+
+    @cached_property
+    def mask(self) -> np.ndarray:
+        """Boolean n x n mask: pixel centres inside the annulus."""
+        x, y = grid(self.n_pixels, self.pixel_scale_m)
+        r = np.hypot(x, y)
+        radius = self.diameter_m / 2
+        return (r <= radius) & (r >= self.obstruction * radius)
+
+    @property
+    def n_valid(self) -> int:
+        return int(self.mask.sum())
+
+    def coordinates(self) -> tuple[np.ndarray, np.ndarray]:
+        """x, y (m) of the pixels inside the pupil, in the order of ``mask`` (row-major)."""
+        x, y = grid(self.n_pixels, self.pixel_scale_m)
+        return x[self.mask], y[self.mask]
+
+    def tilt(self) -> tuple[np.ndarray, np.ndarray]:
+        """Tip (x) and Tilt (y) ramps on the pupil pixels, zero mean and unit RMS."""
+        out = []
+        for c in self.coordinates():
+            c = c - c.mean()
+            out.append(c / np.sqrt(np.mean(c**2)))
+        return out[0], out[1]

@@ -1,0 +1,208 @@
+"""Diffractive model of the modulated pyramid wavefront sensor (PWFS).
+
+Geometry (all in simulation pixels, ``o`` = oversampling = simulation pixels per binning-1
+detector pixel):
+
+* the pupil is sampled on ``n_pup = 40 o`` pixels (40 sub-apertures across at binning 1);
+* the field is zero-padded to ``N = 96 o``: 2.4 focal-plane pixels per lambda/D;
+* the four pyramid faces tilt the light so that the four pupil images are centred at
+  ``N/2 +- 24 o`` in x and y: each image sits in one quadrant of the N x N output plane with a
+  gap of 0.2 D between images, and the detector at binning b has (96/b)^2 pixels of
+  ``o b`` simulation pixels: 40/20/13.3/10 pixels across a pupil image for b = 1/2/3/4 (at
+  b = 3 the pixel grid is shifted by half a pixel so that 13 sub-apertures are lit across);
+* the point-spread function is centred on the pyramid's vertex (half a pixel off the FFT
+  grid's centre), so an unaberrated beam lights the four faces equally.
+
+Modulation: a circle of radius ``r`` lambda/D travelled during one frame, sampled at
+``4 ceil(2 r)`` points (spacing <= pi/4 lambda/D, a multiple of 4 so the four quadrants are
+sampled alike; 24 points at 3 lambda/D, SPECULA's 2 round(4 r) there).  Moving the PSF over the
+pyramid is the same as moving the pyramid under the PSF, so each modulation point uses the
+mask translated by the opposite offset, evaluated analytically: one forward FFT per
+wavefront, then one inverse FFT per modulation point (batched, threaded, complex64).
+
+Sensing wavelength: 750 nm, the effective wavelength of SOUL's 600-950 nm WFS band (Arcetri
+semi-analytic error budget); polychromatism is not modelled.
+Intensities returned by :meth:`Pyramid.intensity` are binned detector frames normalised so
+that an unaberrated frame holds a total of 1; multiply by the photons per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.fft
+
+from ..errors import InputError
+from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+
+SUBAPERTURES_BIN1 = 40
+WFS_WAVELENGTH_M = 750e-9
+_FFT_PER_PUPIL = 96 / 40  # N / n_pup
+_SEPARATION_PER_PUPIL = 48 / 40  # distance between pupil image centres / n_pup
+
+
+def modulation_points(radius_lambda_over_d: float) -> int:
+    """Points sampled on the modulation circle: 4 ceil(2 r), 1 without modulation."""
+    return 1 if radius_lambda_over_d == 0 else 4 * math.ceil(2 * radius_lambda_over_d)
+
+
+@dataclass(frozen=True)
+class PyramidConfig:
+    binning: int = 1
+    modulation_lambda_over_d: float = 3.0
+    wavelength_m: float = WFS_WAVELENGTH_M
+    oversampling: int = 2
+    valid_threshold: float = 0.5
+    diameter_m: float = LBT_DIAMETER_M
+    obstruction: float = LBT_OBSTRUCTION
+    n_modulation: int | None = None  # None: the 4 ceil(2 r) rule
+
+    def __post_init__(self):
+        if self.binning not in (1, 2, 3, 4):
+            raise InputError(f"binning must be one of 1, 2, 3, 4, got {self.binning}")
+        r = self.modulation_lambda_over_d
+        if not (math.isfinite(r) and 0 <= r <= 20):
+            raise InputError(f"modulation must be in 0..20 lambda/D, got {r}")
+        if not (math.isfinite(self.wavelength_m) and 300e-9 <= self.wavelength_m <= 3e-6):
+            raise InputError(f"WFS wavelength must be in 300..3000 nm, got {self.wavelength_m * 1e9:g} nm")
+        if self.oversampling not in (1, 2, 3, 4):
+            raise InputError(f"oversampling must be 1..4 simulation pixels per detector pixel, got {self.oversampling}")
+        if not (0 < self.valid_threshold < 1):
+            raise InputError(f"valid sub-aperture threshold must be in (0, 1), got {self.valid_threshold}")
+        if self.n_modulation is not None and not (1 <= self.n_modulation <= 1000):
+            raise InputError(f"modulation points must be 1..1000, got {self.n_modulation}")
+
+    @property
+    def pupil(self) -> Pupil:
+        return Pupil(SUBAPERTURES_BIN1 * self.oversampling, self.diameter_m, self.obstruction)
+
+    @property
+    def fft_size(self) -> int:
+        return round(_FFT_PER_PUPIL * self.pupil.n_pixels)
+
+    @property
+    def detector_pixel(self) -> int:
+        """Simulation pixels per detector pixel side."""
+        return self.oversampling * self.binning
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        n = self.fft_size // self.detector_pixel
+        return n, n
+
+    @property
+    def points(self) -> int:
+        return self.n_modulation or modulation_points(self.modulation_lambda_over_d)
+
+
+class Pyramid:
+    """The PWFS optics: wavefront OPD (nm, on the pupil grid) -> binned detector intensity."""
+
+    def __init__(self, config: PyramidConfig, workers: int = -1):
+        self.config = config
+        self.pupil = config.pupil
+        self.workers = workers
+        n_pup, N = self.pupil.n_pixels, config.fft_size
+        self._offset = (N - n_pup) // 2  # the pupil sits at the centre of the padded field
+        # At binning 3 a pupil image is 13.3 detector pixels wide: shifting the pixel grid by
+        # half a pixel centres it on 13 full pixels (13 sub-apertures across, as SOUL's table).
+        self._grid_shift = round(1.5 * config.oversampling) if config.binning == 3 else 0
+        # Half a focal-plane pixel of tilt puts the PSF on the vertex between four pixels.
+        idx = np.arange(n_pup) + self._offset
+        half = np.exp(-1j * np.pi * idx / N)
+        self._amplitude = (np.outer(half, half) * self.pupil.mask).astype(np.complex64)
+        self._masks = self._modulated_masks()
+        self._work = np.empty_like(self._masks)  # scratch of the inverse FFTs (not thread-safe)
+        self._norm = 1.0 / (self._raw_total())
+
+    def _modulated_masks(self) -> np.ndarray:
+        """(points, N, N) complex64: the pyramid's transmission shifted by each modulation offset."""
+        c = self.config
+        N = c.fft_size
+        f = np.fft.fftfreq(N, 1.0 / N)  # focal-plane pixel index, FFT order
+        shift = _SEPARATION_PER_PUPIL * self.pupil.n_pixels / 2  # pupil image offset, pixels
+        pixels_per_lambda_over_d = N / self.pupil.n_pixels
+        radius = c.modulation_lambda_over_d * pixels_per_lambda_over_d
+        angles = 2 * np.pi * np.arange(c.points) / c.points
+        masks = np.empty((c.points, N, N), dtype=np.complex64)
+        for k, a in enumerate(angles):
+            du, dv = radius * np.cos(a), radius * np.sin(a)
+            u = f + du + 0.5  # position relative to the vertex (at -0.5 before modulation)
+            v = f + dv + 0.5
+            # The pyramid's phase is -2 pi shift (|u| + |v|) / N: the face of sign (su, sv) is a
+            # tilt that moves its pupil image by (su, sv) * shift.
+            phase_u = -2 * np.pi * np.abs(u) * shift / N
+            phase_v = -2 * np.pi * np.abs(v) * shift / N
+            masks[k] = np.exp(1j * (phase_v[:, None] + phase_u[None, :]))
+        return masks
+
+    def _raw_total(self) -> float:
+        return float(self._raw(np.zeros((1,) + (self.pupil.n_pixels,) * 2))[0].sum())
+
+    def _raw(self, opd_nm: np.ndarray) -> np.ndarray:
+        """Unnormalised binned intensity for a batch of OPD maps (batch, n_pup, n_pup)."""
+        c = self.config
+        N, o, n_pup = c.fft_size, self._offset, self.pupil.n_pixels
+        k = 2 * np.pi / (c.wavelength_m * 1e9)
+        batch = opd_nm.shape[0]
+        field = np.zeros((batch, N, N), dtype=np.complex64)
+        phase = (np.float32(k) * opd_nm).astype(np.float32)
+        field[:, o : o + n_pup, o : o + n_pup] = self._amplitude * (np.cos(phase) + 1j * np.sin(phase)).astype(np.complex64)
+        focal = scipy.fft.fft2(field, workers=self.workers, overwrite_x=True)
+        # |images|^2 summed over the modulation points, kept with real and imaginary parts side
+        # by side (N, 2N): they are added together with the detector's binning, in one pass.
+        out = np.empty((batch, N, 2 * N), dtype=np.float32)
+        work = self._work
+        for b in range(batch):
+            np.multiply(focal[b], self._masks, out=work)
+            v = scipy.fft.ifft2(work, workers=self.workers, overwrite_x=True).view(np.float32)  # in place
+            np.einsum("kij,kij->ij", v, v, out=out[b])
+        if self._grid_shift:
+            out = np.roll(out, (-self._grid_shift, -2 * self._grid_shift), axis=(1, 2))
+        p = c.detector_pixel
+        n = N // p
+        return out.reshape(batch, n, p, n, p, 2).sum(axis=(2, 4, 5))
+
+    def intensity(self, opd_nm: np.ndarray) -> np.ndarray:
+        """Binned detector intensity (float32) of one OPD map (n_pup, n_pup) or a batch of them;
+        an unaberrated frame sums to 1."""
+        opd = np.asarray(opd_nm, dtype=np.float32)
+        single = opd.ndim == 2
+        if opd.shape[-2:] != (self.pupil.n_pixels,) * 2:
+            raise InputError(f"OPD map must be {self.pupil.n_pixels}x{self.pupil.n_pixels} pixels, got {opd.shape[-2:]}")
+        raw = self._raw(opd[None] if single else opd) * np.float32(self._norm)
+        return raw[0] if single else raw
+
+    @cached_property
+    def reference_intensity(self) -> np.ndarray:
+        return self.intensity(np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32))
+
+    @cached_property
+    def subaperture_pixels(self) -> np.ndarray:
+        """(n_valid, 4, 2) (row, col) of pupil images 1..4 of each valid sub-aperture, in the
+        order of the C++ slope computer: 1 = (+x, +y), 2 = (+x, -y), 3 = (-x, +y), 4 = (-x, -y).
+        Valid: the four images' flux in the unaberrated frame is at least ``valid_threshold``
+        of the brightest sub-aperture's."""
+        n = self.config.frame_shape[0]
+        h = n // 2  # each pupil image fills one quadrant of the frame
+        I = self.reference_intensity
+        quadrant = {1: (h, h), 2: (0, h), 3: (h, 0), 4: (0, 0)}  # (row0, col0) of each image's box
+        flux = sum(I[r0 : r0 + h, c0 : c0 + h] for r0, c0 in quadrant.values())
+        rows, cols = np.nonzero(flux >= self.config.valid_threshold * flux.max())
+        pixels = np.empty((rows.size, 4, 2), dtype=np.int64)
+        for q, (r0, c0) in quadrant.items():
+            pixels[:, q - 1, 0] = rows + r0
+            pixels[:, q - 1, 1] = cols + c0
+        return pixels
+
+    @property
+    def valid_map(self) -> np.ndarray:
+        """Boolean map (frame side / 2)^2 of the valid sub-apertures."""
+        n = self.config.frame_shape[0] // 2
+        m = np.zeros((n, n), dtype=bool)
+        p = self.subaperture_pixels
+        m[p[:, 3, 0], p[:, 3, 1]] = True
+        return m

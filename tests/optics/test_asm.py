@@ -1,0 +1,121 @@
+"""The adaptive secondary: actuator geometry, influence functions and the Tip/Tilt + KL basis,
+checked against the LBT672's figures and against turbulence theory (Noll; fitting-error law)."""
+
+import numpy as np
+import pytest
+
+from soulctl.errors import InputError
+from soulctl.optics.asm import AsmGeometry, kl_basis
+from soulctl.optics.atmosphere import fft_phase_screen, tilt_variance_ratio
+from soulctl.optics.pupil import LBT_DIAMETER_M, Pupil
+
+D = LBT_DIAMETER_M
+
+
+@pytest.fixture(scope="module")
+def basis_80():
+    pupil = Pupil(80)
+    return pupil, kl_basis(AsmGeometry(), pupil, L0_m=25.0)
+
+
+def test_672_actuators_on_14_rings_at_the_lbt672_pitch():
+    g = AsmGeometry()
+    xy = g.positions()
+    assert xy.shape == (672, 2) and g.ring_counts().sum() == 672 and len(g.ring_counts()) == 14
+    r = np.hypot(*xy.T)
+    assert r.min() > 0.111 * D / 2 and r.max() == pytest.approx(D / 2)
+    # actuators per ring follow the circumference: equal spacing along the rings
+    spacing = 2 * np.pi * g.ring_radii() / g.ring_counts()
+    assert spacing.std() / spacing.mean() < 0.05
+    assert 0.25 < g.pitch_m < 0.33  # the LBT672's ~0.3 m projected pitch
+    # nearest neighbours are about one pitch apart
+    d = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    assert 0.8 < np.median(d.min(axis=1)) / g.pitch_m < 1.2
+
+
+def test_influence_function_coupling_at_one_pitch():
+    g = AsmGeometry(coupling=0.15)
+    pupil = Pupil(160)
+    F = g.influence_functions(pupil)
+    x, y = pupil.coordinates()
+    a = 300
+    ax, ay = g.positions()[a]
+    dist = np.hypot(x - ax, y - ay)
+    at_pitch = np.abs(dist - g.pitch_m) < pupil.pixel_scale_m / 2
+    assert F[:, a].max() == pytest.approx(1.0, abs=0.02)
+    assert F[at_pitch, a].mean() == pytest.approx(0.15, rel=0.05)
+
+
+def test_modes_are_orthonormal_piston_free_and_tip_tilt_first(basis_80):
+    pupil, b = basis_80
+    S = b.shapes(pupil)
+    assert b.n_modes == 671
+    assert np.abs(S.T @ S / pupil.n_valid - np.eye(b.n_modes)).max() < 1e-9
+    assert np.abs(S.mean(axis=0)).max() < 1e-9
+    tip, tilt = pupil.tilt()
+    assert S[:, 0] @ tip / pupil.n_valid > 0.999
+    assert S[:, 1] @ tilt / pupil.n_valid > 0.999
+    assert np.allclose(b.M_inv @ b.M, np.eye(b.n_modes), atol=1e-9)
+
+
+def test_kl_variances_decrease_and_tip_tilt_variance_is_von_karman(basis_80):
+    _, b = basis_80
+    assert np.all(np.diff(b.variance[2:]) <= 1e-12)
+    # Z-tilt variance per axis, Kolmogorov: 0.448 (D/r0)^(5/3) rad^2 (Noll 1976: (1.0299-0.134)/2),
+    # times the von Karman reduction at L0 = 25 m; r0 = 1 m here.
+    expected = 0.448 * D ** (5 / 3) * tilt_variance_ratio(D, 25.0)
+    assert b.variance[0] == pytest.approx(expected, rel=0.10)
+    assert b.variance[1] == pytest.approx(expected, rel=0.10)
+
+
+def test_modes_are_ordered_by_spatial_frequency(basis_80):
+    pupil, b = basis_80
+    S = b.shapes(pupil)
+    n = pupil.n_pixels
+    maps = np.zeros((b.n_modes, 2 * n, 2 * n))
+    maps[:, :n, :n][:, pupil.mask] = S.T
+    power = np.abs(np.fft.fft2(maps)) ** 2
+    f = np.fft.fftfreq(2 * n)
+    radius = np.hypot(*np.meshgrid(f, f))
+    mean_f = (power * radius).sum(axis=(1, 2)) / power.sum(axis=(1, 2))
+    groups = [mean_f[a:b_].mean() for a, b_ in ((2, 20), (50, 70), (150, 170), (300, 320), (480, 500))]
+    assert np.all(np.diff(groups) > 0)
+
+
+def test_fitting_error_follows_the_modal_law(basis_80):
+    """Residual of turbulence after removing the first J modes: 0.2778 J^-0.9 (D/r0)^(5/3)
+    (Agapito & Pinna 2019, for this kind of basis), and the whole mirror's fitting error
+    a_F (d/r0)^(5/3) with d the actuator pitch and a_F in 0.23..0.30 (continuous facesheet
+    figures; Hudgin 1977, Rigaut 1998)."""
+    pupil, b = basis_80
+    S = b.shapes(pupil)
+    rng = np.random.default_rng(3)
+    r0 = 0.2
+    Js = np.array([20, 50, 100, 200, 400])
+    residual = np.zeros(len(Js) + 1)
+    n_screens = 16
+    for _ in range(n_screens):
+        phase = fft_phase_screen(pupil.n_pixels, pupil.pixel_scale_m, r0, 1e4, rng)[pupil.mask] * 2 * np.pi / 500
+        phase -= phase.mean()
+        a = S.T @ phase / pupil.n_valid
+        for k, J in enumerate(list(Js) + [b.n_modes]):
+            residual[k] += np.mean((phase - S[:, :J] @ a[:J]) ** 2) / n_screens
+    law = 0.2778 * Js**-0.9 * (D / r0) ** (5 / 3)
+    np.testing.assert_allclose(residual[:-1], law, rtol=0.15)
+    slope = np.polyfit(np.log(Js), np.log(residual[:-1]), 1)[0]
+    assert slope == pytest.approx(-0.9, abs=0.1)
+    a_F = residual[-1] / (AsmGeometry().pitch_m / r0) ** (5 / 3)
+    assert 0.20 < a_F < 0.32
+
+
+def test_truncation_and_bad_inputs():
+    with pytest.raises(InputError):
+        AsmGeometry(coupling=1.5)
+    pupil = Pupil(40)
+    b = kl_basis(AsmGeometry(), pupil)
+    assert b.truncated(54).M.shape == (672, 54)
+    with pytest.raises(InputError, match="1..671"):
+        b.truncated(700)
+    with pytest.raises(InputError):
+        kl_basis(AsmGeometry(), pupil, L0_m=0.0)

@@ -1,0 +1,128 @@
+"""The modulated pyramid WFS: geometry, linearity, linear range and sensitivity against the
+geometric-optics theory of the modulated pyramid (Verinaud 2004; Fauvarque et al. 2016)."""
+
+import numpy as np
+import pytest
+
+from soulctl.errors import InputError
+from soulctl.optics.detector import Detector
+from soulctl.optics.pwfs import Pyramid, PyramidConfig, modulation_points
+from soulctl.optics.sensor import WavefrontSensor
+
+LAMBDA_OVER_D_RAD = 750e-9 / 8.222
+
+
+def sensor(**kwargs) -> WavefrontSensor:
+    config = PyramidConfig(**{"oversampling": 1, **kwargs})
+    return WavefrontSensor(Pyramid(config), Detector(read_noise_e=0, excess_noise=False), photons_per_frame=1.0)
+
+
+def tip_map(wfs: WavefrontSensor, angle_lambda_over_d: float, axis: int = 0) -> np.ndarray:
+    """OPD (nm) of a tilt of the beam by ``angle`` lambda/D along x (axis 0) or y (axis 1)."""
+    p = wfs.pupil
+    n = p.n_pixels
+    c = (np.arange(n) + 0.5 - n / 2) * p.pixel_scale_m
+    x, y = np.meshgrid(c, c)
+    ramp = (x, y)[axis] * angle_lambda_over_d * LAMBDA_OVER_D_RAD * 1e9
+    return (ramp * p.mask).astype(np.float32)
+
+
+def mean_slopes(wfs: WavefrontSensor, opd: np.ndarray) -> tuple[float, float]:
+    s = wfs.slopes(opd)
+    n = wfs.n_subapertures
+    return float(s[:n].mean()), float(s[n:].mean())
+
+
+@pytest.mark.parametrize("binning, across", [(1, 40), (2, 20), (3, 13), (4, 10)])
+def test_subapertures_across_the_pupil_follow_the_binning(binning, across):
+    p = Pyramid(PyramidConfig(binning=binning, oversampling=2))
+    valid = p.valid_map
+    assert valid.sum(axis=1).max() == across and valid.sum(axis=0).max() == across
+    # an annulus of sub-apertures: about pi/4 (1 - 0.111^2) of the square, with the edges
+    assert valid.sum() == pytest.approx(np.pi / 4 * (1 - 0.111**2) * across**2, rel=0.12)
+
+
+def test_modulation_points_rule():
+    assert modulation_points(0) == 1
+    assert modulation_points(3) == 24  # SPECULA's 2 round(4 r) at 3 lambda/D
+    assert all(modulation_points(r) % 4 == 0 and 2 * np.pi * r / modulation_points(r) <= np.pi / 4 + 1e-12 for r in (0.5, 1.3, 2, 5.7))
+
+
+def test_unaberrated_beam_lights_the_four_pupil_images_equally():
+    p = Pyramid(PyramidConfig(binning=1, oversampling=1))
+    I = p.reference_intensity
+    h = I.shape[0] // 2
+    quadrants = [I[:h, :h].sum(), I[:h, h:].sum(), I[h:, :h].sum(), I[h:, h:].sum()]
+    assert I.sum() == pytest.approx(1.0, rel=1e-5)
+    np.testing.assert_allclose(quadrants, 0.25, rtol=0.01)
+
+
+def test_tip_response_is_linear_signed_and_matches_the_modulated_pyramid_gain():
+    """Small tilt theta << r: s = (2/pi) arcsin(theta / r) ~ 2 theta / (pi r) (geometric optics)."""
+    wfs = sensor(binning=2, modulation_lambda_over_d=3.0)
+    angles = np.array([0.05, 0.1, 0.2])
+    sx = np.array([mean_slopes(wfs, tip_map(wfs, a))[0] for a in angles])
+    sy_of_tilt = np.array([mean_slopes(wfs, tip_map(wfs, a, axis=1))[1] for a in angles])
+    np.testing.assert_allclose(sx / angles, sx[0] / angles[0], rtol=0.01)  # linear
+    np.testing.assert_allclose(sy_of_tilt, sx, rtol=0.02)  # same along y
+    assert mean_slopes(wfs, tip_map(wfs, 0.1))[1] == pytest.approx(0, abs=1e-4)  # no cross-talk
+    assert sx[0] > 0
+    assert sx[0] / angles[0] == pytest.approx(2 / (np.pi * 3.0), rel=0.2)
+
+
+def test_high_order_mode_response_is_linear():
+    wfs = sensor(binning=2)
+    p = wfs.pupil
+    n = p.n_pixels
+    c = (np.arange(n) + 0.5) / n
+    x, y = np.meshgrid(c, c)
+    mode = (np.cos(2 * np.pi * 9 * x) * np.cos(2 * np.pi * 6 * y) * p.mask).astype(np.float32)  # ~10 cycles/pupil
+    s1, s2, s4 = (wfs.slopes(a * mode) for a in (2.0, 4.0, 8.0))
+    assert np.linalg.norm(s1) > 1e-3
+    np.testing.assert_allclose(s2, 2 * s1, atol=0.02 * np.abs(s2).max())
+    np.testing.assert_allclose(s4, 4 * s1, atol=0.05 * np.abs(s4).max())
+
+
+def linear_range(modulation: float) -> float:
+    """The tilt (lambda/D) at which the Tip response falls 10 % below its small-signal line."""
+    wfs = sensor(binning=4, modulation_lambda_over_d=modulation)
+    gain = mean_slopes(wfs, tip_map(wfs, 0.05))[0] / 0.05
+    for angle in np.arange(0.25, 12.0, 0.25):
+        if mean_slopes(wfs, tip_map(wfs, angle))[0] < 0.9 * gain * angle:
+            return float(angle)
+    return np.inf
+
+
+def test_linear_range_widens_with_the_modulation_radius():
+    ranges = [linear_range(r) for r in (1.0, 3.0, 5.0)]
+    assert ranges[0] < ranges[1] < ranges[2]
+    # geometric theory: s = (2/pi) arcsin(theta/r) up to theta = r, then s = 1; it falls 10 %
+    # below the small-signal line 2 theta / (pi r) at theta = (pi / 1.8) r = 1.745 r
+    assert ranges[1] == pytest.approx(1.745 * 3.0, rel=0.2)
+
+
+def test_sensitivity_falls_as_the_modulation_grows():
+    gains = []
+    for r in (2.0, 4.0, 8.0):
+        wfs = sensor(binning=4, modulation_lambda_over_d=r)
+        gains.append(mean_slopes(wfs, tip_map(wfs, 0.05))[0] / 0.05)
+    assert gains[0] > gains[1] > gains[2]
+    # Tip gain ~ 1/r: halving with each doubling of r
+    assert gains[0] / gains[1] == pytest.approx(2.0, rel=0.15)
+    assert gains[1] / gains[2] == pytest.approx(2.0, rel=0.15)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"binning": 5}, {"binning": 0}, {"modulation_lambda_over_d": -1.0}, {"oversampling": 7}, {"wavelength_m": 0.0}],
+)
+def test_non_physical_configurations_are_input_errors(kwargs):
+    with pytest.raises(InputError) as e:
+        PyramidConfig(**kwargs)
+    assert isinstance(e.value, ValueError)
+
+
+def test_wrong_opd_shape_is_an_input_error():
+    p = Pyramid(PyramidConfig(binning=4, oversampling=1))
+    with pytest.raises(InputError, match="40x40"):
+        p.intensity(np.zeros((41, 41)))
