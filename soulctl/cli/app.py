@@ -15,6 +15,7 @@ from .. import __version__
 from ..errors import InputError
 from . import configure
 from . import filter as filter_cli
+from . import optics as optics_cli
 
 app = typer.Typer(
     name="soulctl",
@@ -25,6 +26,7 @@ app = typer.Typer(
 )
 app.command(name="configure")(configure.configure)
 app.add_typer(filter_cli.app, name="filter")
+app.add_typer(optics_cli.app, name="optics")
 
 
 def _version(value: bool) -> None:

@@ -1,0 +1,254 @@
+"""``soulctl optics``: the optical models on their own: turbulence figures, calibration
+(interaction matrix, cached) and the modal optical-gain table MGM needs."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from contextlib import nullcontext
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from ..disturbance.turbulence import MAS_PER_RAD
+from ..errors import InputError
+from ..files import check_output_path
+from ..observation import BINNINGS, Observation, observation_for_magnitude
+from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength, tilt_variance_rad2
+from ..optics.cache import ArrayCache
+from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
+from ..optics.optical_gains import CorrectionLevel, optical_gains
+from ..optics.pwfs import PyramidConfig
+from .configure import parse_magnitude
+
+app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
+
+MODES_FOR_BINNING = {1: 500, 2: 250, 3: 90, 4: 54}  # the look-up table's modes per binning
+
+
+def default_cache_dir() -> Path:
+    """$XDG_CACHE_HOME/soulctl, else ~/.cache/soulctl."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "soulctl"
+
+
+def _cache(no_cache: bool, cache_dir: Path | None) -> ArrayCache:
+    return ArrayCache(None if no_cache else (cache_dir or default_cache_dir()))
+
+
+def _observation(config: Path | None, mag: str | None) -> Observation | None:
+    if config is not None and mag is not None:
+        raise InputError("give either --config or --mag, not both")
+    if config is not None:
+        return Observation.read_toml(config)
+    if mag is not None:
+        return observation_for_magnitude(parse_magnitude(mag))
+    return None
+
+
+def sensing_setup(
+    config: Path | None, mag: str | None, binning: int | None, modes: int | None, modulation: float | None, oversampling: int
+) -> CalibrationSetup:
+    """The calibration set-up from --config/--mag (the look-up table), overridden by explicit
+    --binning/--modes/--modulation; without either, binning 1 and the table's modes for it."""
+    obs = _observation(config, mag)
+    b = binning if binning is not None else (obs.binning if obs else 1)
+    if b not in BINNINGS:
+        raise InputError(f"--binning must be one of 1, 2, 3, 4, got {b}")
+    n = modes if modes is not None else (obs.modes if obs and binning is None else MODES_FOR_BINNING[b])
+    r = modulation if modulation is not None else (obs.modulation_lambda_over_d if obs else 3.0)
+    if not (math.isfinite(r) and 0 <= r <= 20):
+        raise InputError(f"--modulation must be in 0..20 lambda/D, got {r:g}")
+    if n < 1:
+        raise InputError(f"--modes must be in 1..671, got {n}")
+    return CalibrationSetup(PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling), n, BasisSetup())
+
+
+_CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
+_MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
+_BINNING = typer.Option(None, "--binning", help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
+_MODES = typer.Option(None, "--modes", help="Controlled modes (default: the look-up table's for the binning).")
+_MODULATION = typer.Option(None, "--modulation", metavar="LAMBDA/D", help="Modulation radius in lambda/D (default 3).")
+_OVERSAMPLING = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4).")
+_NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (the cache is otherwise reused).")
+_CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder (default $XDG_CACHE_HOME/soulctl or ~/.cache/soulctl).")
+_JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+
+
+@app.command("atmosphere")
+def atmosphere(
+    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing FWHM at 500 nm on the line of sight (0.05..10)."),
+    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective (5/3-moment) wind speed of the LBT profile."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    json_output: bool = _JSON,
+) -> None:
+    """Turbulence figures of the default LBT profile: r0 at 500 nm, the WFS and science bands,
+    tau0, the layers, and the one-axis Tip/Tilt (von Karman) on the 8.222 m pupil.
+
+    Example: soulctl optics atmosphere --seeing 0.8 --wind 10
+    """
+    if not (math.isfinite(wind) and wind > 0):
+        raise InputError(f"--wind must be in 0..100 m/s (> 0), got {wind:g}")
+    if not (math.isfinite(L0) and L0 > 0):
+        raise InputError(f"--L0 must be a number > 0 m, got {L0:g}")
+    if not math.isfinite(seeing):
+        raise InputError(f"--seeing must be in 0.05..10 arcsec, got {seeing}")
+    atm = AtmosphereConfig.lbt_default(seeing_arcsec=seeing, L0_m=L0, wind_speed_m_s=wind)
+    r0 = atm.r0_m
+    D = 8.222
+    tilt_rad2 = tilt_variance_rad2(D, r0, L0)  # Zernike coefficient at 500 nm
+    tilt_mas = math.sqrt(tilt_rad2) * (500e-9 / (2 * math.pi)) * 4 / D * MAS_PER_RAD
+    result = {
+        "seeing_arcsec": seeing,
+        "L0_m": L0,
+        "r0_500nm_m": r0,
+        "r0_750nm_m": r0_at_wavelength(r0, 750e-9),
+        "r0_1650nm_m": r0_at_wavelength(r0, 1.65e-6),
+        "effective_wind_m_s": atm.effective_wind_speed_m_s,
+        "tau0_500nm_ms": 0.314 * r0 / atm.effective_wind_speed_m_s * 1e3,
+        "tilt_rms_per_axis_mas": tilt_mas,
+        "layers": [
+            {"altitude_m": layer.altitude_m, "weight": w, "wind_m_s": layer.wind_speed_m_s, "direction_deg": layer.wind_direction_deg}
+            for layer, w in zip(atm.layers, atm.weights)
+        ],
+    }
+    if json_output:
+        print(json.dumps(result))
+        return
+    t = Table(title=f"Turbulence: seeing {seeing:g}\" at 500 nm, L0 {L0:g} m, LBT profile", title_justify="left")
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    t.add_row("r0 at 500 / 750 / 1650 nm", f"{r0 * 100:.1f} / {result['r0_750nm_m'] * 100:.1f} / {result['r0_1650nm_m'] * 100:.1f} cm")
+    t.add_row("effective wind", f"{result['effective_wind_m_s']:.1f} m/s")
+    t.add_row("tau0 at 500 nm", f"{result['tau0_500nm_ms']:.2f} ms")
+    t.add_row("Tip/Tilt per axis (von Kármán)", f"{tilt_mas:.0f} mas RMS")
+    for i, layer in enumerate(result["layers"], 1):
+        t.add_row(f"layer {i}", f"{layer['altitude_m']:g} m, {layer['weight'] * 100:.0f}% Cn², {layer['wind_m_s']:.1f} m/s at {layer['direction_deg']:g}°")
+    Console().print(t)
+
+
+def _calibration_dict(cal, cache: ArrayCache) -> dict:
+    c = cal.setup.pyramid
+    n_slopes = cal.interaction_matrix.shape[0]
+    return {
+        "binning": c.binning,
+        "subapertures_across": BINNINGS[c.binning],
+        "valid_subapertures": n_slopes // 2,
+        "slopes": n_slopes,
+        "modes": cal.setup.n_modes,
+        "modulation_lambda_over_d": c.modulation_lambda_over_d,
+        "modulation_points": c.points,
+        "wfs_wavelength_nm": c.wavelength_m * 1e9,
+        "pupil_pixels": c.pupil.n_pixels,
+        "fft_size": c.fft_size,
+        "frame_shape": list(c.frame_shape),
+        "push_nm": cal.setup.push_nm,
+        "condition_number": cal.condition_number,
+        "from_cache": cal.from_cache,
+        "cache_file": str(cache.path(cal.setup.key())) if cache.directory else None,
+        "seconds": cal.seconds,
+    }
+
+
+@app.command("calibrate")
+def calibrate_cmd(
+    config: Path | None = _CONFIG,
+    mag: str | None = _MAG,
+    binning: int | None = _BINNING,
+    modes: int | None = _MODES,
+    modulation: float | None = _MODULATION,
+    oversampling: int = _OVERSAMPLING,
+    no_cache: bool = _NO_CACHE,
+    cache_dir: Path | None = _CACHE_DIR,
+    json_output: bool = _JSON,
+) -> None:
+    """Calibrate the PWFS on the ASM's modes: push-pull interaction matrix around the
+    unaberrated reference, pseudo-inverse reconstructor, reference slopes.  The result is
+    cached under a key of the configuration, so later runs reuse it (--no-cache recomputes).
+
+    Example: soulctl optics calibrate --mag 13
+    """
+    setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
+    cache = _cache(no_cache, cache_dir)
+    with nullcontext() if json_output else Console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
+        cal = calibrate(setup, cache)
+    d = _calibration_dict(cal, cache)
+    if json_output:
+        print(json.dumps(d))
+        return
+    t = Table(title="PWFS calibration", title_justify="left")
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    t.add_row("binning / sub-apertures across", f"{d['binning']} / {d['subapertures_across']}")
+    t.add_row("valid sub-apertures / slopes", f"{d['valid_subapertures']} / {d['slopes']}")
+    t.add_row("controlled modes", f"{d['modes']}")
+    t.add_row("modulation", f"{d['modulation_lambda_over_d']:g} λ/D, {d['modulation_points']} points")
+    t.add_row("pupil / FFT / frame", f"{d['pupil_pixels']} / {d['fft_size']} / {d['frame_shape'][0]}x{d['frame_shape'][1]} px")
+    t.add_row("interaction matrix condition number", f"{d['condition_number']:.1f}")
+    t.add_row("source", ("cache" if d["from_cache"] else "computed") + f" in {d['seconds']:.1f} s")
+    if d["cache_file"]:
+        t.add_row("cache file", d["cache_file"])
+    Console().print(t)
+
+
+@app.command("gains")
+def gains_cmd(
+    seeing: float = typer.Option(0.8, "--seeing", metavar="ARCSEC", help="Seeing of the correction level (the paper's table: 0.8)."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    controlled_fraction: float = typer.Option(0.1, "--controlled-fraction", help="Amplitude of the controlled modes left in the residual (0..1)."),
+    config: Path | None = _CONFIG,
+    mag: str | None = _MAG,
+    binning: int | None = _BINNING,
+    modes: int | None = _MODES,
+    modulation: float | None = _MODULATION,
+    oversampling: int = _OVERSAMPLING,
+    screens: int = typer.Option(4, "--screens", help="Residual phase realisations to average (1..1000)."),
+    seed: int = typer.Option(1, "--seed", help="Seed of the residual phase screens."),
+    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
+    no_cache: bool = _NO_CACHE,
+    cache_dir: Path | None = _CACHE_DIR,
+    json_output: bool = _JSON,
+) -> None:
+    """Modal optical gains of the PWFS at a correction level: each mode's sensitivity around
+    residual phases (turbulence of --seeing minus the corrected part of the controlled modes)
+    relative to its diffraction-limited sensitivity.  MGM reads this table (chi_i).
+
+    Example: soulctl optics gains --seeing 0.8 --mag 9.7 --out og_R9.7.csv
+    """
+    level = CorrectionLevel(seeing_arcsec=seeing, L0_m=L0, controlled_fraction=controlled_fraction)
+    if out is not None:
+        check_output_path(out, "--out")
+    setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
+    cache = _cache(no_cache, cache_dir)
+    with nullcontext() if json_output else Console(stderr=True).status(
+        f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
+    ):
+        cal = calibrate(setup, cache)
+        table = optical_gains(cal, level, n_screens=screens, seed=seed)
+    if out is not None:
+        table.write_csv(out)
+    if json_output:
+        print(json.dumps(table.to_dict()))
+        return
+    g = table.gains
+    t = Table(
+        title=f"Optical gains at seeing {seeing:g}\" (residual {table.residual_nm:.0f} nm RMS), "
+        f"binning {setup.pyramid.binning}, modulation {setup.pyramid.modulation_lambda_over_d:g} λ/D",
+        title_justify="left",
+    )
+    t.add_column("modes")
+    t.add_column("mean optical gain", justify="right")
+    t.add_column("min..max", justify="right")
+    edges = [0, 2, 10, 30, 120, 250, len(g)]
+    for a, b in zip(edges[:-1], edges[1:]):
+        if a >= len(g):
+            break
+        b = min(b, len(g))
+        t.add_row(f"{a + 1}..{b}", f"{g[a:b].mean():.3f}", f"{g[a:b].min():.3f}..{g[a:b].max():.3f}")
+    Console().print(t)
+    if out is not None:
+        Console(stderr=True).print(f"wrote {out}")
+

@@ -1,0 +1,96 @@
+"""`soulctl optics atmosphere|calibrate|gains`: output, cache, exit status and one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from soulctl.cli.app import main
+
+SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1"]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    """Shared by the tests that do not test the cache itself: the modal basis is computed once."""
+    return tmp_path_factory.mktemp("cli-optics-cache")
+
+
+def run(args, capsys):
+    status = main(args)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_atmosphere_json_against_the_seeing_relations(capsys):
+    status, out, err = run(["optics", "atmosphere", "--seeing", "1.0", "--wind", "10", "--json"], capsys)
+    assert status == 0 and err == ""
+    d = json.loads(out)
+    assert d["r0_500nm_m"] == pytest.approx(0.98 * 500e-9 / (1.0 / 206265), rel=1e-3)
+    assert d["r0_750nm_m"] / d["r0_500nm_m"] == pytest.approx(1.5 ** 1.2)
+    assert d["effective_wind_m_s"] == pytest.approx(10.0)
+    assert d["tau0_500nm_ms"] == pytest.approx(0.314 * d["r0_500nm_m"] / 10.0 * 1e3)
+    assert sum(layer["weight"] for layer in d["layers"]) == pytest.approx(1.0)
+
+
+def test_calibrate_uses_and_fills_the_cache(tmp_path, capsys):
+    args = ["optics", "calibrate", *SMALL, "--cache-dir", str(tmp_path), "--json"]
+    status, out, _ = run(args, capsys)
+    first = json.loads(out)
+    assert status == 0 and first["from_cache"] is False
+    assert first["subapertures_across"] == 10 and first["modes"] == 20 and first["slopes"] == 2 * first["valid_subapertures"]
+    status, out, _ = run(args, capsys)
+    assert json.loads(out)["from_cache"] is True
+    status, out, _ = run([*args, "--no-cache"], capsys)
+    assert json.loads(out)["from_cache"] is False and json.loads(out)["cache_file"] is None
+
+
+def test_calibrate_from_the_look_up_table(cache_dir, capsys):
+    status, out, _ = run(["optics", "calibrate", "--mag", "16", "--oversampling", "1", "--cache-dir", str(cache_dir)], capsys)
+    assert status == 0
+    assert "3 / 13" in out and "90" in out and "condition number" in out
+
+
+def test_gains_table_csv_and_json(tmp_path, cache_dir, capsys):
+    csv = tmp_path / "og.csv"
+    args = ["optics", "gains", "--seeing", "0.8", *SMALL, "--screens", "1", "--cache-dir", str(cache_dir)]
+    status, out, _ = run([*args, "--out", str(csv)], capsys)
+    assert status == 0 and "Optical gains" in out and "1..2" in out
+    assert csv.read_text().count("\n") == 4 + 20
+    status, out, _ = run([*args, "--json"], capsys)
+    d = json.loads(out)
+    assert len(d["optical_gains"]) == 20 and d["level"]["seeing_arcsec"] == 0.8
+    assert np.all(np.array(d["optical_gains"]) <= 1.0)
+    status, out, _ = run([*args, "--json", "--seed", "2"], capsys)
+    assert json.loads(out)["optical_gains"] != d["optical_gains"]  # the seed matters
+    status, out, _ = run([*args, "--json"], capsys)
+    assert json.loads(out)["optical_gains"] == d["optical_gains"]  # and repeats
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["optics", "atmosphere", "--seeing", "0"], "seeing must be in 0.05..10"),
+        (["optics", "atmosphere", "--seeing", "-1"], "seeing must be in 0.05..10"),
+        (["optics", "atmosphere", "--L0", "0"], "--L0 must be a number > 0"),
+        (["optics", "atmosphere", "--wind", "-2"], "--wind must be in 0..100"),
+        (["optics", "calibrate", "--binning", "5"], "--binning must be one of 1, 2, 3, 4"),
+        (["optics", "calibrate", "--binning", "4", "--modulation", "-1"], "--modulation must be in 0..20"),
+        (["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1"], "modes must be in 1..671"),
+        (["optics", "calibrate", "--binning", "4", "--oversampling", "9"], "oversampling must be 1..4"),
+        (["optics", "calibrate", "--mag", "12", "--config", "x.toml"], "either --config or --mag"),
+        (["optics", "gains", "--seeing", "0"], "seeing must be in 0.05..10"),
+        (["optics", "gains", "--L0", "-5"], "L0 must be > 0"),
+        (["optics", "gains", "--screens", "0", *SMALL], "screens must be in 1..1000"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):
+    status, out, err = run([*args, "--cache-dir", str(cache_dir)] if args[1] != "atmosphere" else args, capsys)
+    assert status == 2
+    assert message in err and err.count("\n") == 1 and out == ""
+
+
+def test_gains_writes_nothing_on_bad_input(tmp_path, capsys):
+    csv = tmp_path / "og.csv"
+    status, _, _ = run(["optics", "gains", "--seeing", "-1", *SMALL, "--out", str(csv)], capsys)
+    assert status == 2 and not csv.exists()
