@@ -5,8 +5,10 @@ import pytest
 
 from soulctl.errors import InputError
 from soulctl.optics.detector import Detector
+from soulctl.optics.photometry import WfsPhotometry
+from soulctl.optics.pupil import Pupil
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
-from soulctl.optics.sensor import WavefrontSensor
+from soulctl.optics.sensor import WavefrontSensor, photons_in_beam
 
 
 @pytest.mark.parametrize("excess, f2", [(True, 2.0), (False, 1.0)])
@@ -78,3 +80,15 @@ def test_read_noise_adds_four_ron_squared_per_subaperture():
 def test_bad_detector_parameters_are_input_errors(kwargs):
     with pytest.raises(InputError):
         Detector(**kwargs)
+
+
+def test_photons_in_the_beam_match_configures_photons_per_subaperture():
+    """The simulated beam carries the zero point of tables/photometry.toml: per full
+    sub-aperture area it is what `configure` prints (R9.7, 1700 Hz, 40x40: ~20 ph, paper 20)."""
+    phot = WfsPhotometry.from_table()
+    pupil = Pupil(80)
+    area = pupil.n_valid * pupil.pixel_scale_m**2
+    beam = photons_in_beam(phot, 9.7, 1700.0, area)
+    per_subaperture = beam * (8.222 / 40) ** 2 / area
+    assert per_subaperture == pytest.approx(phot.photons_per_frame(9.7, 1, 1700.0), rel=1e-9)
+    assert per_subaperture == pytest.approx(20, rel=0.1)
