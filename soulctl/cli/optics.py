@@ -13,11 +13,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ..disturbance.turbulence import MAS_PER_RAD
+from .. import tables
+from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
 from ..files import check_output_path
 from ..observation import BINNINGS, Observation, observation_for_magnitude
-from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength, tilt_variance_rad2
+from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CorrectionLevel, optical_gains
@@ -26,7 +27,10 @@ from .configure import parse_magnitude
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
 
-MODES_FOR_BINNING = {1: 500, 2: 250, 3: 90, 4: 54}  # the look-up table's modes per binning
+
+def table_modes(binning: int) -> int:
+    """Controlled modes of the look-up table's rows at this binning (500/250/90/54)."""
+    return next(band.modes for band in tables.magnitude_table() if band.binning == binning)
 
 
 def default_cache_dir() -> Path:
@@ -58,7 +62,7 @@ def sensing_setup(
     b = binning if binning is not None else (obs.binning if obs else 1)
     if b not in BINNINGS:
         raise InputError(f"--binning must be one of 1, 2, 3, 4, got {b}")
-    n = modes if modes is not None else (obs.modes if obs and binning is None else MODES_FOR_BINNING[b])
+    n = modes if modes is not None else (obs.modes if obs and binning is None else table_modes(b))
     r = modulation if modulation is not None else (obs.modulation_lambda_over_d if obs else 3.0)
     if not (math.isfinite(r) and 0 <= r <= 20):
         raise InputError(f"--modulation must be in 0..20 lambda/D, got {r:g}")
@@ -98,9 +102,8 @@ def atmosphere(
         raise InputError(f"--seeing must be in 0.05..10 arcsec, got {seeing}")
     atm = AtmosphereConfig.lbt_default(seeing_arcsec=seeing, L0_m=L0, wind_speed_m_s=wind)
     r0 = atm.r0_m
-    D = 8.222
-    tilt_rad2 = tilt_variance_rad2(D, r0, L0)  # Zernike coefficient at 500 nm
-    tilt_mas = math.sqrt(tilt_rad2) * (500e-9 / (2 * math.pi)) * 4 / D * MAS_PER_RAD
+    tilt = TurbulenceTipTilt(seeing_arcsec=seeing, outer_scale_m=L0, wind_speed_m_s=atm.effective_wind_speed_m_s)
+    tilt_mas = math.sqrt(tilt.variance_mas2())
     result = {
         "seeing_arcsec": seeing,
         "L0_m": L0,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from soulctl.cli.app import main
+from soulctl.optics.atmosphere import tilt_variance_rad2
 
 SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1"]
 
@@ -31,6 +32,10 @@ def test_atmosphere_json_against_the_seeing_relations(capsys):
     assert d["effective_wind_m_s"] == pytest.approx(10.0)
     assert d["tau0_500nm_ms"] == pytest.approx(0.314 * d["r0_500nm_m"] / 10.0 * 1e3)
     assert sum(layer["weight"] for layer in d["layers"]) == pytest.approx(1.0)
+    # the Tip/Tilt of the temporal-PSD model's spatial integral against the Bessel integral
+    a2 = tilt_variance_rad2(8.222, d["r0_500nm_m"], 25.0)  # Zernike coefficient, rad^2 at 500 nm
+    expected_mas = np.sqrt(a2) * 500e-9 / (2 * np.pi) * 4 / 8.222 * 206264806.2
+    assert d["tilt_rms_per_axis_mas"] == pytest.approx(expected_mas, rel=0.02)
 
 
 def test_calibrate_uses_and_fills_the_cache(tmp_path, capsys):
