@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import lfilter
 
 from .. import tables
 from ..errors import InputError
@@ -46,6 +47,14 @@ class VibrationLine:
             return math.sqrt(0.5 * (self.tip_mas**2 + self.tilt_mas**2))
         return self.tip_mas if axis == "tip" else self.tilt_mas
 
+    def ar2_coefficients(self, rate_hz: float) -> tuple[float, float]:
+        """(a1, a2) of x_k = a1 x_{k-1} + a2 x_{k-2} + e_k with the sampled oscillator's poles."""
+        if not (rate_hz > 2 * self.frequency_hz):
+            raise InputError(f"a {self.frequency_hz:g} Hz vibration needs a frame rate above {2 * self.frequency_hz:g} Hz, got {rate_hz:g}")
+        w0, z = 2 * np.pi * self.frequency_hz, self.damping
+        r = math.exp(-z * w0 / rate_hz)
+        return 2 * r * math.cos(w0 * math.sqrt(1 - z * z) / rate_hz), -r * r
+
     def psd(self, f_hz, axis: str = "mean") -> np.ndarray:
         """One-sided PSD (mas^2/Hz) on Tip, Tilt, or their mean."""
         w = 2 * np.pi * np.asarray(f_hz, dtype=float)
@@ -67,6 +76,23 @@ class VibrationSpectrum:
 
     def variance_mas2(self, axis: str = "mean") -> float:
         return sum(line.rms_mas(axis) ** 2 for line in self.lines)
+
+    def time_series(self, n_frames: int, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
+        """(n_frames, 2) Tip and Tilt in mas sampled at ``rate_hz``: each line an AR(2) process
+        with the oscillator's poles exp((-zeta w0 +- j w0 sqrt(1 - zeta^2)) / rate) (the
+        sampled oscillator), driven by white noise and scaled to the line's RMS on each axis,
+        started from its stationary state (a burn-in of 10 decay times is discarded)."""
+        out = np.zeros((n_frames, 2))
+        for line in self.lines:
+            a1, a2 = line.ar2_coefficients(rate_hz)
+            burn = int(min(10.0 / (line.damping * 2 * np.pi * line.frequency_hz) * rate_hz, 1e6)) + 2
+            # stationary variance of x_k = a1 x_{k-1} + a2 x_{k-2} + e_k with unit-variance e
+            unit_var = (1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1**2))
+            for axis, rms in enumerate((line.tip_mas, line.tilt_mas)):
+                e = rng.standard_normal(n_frames + burn)
+                x = lfilter([1.0], [1.0, -a1, -a2], e)[burn:]
+                out[:, axis] += x * (rms / np.sqrt(unit_var))
+        return out
 
     @classmethod
     def from_dict(cls, data: dict, where: str) -> "VibrationSpectrum":

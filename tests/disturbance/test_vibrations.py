@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.signal import welch
 
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
 from soulctl.errors import InputError
@@ -56,3 +57,26 @@ def test_bad_vibration_files(tmp_path, text, message):
 def test_missing_vibration_file(tmp_path):
     with pytest.raises(InputError, match="not found"):
         VibrationSpectrum.read(tmp_path / "nope.toml")
+
+
+def test_time_series_has_each_lines_rms_and_frequency():
+    """The sampled oscillators: RMS per axis as the table says, the 13 Hz line at 13 Hz, and
+    the same seed giving the same series."""
+    spec = VibrationSpectrum.lbt_default()
+    rate = 1700.0
+    x = spec.time_series(2**17, rate, np.random.default_rng(3))
+    for axis, name in enumerate(("tip", "tilt")):
+        assert x[:, axis].std() == pytest.approx(np.sqrt(spec.variance_mas2(name)), rel=0.08)
+    f, p = welch(x[:, 0], fs=rate, nperseg=2**13)
+    assert f[np.argmax(p)] == pytest.approx(13.0, abs=0.3)
+    # the Welch PSD follows the oscillators' PSD near the lines (within 30 % in a 1 Hz band)
+    for line in spec.lines:
+        band = np.abs(f - line.frequency_hz) < 0.5
+        assert p[band].mean() == pytest.approx(spec.psd(f[band], "tip").mean(), rel=0.3)
+    again = spec.time_series(1000, rate, np.random.default_rng(3))
+    assert np.array_equal(again, spec.time_series(1000, rate, np.random.default_rng(3)))
+
+
+def test_time_series_needs_a_rate_above_twice_each_line():
+    with pytest.raises(InputError, match="frame rate above 116"):
+        VibrationSpectrum.lbt_default().time_series(10, 100.0, np.random.default_rng(0))
