@@ -1,0 +1,1 @@
+"""The simulated closed loop: delay line, one explicit step per frame, metrics."""

@@ -1,0 +1,171 @@
+"""The closed loop, one explicit step per frame, in the order a real system runs it:
+
+    1. disturbance at t_k: turbulence (frozen flow) + telescope vibrations on Tip/Tilt;
+    2. residual = disturbance - mirror, the mirror holding the delayed commands;
+    3. PWFS frame of the residual (optics + detector) -> slopes (C++ SlopeComputer);
+    4. RTC step (C++): zeta(k) = Lambda zeta(k-1) + Delta Xi s(k), c(k) = Sigma zeta(k), with
+       Xi = B R and Sigma = M C from the reconstructor R and modes-to-commands M;
+    5. c(k) enters the delay line; it shapes the mirror from frame k + n on (fractional part
+       interpolated, see ``delay_line``).
+
+Tip/Tilt take the IIR filter of the observation (or an integrator), the other modes leaky
+integrators; gains by the paper's three groups: Tip/Tilt, modes 3-120, modes 121-last.
+Telemetry per frame: slopes are not kept (their modal projection is), residual and
+disturbance modal coefficients (nm), commands projected on the modes, residual RMS.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..control.filters import Filter
+from ..control.rtc import build_rtc
+from ..disturbance.turbulence import MAS_PER_RAD
+from ..disturbance.vibrations import VibrationSpectrum
+from ..errors import InputError
+from ..observation import Observation
+from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
+from ..optics.calibration import Calibration
+from ..optics.detector import Detector
+from ..optics.pwfs import Pyramid
+from ..optics.sensor import WavefrontSensor, photons_in_beam
+from .delay_line import DelayLine
+
+MID_GROUP_END = 120  # the paper's gain groups: modes 1-2, 3-120, 121-last
+
+
+@dataclass(frozen=True)
+class LoopGains:
+    tip_tilt: float
+    mid: float
+    high: float
+    forgetting: float = 0.99  # of the leaky integrators of modes 3..last (proposal)
+
+    def __post_init__(self):
+        for name in ("tip_tilt", "mid", "high"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v <= 10):
+                raise InputError(f"gain {name} must be a number in 0..10, got {v}")
+        if not (0 <= self.forgetting <= 1):
+            raise InputError(f"forgetting factor must be in 0..1, got {self.forgetting}")
+
+    def per_mode(self, n_modes: int) -> np.ndarray:
+        g = np.full(n_modes, self.high)
+        g[2:MID_GROUP_END] = self.mid
+        g[:2] = self.tip_tilt
+        return g
+
+
+def mode_filters(observation: Observation, gains: LoopGains, n_modes: int) -> list[Filter]:
+    """Tip/Tilt: the observation's IIR (unit-gain zeros/poles, times the Tip/Tilt gain) or an
+    integrator; the other modes leaky integrators."""
+    if observation.tt_control == "iir":
+        tt = Filter.iir(observation.tt_zeros, observation.tt_poles, gains.tip_tilt)
+    else:
+        tt = Filter.integrator(gains.tip_tilt)
+    g = gains.per_mode(n_modes)
+    return [tt, tt] + [Filter.leaky(gains.forgetting, float(gi)) for gi in g[2:]]
+
+
+@dataclass
+class Telemetry:
+    """Per-frame records (rows = frames)."""
+
+    rate_hz: float
+    residual_modes: list = field(default_factory=list)  # (n_modes,) nm, projection of the residual OPD
+    disturbance_modes: list = field(default_factory=list)  # (n_modes,) nm, of turbulence + vibrations
+    measured_modes: list = field(default_factory=list)  # (n_modes,) nm, R s(k)
+    residual_rms_nm: list = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
+
+
+class ClosedLoop:
+    """A simulated SOUL-like loop for ``observation`` with ``calibration`` (which fixes the
+    pyramid's binning, modulation and sampling and the controlled modes)."""
+
+    def __init__(
+        self,
+        observation: Observation,
+        calibration: Calibration,
+        atmosphere: AtmosphereConfig | None,
+        gains: LoopGains,
+        vibrations: VibrationSpectrum | None = None,
+        noise: bool = True,
+        seed: int = 1,
+        detector: Detector = Detector(),
+        delay_frames: float | None = None,
+    ):
+        self.observation = observation
+        self.calibration = calibration
+        self.rate_hz = observation.frame_rate_hz
+        self.rng = np.random.default_rng(seed)
+        atm_seed, vib_seed, noise_seed = self.rng.integers(0, 2**63, size=3)
+        self.noise_rng = np.random.default_rng(noise_seed) if noise else None
+        self.vibration_rng = np.random.default_rng(vib_seed)
+        pyramid = Pyramid(calibration.setup.pyramid)
+        pupil = pyramid.pupil
+        photons = photons_in_beam(observation.photometry, observation.magnitude_r, self.rate_hz, pupil.n_valid * pupil.pixel_scale_m**2)
+        self.sensor = WavefrontSensor(pyramid, detector, photons)
+        self.pupil = pupil
+        self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, int(atm_seed)) if atmosphere else None
+        self.vibrations = vibrations
+        basis = calibration.basis
+        self.influence = basis.geometry.influence_functions(pupil)  # (n_valid, n_actuators)
+        self.shapes = self.influence @ basis.M  # (n_valid, n_modes), orthonormal on the pupil
+        self.n_modes = basis.n_modes
+        self.filters = mode_filters(observation, gains, self.n_modes)
+        self.rtc_matrices = build_rtc(self.filters, calibration.reconstructor, basis.M)
+        self.rtc = self.rtc_matrices.controller(n_threads=1)
+        d = observation.delay_frames if delay_frames is None else delay_frames
+        self.delay = DelayLine(basis.M.shape[0], d)
+        tip, tilt = pupil.tilt()
+        x, _ = pupil.coordinates()
+        self._tilt_opd_per_mas = np.stack([tip, tilt]) * (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
+        self.mas_per_nm_tt = 1.0 / (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
+        self.telemetry = Telemetry(self.rate_hz)
+        self.frame = 0
+        self._vibration_series = None
+
+    def _vibration_tt(self, k: int, n_frames: int) -> np.ndarray:
+        if self.vibrations is None:
+            return np.zeros(2)
+        if self._vibration_series is None or k >= len(self._vibration_series):
+            self._vibration_series = self.vibrations.time_series(max(n_frames, k + 1), self.rate_hz, self.vibration_rng)
+        return self._vibration_series[k]
+
+    def disturbance_opd(self, k: int, n_frames: int) -> np.ndarray:
+        """OPD (nm) on the pupil pixels at frame k: turbulence + Tip/Tilt vibrations."""
+        t = k / self.rate_hz
+        phi = self.atmosphere.opd_nm(t)[self.pupil.mask] if self.atmosphere else np.zeros(self.pupil.n_valid)
+        return phi + self._vibration_tt(k, n_frames) @ self._tilt_opd_per_mas
+
+    def step(self, n_frames: int = 1) -> np.ndarray:
+        """One frame; returns the residual OPD on the pupil pixels (nm)."""
+        k = self.frame
+        disturbance = self.disturbance_opd(k, n_frames)
+        mirror = self.influence @ self.delay.applied()
+        residual = disturbance - mirror
+        residual -= residual.mean()
+        opd = np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32)
+        opd[self.pupil.mask] = residual
+        slopes = self.sensor.slopes(opd, self.noise_rng)
+        commands = self.rtc.step(slopes)
+        self.delay.push(commands)
+        tm = self.telemetry
+        n = self.pupil.n_valid
+        tm.residual_modes.append(self.shapes.T @ residual / n)
+        tm.disturbance_modes.append(self.shapes.T @ disturbance / n)
+        tm.measured_modes.append(self.calibration.reconstructor @ slopes)
+        tm.residual_rms_nm.append(float(np.sqrt(np.mean(residual**2))))
+        self.frame += 1
+        return residual
+
+    def run(self, n_frames: int) -> Telemetry:
+        for _ in range(n_frames):
+            self.step(n_frames)
+        return self.telemetry
