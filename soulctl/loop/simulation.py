@@ -78,6 +78,8 @@ class Telemetry:
     residual_modes: list = field(default_factory=list)  # (n_modes,) nm, projection of the residual OPD
     disturbance_modes: list = field(default_factory=list)  # (n_modes,) nm, of turbulence + vibrations
     measured_modes: list = field(default_factory=list)  # (n_modes,) nm, R s(k)
+    command_modes: list = field(default_factory=list)  # (n_modes,) nm, M^-1 c(k)
+    mirror_modes: list = field(default_factory=list)  # (n_modes,) nm, the mirror during frame k
     residual_rms_nm: list = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -148,7 +150,8 @@ class ClosedLoop:
         """One frame; returns the residual OPD on the pupil pixels (nm)."""
         k = self.frame
         disturbance = self.disturbance_opd(k, n_frames)
-        mirror = self.influence @ self.delay.applied()
+        applied = self.delay.applied()
+        mirror = self.influence @ applied
         residual = disturbance - mirror
         residual -= residual.mean()
         opd = np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32)
@@ -161,11 +164,17 @@ class ClosedLoop:
         tm.residual_modes.append(self.shapes.T @ residual / n)
         tm.disturbance_modes.append(self.shapes.T @ disturbance / n)
         tm.measured_modes.append(self.calibration.reconstructor @ slopes)
+        tm.command_modes.append(self.calibration.basis.M_inv @ commands)
+        tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
         tm.residual_rms_nm.append(float(np.sqrt(np.mean(residual**2))))
         self.frame += 1
         return residual
 
-    def run(self, n_frames: int) -> Telemetry:
-        for _ in range(n_frames):
-            self.step(n_frames)
+    def run(self, n_frames: int, psf=None, skip: int = 0) -> Telemetry:
+        """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into
+        ``psf`` (a metrics.PsfAccumulator) when given."""
+        for i in range(n_frames):
+            residual = self.step(n_frames)
+            if psf is not None and i >= skip:
+                psf.add(residual)
         return self.telemetry
