@@ -116,6 +116,8 @@ class DesignCost:
         self._cost_basis = self._basis(f)
         self._check_basis = self._basis(self.f_check)
         self._line_basis = self._basis(np.array([min(disturbance.resonance_hz, nyquist)]))
+        if plant.structure is not None:  # the batched stability check uses P's numerator only
+            raise InputError("the Tip/Tilt design takes a plant without a structural resonance")
         self._plant_num = plant.numerator()
 
     def _basis(self, f: np.ndarray):

@@ -29,26 +29,47 @@ RESONANCE_HZ = 127.0  # the ASM control-structure resonance (paper, Sec. 2.3)
 
 @dataclass(frozen=True)
 class Plant:
-    """P(z) = chi z^-d with the fractional delay as linear interpolation between frames."""
+    """P(z) = chi z^-d (1 + G(z)) with the fractional delay as linear interpolation between
+    frames; G is an optional structural resonance excited by the mirror's own commands
+    (``soulctl.control.structure``), given by its (b, a) at the loop's rate."""
 
     delay_frames: float
     optical_gain: float = 1.0
+    structure: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
     def __post_init__(self):
         fractional_taps(self.delay_frames)  # validates d >= 0, finite
         if not (self.optical_gain > 0 and math.isfinite(self.optical_gain)):
             raise InputError(f"optical gain chi must be a finite number > 0, got {self.optical_gain:g}")
 
+    @classmethod
+    def with_structure(cls, delay_frames: float, resonance, rate_hz: float, optical_gain: float = 1.0) -> "Plant":
+        b, a = resonance.coefficients(rate_hz)
+        return cls(delay_frames, optical_gain, (tuple(map(float, b)), tuple(map(float, a))))
+
     def numerator(self) -> np.ndarray:
-        """P's coefficients in powers of z^-1."""
+        """P's numerator coefficients in powers of z^-1."""
         n, e = fractional_taps(self.delay_frames)
         taps = [1.0 - e, e] if e > 0 else [1.0]
-        return self.optical_gain * np.concatenate([np.zeros(n), taps])
+        num = self.optical_gain * np.concatenate([np.zeros(n), taps])
+        if self.structure is None:
+            return num
+        b, a = (np.asarray(x) for x in self.structure)
+        size = max(len(a), len(b))
+        return np.convolve(num, np.pad(a, (0, size - len(a))) + np.pad(b, (0, size - len(b))))
+
+    def denominator(self) -> np.ndarray:
+        """P's denominator in powers of z^-1 (1 without a structural resonance)."""
+        return np.array([1.0]) if self.structure is None else np.asarray(self.structure[1], dtype=float)
 
     def frequency_response(self, w) -> np.ndarray:
         zi = np.exp(-1j * np.asarray(w, dtype=float))
         n, e = fractional_taps(self.delay_frames)
-        return self.optical_gain * zi**n * ((1.0 - e) + e * zi)
+        p = self.optical_gain * zi**n * ((1.0 - e) + e * zi)
+        if self.structure is not None:
+            b, a = (np.asarray(x) for x in self.structure)
+            p = p * (1.0 + np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi))
+        return p
 
 
 def frequency_grid(rate_hz: float, n: int = 3000) -> np.ndarray:
@@ -98,12 +119,13 @@ class Loop:
         return L / (1.0 + L)
 
     def characteristic_polynomial(self) -> np.ndarray:
-        """a(z^-1) + b(z^-1) p(z^-1) in powers of z^-1, H = b/a, P = p: its roots in z are the
-        closed-loop poles."""
+        """a(z^-1) q(z^-1) + b(z^-1) p(z^-1) in powers of z^-1, H = b/a, P = p/q: its roots in
+        z are the closed-loop poles."""
         b, a = self.controller.coefficients()
         bp = np.convolve(b, self.plant.numerator())
-        size = max(a.size, bp.size)
-        return np.pad(a, (0, size - a.size)) + np.pad(bp, (0, size - bp.size))
+        ap = np.convolve(a, self.plant.denominator())
+        size = max(ap.size, bp.size)
+        return np.pad(ap, (0, size - ap.size)) + np.pad(bp, (0, size - bp.size))
 
     def closed_loop_poles(self) -> np.ndarray:
         return np.roots(self.characteristic_polynomial())

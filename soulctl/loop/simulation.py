@@ -6,7 +6,11 @@
     4. RTC step (C++): zeta(k) = Lambda zeta(k-1) + Delta Xi s(k), c(k) = Sigma zeta(k), with
        Xi = B R and Sigma = M C from the reconstructor R and modes-to-commands M;
     5. c(k) enters the delay line; it shapes the mirror from frame k + n on (fractional part
-       interpolated, see ``delay_line``).
+       interpolated, see ``delay_line``); the mirror's Tip/Tilt also drives the 127 Hz
+       structural resonance (``control.structure``), whose Tip/Tilt adds to the mirror's.
+
+A residual RMS above ``divergence_ratio`` x the largest disturbance RMS so far (at least
+10 nm) raises LoopDiverged.
 
 Tip/Tilt take the IIR filter of the observation (or an integrator), the other modes leaky
 integrators; gains by the paper's three groups: Tip/Tilt, modes 3-120, modes 121-last.
@@ -20,8 +24,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import lfilter
 
 from ..control.filters import Filter
+from ..control.structure import StructuralResonance
 from ..control.rtc import build_rtc
 from ..disturbance.turbulence import MAS_PER_RAD
 from ..disturbance.vibrations import VibrationSpectrum
@@ -33,6 +39,17 @@ from ..optics.detector import Detector
 from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from .delay_line import DelayLine
+
+class LoopDiverged(RuntimeError):
+    """The residual grew past ``divergence_ratio`` times the largest disturbance: the loop is
+    unstable.
+    The telemetry up to and including that frame is kept."""
+
+    def __init__(self, frame: int, residual_nm: float):
+        super().__init__(f"loop diverged at frame {frame} (residual {residual_nm:.0f} nm RMS)")
+        self.frame = frame
+        self.residual_nm = residual_nm
+
 
 MID_GROUP_END = 120  # the paper's gain groups: modes 1-2, 3-120, 121-last
 
@@ -101,6 +118,8 @@ class ClosedLoop:
         seed: int = 1,
         detector: Detector = Detector(),
         delay_frames: float | None = None,
+        structure: StructuralResonance | None = StructuralResonance(),
+        divergence_ratio: float = 3.0,
     ):
         self.observation = observation
         self.calibration = calibration
@@ -129,6 +148,13 @@ class ClosedLoop:
         x, _ = pupil.coordinates()
         self._tilt_opd_per_mas = np.stack([tip, tilt]) * (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
         self.mas_per_nm_tt = 1.0 / (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
+        # The structure's Tip/Tilt, excited by the mirror's own Tip/Tilt (control.structure).
+        self.structure = structure
+        if structure is not None:
+            self._structure_ba = structure.coefficients(self.rate_hz)
+            self._structure_state = np.zeros((2, 2))  # lfilter state per axis (order 2)
+        self.divergence_ratio = divergence_ratio
+        self._disturbance_peak = 0.0  # largest disturbance RMS so far (nm): the divergence scale
         self.telemetry = Telemetry(self.rate_hz)
         self.frame = 0
         self._vibration_series = None
@@ -152,6 +178,14 @@ class ClosedLoop:
         disturbance = self.disturbance_opd(k, n_frames)
         applied = self.delay.applied()
         mirror = self.influence @ applied
+        if self.structure is not None:
+            b, a = self._structure_ba
+            u = self.calibration.basis.M_inv[:2] @ applied  # the mirror's Tip/Tilt (nm)
+            y = np.empty(2)
+            for axis in range(2):
+                out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
+                y[axis] = out[0]
+            mirror = mirror + self.shapes[:, :2] @ y
         residual = disturbance - mirror
         residual -= residual.mean()
         opd = np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32)
@@ -166,8 +200,12 @@ class ClosedLoop:
         tm.measured_modes.append(self.calibration.reconstructor @ slopes)
         tm.command_modes.append(self.calibration.basis.M_inv @ commands)
         tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
-        tm.residual_rms_nm.append(float(np.sqrt(np.mean(residual**2))))
+        rms = float(np.sqrt(np.mean(residual**2)))
+        tm.residual_rms_nm.append(rms)
         self.frame += 1
+        self._disturbance_peak = max(self._disturbance_peak, float(np.std(disturbance)), 10.0)
+        if not np.isfinite(rms) or rms > self.divergence_ratio * self._disturbance_peak:
+            raise LoopDiverged(k, rms)
         return residual
 
     def run(self, n_frames: int, psf=None, skip: int = 0) -> Telemetry:

@@ -6,11 +6,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.signal import welch
 
 from soulctl.control.filters import Filter
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
-from soulctl.loop.simulation import ClosedLoop, LoopGains
+from soulctl.loop.simulation import ClosedLoop, LoopDiverged, LoopGains
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate
@@ -69,3 +70,23 @@ def test_same_seed_same_loop(small_calibration):
                           vibrations=VibrationSpectrum.lbt_default(), noise=True, seed=seed)
         runs.append(loop.run(20).arrays()["measured_modes"])
     assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
+
+
+def test_integrator_at_high_gain_excites_the_127_hz_structure_and_the_iir_does_not(small_calibration):
+    """No scripted threshold: the structural resonance in the loop (control.structure) makes
+    the 1700 Hz integrator at g = 0.3 ring near 127 Hz, the paper's IIR at g = 0.69 not, and
+    the integrator at g = 0.45 (above its maximum stable gain 0.34) diverge."""
+    obs = observation_for_magnitude(9.7)
+    obs_int = dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=())
+
+    def band_power(o, g):
+        loop = ClosedLoop(o, small_calibration, None, LoopGains(g, 0.3, 0.3), vibrations=VibrationSpectrum.lbt_default(), seed=2)
+        tt = loop.run(1200).arrays()["residual_modes"][300:, 0] * loop.mas_per_nm_tt
+        f, p = welch(tt, fs=1700.0, nperseg=256)
+        return p[(f > 110) & (f < 145)].sum() * (f[1] - f[0])
+
+    assert band_power(obs_int, 0.3) > 5 * band_power(obs, 0.69)
+    loop = ClosedLoop(obs_int, small_calibration, None, LoopGains(0.45, 0.3, 0.3), vibrations=VibrationSpectrum.lbt_default(), seed=2)
+    with pytest.raises(LoopDiverged, match="loop diverged at frame") as e:
+        loop.run(1200)
+    assert len(loop.telemetry.residual_rms_nm) == e.value.frame + 1  # the telemetry so far is kept
