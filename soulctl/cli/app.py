@@ -1,7 +1,8 @@
 """The ``soulctl`` Typer application and its entry point.
 
 Exit status: 0 success; 2 bad input (one line on stderr naming the problem and the accepted
-range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed);
+range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed; ``loop run``: the simulated
+loop diverged, telemetry still written);
 1 an unexpected internal error.
 """
 
@@ -15,6 +16,7 @@ from .. import __version__
 from ..errors import InputError
 from . import configure
 from . import filter as filter_cli
+from . import loop as loop_cli
 from . import optics as optics_cli
 
 app = typer.Typer(
@@ -27,6 +29,7 @@ app = typer.Typer(
 app.command(name="configure")(configure.configure)
 app.add_typer(filter_cli.app, name="filter")
 app.add_typer(optics_cli.app, name="optics")
+app.add_typer(loop_cli.app, name="loop")
 
 
 def _version(value: bool) -> None:

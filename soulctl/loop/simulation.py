@@ -14,8 +14,8 @@ A residual RMS above ``divergence_ratio`` x the largest disturbance RMS so far (
 
 Tip/Tilt take the IIR filter of the observation (or an integrator), the other modes leaky
 integrators; gains by the paper's three groups: Tip/Tilt, modes 3-120, modes 121-last.
-Telemetry per frame: slopes are not kept (their modal projection is), residual and
-disturbance modal coefficients (nm), commands projected on the modes, residual RMS.
+Telemetry per frame: slopes, commands, their modal projections (R s, M^-1 c), the mirror's
+modes during the frame, and the simulation's true residual and disturbance modes (nm).
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ class LoopGains:
     mid: float
     high: float
     forgetting: float = 0.99  # of the leaky integrators of modes 3..last (proposal)
+    modes: tuple[float, ...] | None = None  # one gain per mode (a gain file): overrides the groups
 
     def __post_init__(self):
         for name in ("tip_tilt", "mid", "high"):
@@ -68,8 +69,23 @@ class LoopGains:
                 raise InputError(f"gain {name} must be a number in 0..10, got {v}")
         if not (0 <= self.forgetting <= 1):
             raise InputError(f"forgetting factor must be in 0..1, got {self.forgetting}")
+        if self.modes is not None and not all(math.isfinite(v) and 0 <= v <= 10 for v in self.modes):
+            raise InputError("per-mode gains must be numbers in 0..10")
+
+    @classmethod
+    def from_modes(cls, gains, forgetting: float = 0.99) -> "LoopGains":
+        g = tuple(float(x) for x in gains)
+        if len(g) < 2:
+            raise InputError(f"a per-mode gain list needs at least the 2 Tip/Tilt gains, got {len(g)}")
+        mid = g[2:MID_GROUP_END] or (0.0,)
+        high = g[MID_GROUP_END:] or (0.0,)
+        return cls(g[0], float(np.mean(mid)), float(np.mean(high)), forgetting, g)
 
     def per_mode(self, n_modes: int) -> np.ndarray:
+        if self.modes is not None:
+            if len(self.modes) != n_modes:
+                raise InputError(f"the gain file has {len(self.modes)} gains but {n_modes} modes are controlled")
+            return np.array(self.modes)
         g = np.full(n_modes, self.high)
         g[2:MID_GROUP_END] = self.mid
         g[:2] = self.tip_tilt
@@ -79,12 +95,14 @@ class LoopGains:
 def mode_filters(observation: Observation, gains: LoopGains, n_modes: int) -> list[Filter]:
     """Tip/Tilt: the observation's IIR (unit-gain zeros/poles, times the Tip/Tilt gain) or an
     integrator; the other modes leaky integrators."""
-    if observation.tt_control == "iir":
-        tt = Filter.iir(observation.tt_zeros, observation.tt_poles, gains.tip_tilt)
-    else:
-        tt = Filter.integrator(gains.tip_tilt)
     g = gains.per_mode(n_modes)
-    return [tt, tt] + [Filter.leaky(gains.forgetting, float(gi)) for gi in g[2:]]
+
+    def tip_tilt(gain: float) -> Filter:
+        if observation.tt_control == "iir":
+            return Filter.iir(observation.tt_zeros, observation.tt_poles, gain)
+        return Filter.integrator(gain)
+
+    return [tip_tilt(float(g[0])), tip_tilt(float(g[1]))] + [Filter.leaky(gains.forgetting, float(gi)) for gi in g[2:]]
 
 
 @dataclass
@@ -98,6 +116,8 @@ class Telemetry:
     command_modes: list = field(default_factory=list)  # (n_modes,) nm, M^-1 c(k)
     mirror_modes: list = field(default_factory=list)  # (n_modes,) nm, the mirror during frame k
     residual_rms_nm: list = field(default_factory=list)
+    slopes: list = field(default_factory=list)  # (n_slopes,) float32
+    commands: list = field(default_factory=list)  # (n_actuators,) float32, c(k)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
@@ -197,6 +217,8 @@ class ClosedLoop:
         n = self.pupil.n_valid
         tm.residual_modes.append(self.shapes.T @ residual / n)
         tm.disturbance_modes.append(self.shapes.T @ disturbance / n)
+        tm.slopes.append(slopes)
+        tm.commands.append(commands.copy())
         tm.measured_modes.append(self.calibration.reconstructor @ slopes)
         tm.command_modes.append(self.calibration.basis.M_inv @ commands)
         tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
@@ -208,11 +230,13 @@ class ClosedLoop:
             raise LoopDiverged(k, rms)
         return residual
 
-    def run(self, n_frames: int, psf=None, skip: int = 0) -> Telemetry:
+    def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into
-        ``psf`` (a metrics.PsfAccumulator) when given."""
+        ``psf`` (a metrics.PsfAccumulator) when given; ``progress(frames_done)`` after each."""
         for i in range(n_frames):
             residual = self.step(n_frames)
             if psf is not None and i >= skip:
                 psf.add(residual)
+            if progress is not None:
+                progress(i + 1)
         return self.telemetry

@@ -1,0 +1,217 @@
+"""One `loop run`: calibrate (cached), close the loop for a duration, and reduce the telemetry
+to what SOUL would deliver (Strehl, jitter, residuals, rejection, spectra)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..control.filters import Filter
+from ..control.structure import StructuralResonance
+from ..control.transfer import Loop, Plant, max_stable_gain
+from ..disturbance.vibrations import VibrationSpectrum
+from ..errors import InputError
+from ..observation import Observation
+from ..optics.atmosphere import AtmosphereConfig
+from ..optics.cache import ArrayCache
+from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
+from ..optics.pwfs import PyramidConfig
+from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
+from .simulation import ClosedLoop, LoopDiverged, LoopGains, Telemetry
+
+VIBRATION_HZ = 13.0
+MAX_DURATION_S = 600.0
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    observation: Observation
+    seeing_arcsec: float = 1.0
+    wind_m_s: float = 8.0
+    L0_m: float = 25.0
+    duration_s: float = 0.2
+    gains: LoopGains | None = None  # None: default_gains
+    band: str = "H"
+    seed: int = 1
+    noise: bool = True
+    vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
+    oversampling: int = 2
+    structure: StructuralResonance | None = field(default_factory=StructuralResonance)
+    allow_unstable: bool = False
+
+    def __post_init__(self):
+        if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= MAX_DURATION_S):
+            raise InputError(f"duration must be in 0..{MAX_DURATION_S:g} s (> 0), got {self.duration_s:g}")
+        band_wavelength(self.band)
+
+    @property
+    def frames(self) -> int:
+        return max(1, round(self.duration_s * self.observation.frame_rate_hz))
+
+    @property
+    def skip(self) -> int:
+        """Frames left out of the metrics while the loop closes: 20 % of the run, at least
+        0.02 s, at most half."""
+        return min(self.frames // 2, max(round(0.02 * self.observation.frame_rate_hz), self.frames // 5))
+
+
+def sampled_structure(structure: StructuralResonance | None, rate_hz: float) -> StructuralResonance | None:
+    """The structural resonance if the loop samples it (f0 below Nyquist), else None: a loop at
+    250 Hz does not see a 127 Hz mode (its detector and hold filter it; not modelled)."""
+    return structure if structure is not None and structure.frequency_hz < rate_hz / 2 else None
+
+
+def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structure: StructuralResonance | None) -> Loop:
+    """The loop of one mode as the analysis sees it (chi = 1): Tip/Tilt with the observation's
+    filter and the structural resonance, other modes leaky integrators."""
+    rate = observation.frame_rate_hz
+    d = observation.delay_frames
+    if tip_tilt:
+        f = Filter.iir(observation.tt_zeros, observation.tt_poles, gain) if observation.tt_control == "iir" else Filter.integrator(gain)
+        plant = Plant.with_structure(d, structure, rate) if structure is not None else Plant(d)
+    else:
+        f = Filter.leaky(LoopGains(0, 0, 0).forgetting, gain)
+        plant = Plant(d)
+    return Loop(f, plant, rate)
+
+
+def default_gains(observation: Observation, structure: StructuralResonance | None = StructuralResonance()) -> LoopGains:
+    """Tip/Tilt: 0.69 with the IIR (the paper's optimised 1700 Hz gain) capped at 0.7 of its
+    maximum stable gain elsewhere, or half the integrator's maximum stable gain; modes 3-120:
+    half, modes 121-last: 0.4 of the leaky integrator's.  Starting points, not optima
+    (`optimize gains` tunes them)."""
+    g_tt = max_stable_gain(nominal_loop(observation, 0.1, True, structure))
+    g_ho = max_stable_gain(nominal_loop(observation, 0.1, False, structure))
+    tt = min(0.69, 0.7 * g_tt) if observation.tt_control == "iir" else 0.5 * g_tt
+    return LoopGains(round(tt, 3), round(0.5 * g_ho, 3), round(0.4 * g_ho, 3))
+
+
+def check_stability(observation: Observation, gains: LoopGains, structure: StructuralResonance | None) -> None:
+    """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
+    plant (chi = 1, the structural resonance on Tip/Tilt)."""
+    if gains.modes is not None:
+        groups = [("Tip/Tilt", g, True) for g in set(gains.modes[:2])] + [(f"mode gain", g, False) for g in set(gains.modes[2:])]
+    else:
+        groups = [("Tip/Tilt", gains.tip_tilt, True), ("modes 3-120", gains.mid, False), ("modes 121-last", gains.high, False)]
+    for name, g, tt in groups:
+        if g <= 0:
+            continue
+        loop = nominal_loop(observation, g, tt, structure)
+        if not loop.is_stable():
+            g_max = max_stable_gain(loop)
+            raise InputError(
+                f"{name} gain {g:g} is unstable at {observation.frame_rate_hz:g} Hz "
+                f"(maximum stable gain {g_max:.3f}); --allow-unstable runs it anyway"
+            )
+
+
+@dataclass
+class RunResult:
+    request: RunRequest
+    gains: LoopGains
+    calibration: Calibration
+    telemetry: Telemetry
+    metrics: LoopMetrics | None
+    psf: np.ndarray | None
+    diverged_at: int | None
+    diverged_residual_nm: float | None
+    seconds: float
+    calibration_seconds: float
+    mas_per_nm: float
+    spectra: dict = field(default_factory=dict)
+
+    def configuration(self) -> dict:
+        r = self.request
+        return {
+            "observation": self.request.observation.to_dict(),
+            "seeing_arcsec": r.seeing_arcsec,
+            "wind_m_s": r.wind_m_s,
+            "L0_m": r.L0_m,
+            "duration_s": r.duration_s,
+            "frames": r.frames,
+            "skipped_frames": r.skip,
+            "band": r.band,
+            "seed": r.seed,
+            "noise": r.noise,
+            "oversampling": r.oversampling,
+            "gains": asdict(self.gains),
+            "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
+            "structure": asdict(r.structure) if r.structure else None,
+        }
+
+
+def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: float) -> tuple[LoopMetrics, dict]:
+    obs = request.observation
+    skip = request.skip
+    res_tt = tm["residual_modes"][skip:, :2] * mas_per_nm
+    pol = pseudo_open_loop(tm["measured_modes"], tm["command_modes"], obs.delay_frames)
+    pol_tt = pol[skip:, :2] * mas_per_nm
+    rate = obs.frame_rate_hz
+    n = len(res_tt)
+    # Spectra with ~1 Hz resolution where the run allows; no rejection figure if coarser than 5 Hz.
+    nperseg = min(2 ** int(np.log2(max(n, 2))), 2 ** int(np.ceil(np.log2(rate))))
+    resolved = n >= 64 and rate / nperseg <= 5.0
+    rej = float(np.mean([rejection_at(res_tt[:, a], pol_tt[:, a], rate, VIBRATION_HZ, nperseg) for a in (0, 1)])) if resolved else float("nan")
+    spectra = {}
+    if n >= 4:
+        f, cr = cumulative_spectrum(res_tt[:, 0] - res_tt[:, 0].mean(), rate, nperseg)
+        _, cr2 = cumulative_spectrum(res_tt[:, 1] - res_tt[:, 1].mean(), rate, nperseg)
+        _, cp = cumulative_spectrum(pol_tt[:, 0] - pol_tt[:, 0].mean(), rate, nperseg)
+        _, cp2 = cumulative_spectrum(pol_tt[:, 1] - pol_tt[:, 1].mean(), rate, nperseg)
+        spectra = {"f_hz": f, "residual_mas": np.sqrt((cr**2 + cr2**2) / 2), "pseudo_open_loop_mas": np.sqrt((cp**2 + cp2**2) / 2)}
+    spectra["modal_variance_nm2"] = tm["residual_modes"][skip:].var(axis=0)
+    m = LoopMetrics(
+        band=request.band,
+        strehl=psf.strehl,
+        tt_jitter_mas=float(np.sqrt(np.mean(res_tt.var(axis=0)))),
+        tt_jitter_pol_mas=float(np.sqrt(np.mean(pol_tt.var(axis=0)))),
+        residual_nm=float(np.sqrt(np.mean(tm["residual_rms_nm"][skip:] ** 2))),
+        rejection_13hz=rej,
+        frames=len(tm["residual_rms_nm"]),
+        skipped_frames=skip,
+    )
+    return m, spectra
+
+
+def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
+    obs = request.observation
+    config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=request.oversampling)
+    return calibrate(CalibrationSetup(config, obs.modes, BasisSetup()), cache)
+
+
+def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None) -> RunResult:
+    """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module)."""
+    obs = request.observation
+    structure = sampled_structure(request.structure, obs.frame_rate_hz)
+    gains = request.gains or default_gains(obs, structure)
+    if not request.allow_unstable:
+        check_stability(obs, gains, structure)
+    t0 = time.perf_counter()
+    cal = calibration_for(request, cache)
+    t_cal = time.perf_counter() - t0
+    atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
+    loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise,
+                      seed=request.seed, structure=structure)
+    psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
+    diverged_at = diverged_rms = None
+    t1 = time.perf_counter()
+    try:
+        loop.run(request.frames, psf=psf, skip=request.skip, progress=progress)
+    except LoopDiverged as e:
+        diverged_at, diverged_rms = e.frame, e.residual_nm
+    seconds = time.perf_counter() - t1
+    tm = loop.telemetry.arrays()
+    metrics, spectra, image = None, {}, None
+    if diverged_at is None:
+        metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
+        image = psf.psf
+    return RunResult(request, gains, cal, loop.telemetry, metrics, image, diverged_at, diverged_rms, seconds, t_cal,
+                     loop.mas_per_nm_tt, spectra)
+
+
+def per_mode_gains(result: RunResult) -> np.ndarray:
+    return result.gains.per_mode(result.calibration.basis.n_modes)
+

@@ -1,0 +1,86 @@
+"""Figures of a closed-loop run, in the style of the paper's: the long-exposure PSF, the
+cumulative Tip/Tilt jitter (residual against pseudo-open loop) and the modal residual
+variance."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+
+from ..loop.metrics import band_wavelength
+from ..optics.pupil import LBT_DIAMETER_M
+from .transfer import save_figure
+
+
+def _figure(size=(6.4, 4.8)) -> Figure:
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: float, pad: int = 2) -> Figure:
+    """The PSF (peak = Strehl), log scale, +-20 lambda/D, axes in mas."""
+    fig = _figure((5.6, 4.8))
+    ax = fig.subplots()
+    n = psf.shape[0]
+    half = min(n // 2, 20 * pad)
+    crop = psf[n // 2 - half : n // 2 + half, n // 2 - half : n // 2 + half]
+    extent = np.array([-half, half, -half, half]) * lambda_over_d_mas / pad
+    im = ax.imshow(np.maximum(crop, 1e-5), norm=LogNorm(vmin=1e-5, vmax=1.0), origin="lower", extent=extent, cmap="inferno")
+    fig.colorbar(im, ax=ax, label="intensity / diffraction-limited peak")
+    ax.set_xlabel("x [mas]")
+    ax.set_ylabel("y [mas]")
+    ax.set_title(f"Long-exposure PSF, {band} band: SR = {strehl:.2f}", fontsize=10)
+    return fig
+
+
+def jitter_figure(f_hz: np.ndarray, residual_mas: np.ndarray, pol_mas: np.ndarray, title: str) -> Figure:
+    """Cumulative Tip/Tilt jitter from the highest frequency down (paper, Fig. of the on-sky
+    IIR tests): residual and pseudo-open loop, per axis."""
+    fig = _figure()
+    ax = fig.subplots()
+    keep = f_hz > 0
+    ax.semilogx(f_hz[keep], pol_mas[keep], label=f"pseudo-open loop ({pol_mas[1]:.1f} mas)", color="0.35")
+    ax.semilogx(f_hz[keep], residual_mas[keep], label=f"residual ({residual_mas[1]:.1f} mas)", color="C3")
+    ax.axvline(13.0, color="0.6", linestyle=":", linewidth=1)
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("cumulative Tip/Tilt jitter [mas]")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=9)
+    return fig
+
+
+def modal_variance_figure(variance_nm2: np.ndarray, title: str) -> Figure:
+    fig = _figure()
+    ax = fig.subplots()
+    modes = np.arange(1, len(variance_nm2) + 1)
+    ax.loglog(modes, variance_nm2, ".", markersize=3, color="C0")
+    ax.set_xlabel("mode")
+    ax.set_ylabel("residual variance [nm²]")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    return fig
+
+
+def write_loop_figures(directory: Path, result) -> list[Path]:
+    """psf.png, jitter.png, modal_variance.png in ``directory`` (atomically); the paths."""
+    r = result.request
+    m = result.metrics
+    lod_mas = band_wavelength(r.band) / LBT_DIAMETER_M * 180 / np.pi * 3600e3
+    label = f"R = {r.observation.magnitude_r:g}, {r.observation.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\""
+    out = []
+    figures = [("psf.png", psf_figure(result.psf, r.band, m.strehl, lod_mas)),
+               ("modal_variance.png", modal_variance_figure(result.spectra["modal_variance_nm2"], f"Modal residual variance, {label}"))]
+    if "f_hz" in result.spectra:
+        s = result.spectra
+        figures.append(("jitter.png", jitter_figure(s["f_hz"], s["residual_mas"], s["pseudo_open_loop_mas"], f"Tip/Tilt jitter, {label}")))
+    for name, fig in figures:
+        path = directory / name
+        save_figure(fig, path)
+        out.append(path)
+    return out

@@ -1,0 +1,100 @@
+"""`soulctl loop run`: results, telemetry, figures, divergence (exit 3) and one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from soulctl.cli.app import main
+from soulctl.loop.telemetry_file import read_telemetry
+
+FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3"]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("loop-cache")
+
+
+def run(args, capsys, cache_dir):
+    status = main([*args, "--cache-dir", str(cache_dir)])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_json_result_and_same_seed_same_numbers(capsys, cache_dir):
+    status, out, err = run([*FAINT, "--json", "--seed", "3"], capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    m = d["metrics"]
+    assert 0 < m["strehl"] < 1 and m["tt_jitter_mas"] > 0 and m["residual_nm"] > 0
+    assert d["configuration"]["observation"]["wfs"]["binning"] == 3 and d["configuration"]["frames"] == 75
+    assert d["diverged_at_frame"] is None
+    status, out2, _ = run([*FAINT, "--json", "--seed", "3"], capsys, cache_dir)
+    assert json.loads(out2)["metrics"] == m
+    status, out3, _ = run([*FAINT, "--json", "--seed", "4"], capsys, cache_dir)
+    assert json.loads(out3)["metrics"]["strehl"] != m["strehl"]
+
+
+def test_table_telemetry_and_figures(tmp_path, capsys, cache_dir):
+    h5 = tmp_path / "tm.h5"
+    status, out, _ = run([*FAINT, "--band", "Ks", "--telemetry", str(h5), "--plot", str(tmp_path)], capsys, cache_dir)
+    assert status == 0
+    for text in ("Strehl ratio (Ks", "Tip/Tilt jitter", "pseudo-open loop", "residual wavefront error"):
+        assert text in out
+    arrays, attrs = read_telemetry(h5)
+    assert arrays["slopes"].shape[0] == 75 and arrays["measured_modes"].shape == (75, 90) and arrays["gains"].shape == (90,)
+    assert attrs["rate_hz"] == 250.0 and attrs["diverged_at"] == -1 and attrs["configuration"]["band"] == "Ks"
+    np.testing.assert_allclose(arrays["frame_time_s"][:3], [0, 0.004, 0.008])
+    for name in ("psf.png", "jitter.png", "modal_variance.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_divergence_exits_3_and_keeps_the_telemetry(tmp_path, capsys, cache_dir):
+    h5 = tmp_path / "div.h5"
+    status, out, err = run([*FAINT, "--gains", "4,4,4", "--allow-unstable", "--seeing", "0.5", "--telemetry", str(h5)], capsys, cache_dir)
+    assert status == 3
+    assert "loop diverged at frame" in err and "Traceback" not in err
+    arrays, attrs = read_telemetry(h5)
+    assert attrs["diverged_at"] >= 0 and arrays["residual_rms_nm"].shape[0] == attrs["diverged_at"] + 1
+
+
+def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_dir):
+    status, out, err = run(["loop", "run", "--tt-control", "int", "--gains", "0.45,0.2,0.2"], capsys, cache_dir)
+    assert status == 2 and "maximum stable gain 0.340" in err and "--allow-unstable" in err
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--band", "K"], "unknown band 'K': accepted R, I, J, H, FeII, Ks"),
+        (["--duration", "0"], "--duration must be in 0..600"),
+        (["--duration", "-1"], "--duration must be in 0..600"),
+        (["--seeing", "0"], "--seeing must be in 0..10"),
+        (["--wind", "-3"], "--wind must be in 0..100"),
+        (["--L0", "0"], "--L0 must be in 0..10000"),
+        (["--gains", "a,b,c"], "--gains must be TT,MID,HIGH"),
+        (["--gains", "0.5,-0.1,0.2"], "--gains must be TT,MID,HIGH"),
+        (["--tt-control", "pid"], "--tt-control must be 'iir' or 'int'"),
+        (["--mag", "16.5", "--tt-control", "iir"], "no IIR filter at 250 Hz"),
+        (["--config", "missing.toml"], "configuration file not found"),
+        (["--mag", "12", "--config", "x.toml"], "either --config or --mag"),
+        (["--plot", "no/such/dir"], "--plot must be an existing folder"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):
+    status, out, err = run(["loop", "run", *args], capsys, cache_dir)
+    assert status == 2
+    assert message in err and err.count("\n") == 1 and out == ""
+
+
+def test_gain_file_per_mode(tmp_path, capsys, cache_dir):
+    gains = tmp_path / "gains.toml"
+    gains.write_text("gains = [" + ", ".join(["0.3"] * 2 + ["0.25"] * 88) + "]\n")
+    status, out, err = run([*FAINT, "--gains", str(gains), "--json"], capsys, cache_dir)
+    assert status == 0, err
+    assert json.loads(out)["configuration"]["gains"]["modes"][:3] == [0.3, 0.3, 0.25]
+    short = tmp_path / "short.toml"
+    short.write_text("gains = [0.3, 0.3, 0.2]\n")
+    status, _, err = run([*FAINT, "--gains", str(short)], capsys, cache_dir)
+    assert status == 2 and "3 gains but 90 modes" in err

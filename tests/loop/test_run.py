@@ -1,0 +1,41 @@
+"""`loop run`'s library side: default gains, the stability check, the request's limits."""
+
+import dataclasses
+
+import pytest
+
+from soulctl.control.structure import StructuralResonance
+from soulctl.errors import InputError
+from soulctl.loop.run import RunRequest, check_stability, default_gains, sampled_structure
+from soulctl.loop.simulation import LoopGains
+from soulctl.observation import observation_for_magnitude
+
+
+def test_default_gains_are_the_papers_iir_gain_and_stable_fractions():
+    obs = observation_for_magnitude(9.7)
+    g = default_gains(obs)
+    assert g.tip_tilt == 0.69  # the paper's optimised 1700 Hz IIR gain
+    check_stability(obs, g, StructuralResonance())
+    obs_int = dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=())
+    assert default_gains(obs_int).tip_tilt == pytest.approx(0.5 * 0.34, abs=0.005)  # half of g_max with the resonance
+
+
+def test_unstable_group_gain_names_the_maximum():
+    obs = observation_for_magnitude(12.0)  # 738 Hz by the frame-rate rule
+    with pytest.raises(InputError, match=r"modes 3-120 gain 3 is unstable at 738 Hz \(maximum stable gain 0.98"):
+        check_stability(obs, LoopGains(0.3, 3.0, 0.2), StructuralResonance())
+
+
+def test_the_resonance_is_left_out_below_twice_its_frequency():
+    r = StructuralResonance()
+    assert sampled_structure(r, 1700.0) is r and sampled_structure(r, 250.0) is None
+
+
+def test_request_limits():
+    obs = observation_for_magnitude(9.7)
+    with pytest.raises(InputError, match="duration"):
+        RunRequest(obs, duration_s=0.0)
+    with pytest.raises(InputError, match="unknown band"):
+        RunRequest(obs, band="L")
+    r = RunRequest(obs, duration_s=1.0)
+    assert r.frames == 1700 and r.skip == 340
