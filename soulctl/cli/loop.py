@@ -114,7 +114,7 @@ def _render(result, console: Console) -> None:
     t.add_row("gains modes 3-120 / 121-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
     t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", f"{m.strehl:.3f}")
     t.add_row("Tip/Tilt jitter, residual (per axis)", f"{m.tt_jitter_mas:.2f} mas")
-    t.add_row("Tip/Tilt jitter, pseudo-open loop", f"{m.tt_jitter_pol_mas:.2f} mas")
+    t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)", f"{m.tt_jitter_pol_mas:.2f} / {m.tt_jitter_pol_3hz_mas:.2f} mas")
     t.add_row("residual wavefront error", f"{m.residual_nm:.0f} nm RMS")
     t.add_row("rejection at 13 Hz (telemetry)", "n/a (run too short)" if not math.isfinite(m.rejection_13hz) else f"{m.rejection_13hz:.3f}")
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")

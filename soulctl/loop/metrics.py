@@ -104,6 +104,7 @@ class LoopMetrics:
     strehl: float
     tt_jitter_mas: float  # residual, per axis (RMS of the two axes' RMS)
     tt_jitter_pol_mas: float  # pseudo-open loop, per axis
+    tt_jitter_pol_3hz_mas: float  # pseudo-open loop above 3 Hz (the paper quotes 3-425 Hz)
     residual_nm: float  # RMS wavefront error, all modes and fitting
     rejection_13hz: float
     frames: int

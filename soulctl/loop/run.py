@@ -163,11 +163,13 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
         _, cp2 = cumulative_spectrum(pol_tt[:, 1] - pol_tt[:, 1].mean(), rate, nperseg)
         spectra = {"f_hz": f, "residual_mas": np.sqrt((cr**2 + cr2**2) / 2), "pseudo_open_loop_mas": np.sqrt((cp**2 + cp2**2) / 2)}
     spectra["modal_variance_nm2"] = tm["residual_modes"][skip:].var(axis=0)
+    pol_band = float(np.interp(3.0, spectra["f_hz"], spectra["pseudo_open_loop_mas"])) if "f_hz" in spectra else float("nan")
     m = LoopMetrics(
         band=request.band,
         strehl=psf.strehl,
         tt_jitter_mas=float(np.sqrt(np.mean(res_tt.var(axis=0)))),
         tt_jitter_pol_mas=float(np.sqrt(np.mean(pol_tt.var(axis=0)))),
+        tt_jitter_pol_3hz_mas=pol_band,
         residual_nm=float(np.sqrt(np.mean(tm["residual_rms_nm"][skip:] ** 2))),
         rejection_13hz=rej,
         frames=len(tm["residual_rms_nm"]),

@@ -21,6 +21,7 @@ modes during the frame, and the simulation's true residual and disturbance modes
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,7 +52,9 @@ class LoopDiverged(RuntimeError):
         self.residual_nm = residual_nm
 
 
-MID_GROUP_END = 120  # the paper's gain groups: modes 1-2, 3-120, 121-last
+MID_GROUP_END = 120
+# Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
+STAGES = ("atmosphere", "mirror", "wfs_optics", "detector", "slopes", "rtc", "telemetry")  # the paper's gain groups: modes 1-2, 3-120, 121-last
 
 
 @dataclass(frozen=True)
@@ -156,8 +159,12 @@ class ClosedLoop:
         self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, int(atm_seed)) if atmosphere else None
         self.vibrations = vibrations
         basis = calibration.basis
-        self.influence = basis.geometry.influence_functions(pupil)  # (n_valid, n_actuators)
-        self.shapes = self.influence @ basis.M  # (n_valid, n_modes), orthonormal on the pupil
+        # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
+        # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.
+        self.influence = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
+        self._influence_t = self.influence.T.tocsr()
+        self._M_t = np.ascontiguousarray(basis.M.T)
+        self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
         self.n_modes = basis.n_modes
         self.filters = mode_filters(observation, gains, self.n_modes)
         self.rtc_matrices = build_rtc(self.filters, calibration.reconstructor, basis.M)
@@ -176,8 +183,14 @@ class ClosedLoop:
         self.divergence_ratio = divergence_ratio
         self._disturbance_peak = 0.0  # largest disturbance RMS so far (nm): the divergence scale
         self.telemetry = Telemetry(self.rate_hz)
+        self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.frame = 0
         self._vibration_series = None
+
+    def project(self, opd: np.ndarray) -> np.ndarray:
+        """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
+        are orthonormal on the pupil)."""
+        return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
 
     def _vibration_tt(self, k: int, n_frames: int) -> np.ndarray:
         if self.vibrations is None:
@@ -193,9 +206,13 @@ class ClosedLoop:
         return phi + self._vibration_tt(k, n_frames) @ self._tilt_opd_per_mas
 
     def step(self, n_frames: int = 1) -> np.ndarray:
-        """One frame; returns the residual OPD on the pupil pixels (nm)."""
+        """One frame; returns the residual OPD on the pupil pixels (nm).  The time spent in
+        each stage is added to ``stage_seconds``."""
+        clock = time.perf_counter
+        t0 = clock()
         k = self.frame
         disturbance = self.disturbance_opd(k, n_frames)
+        t1 = clock()
         applied = self.delay.applied()
         mirror = self.influence @ applied
         if self.structure is not None:
@@ -205,18 +222,27 @@ class ClosedLoop:
             for axis in range(2):
                 out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
                 y[axis] = out[0]
-            mirror = mirror + self.shapes[:, :2] @ y
+            mirror = mirror + self.shapes_tt @ y
         residual = disturbance - mirror
         residual -= residual.mean()
         opd = np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32)
         opd[self.pupil.mask] = residual
-        slopes = self.sensor.slopes(opd, self.noise_rng)
+        t2 = clock()
+        intensity = self.sensor.pyramid.intensity(opd)
+        t3 = clock()
+        if self.noise_rng is None:
+            frame = self.sensor.expected_frame_of(intensity)
+        else:
+            frame = self.sensor.detector.read(intensity, self.sensor.photons_per_frame, self.noise_rng)
+        t4 = clock()
+        slopes = self.sensor.slopes_of_frame(frame)
+        t5 = clock()
         commands = self.rtc.step(slopes)
         self.delay.push(commands)
+        t6 = clock()
         tm = self.telemetry
-        n = self.pupil.n_valid
-        tm.residual_modes.append(self.shapes.T @ residual / n)
-        tm.disturbance_modes.append(self.shapes.T @ disturbance / n)
+        tm.residual_modes.append(self.project(residual))
+        tm.disturbance_modes.append(self.project(disturbance))
         tm.slopes.append(slopes)
         tm.commands.append(commands.copy())
         tm.measured_modes.append(self.calibration.reconstructor @ slopes)
@@ -224,6 +250,9 @@ class ClosedLoop:
         tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
         rms = float(np.sqrt(np.mean(residual**2)))
         tm.residual_rms_nm.append(rms)
+        t7 = clock()
+        for stage, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
+            self.stage_seconds[stage] += dt
         self.frame += 1
         self._disturbance_peak = max(self._disturbance_peak, float(np.std(disturbance)), 10.0)
         if not np.isfinite(rms) or rms > self.divergence_ratio * self._disturbance_peak:
@@ -236,7 +265,9 @@ class ClosedLoop:
         for i in range(n_frames):
             residual = self.step(n_frames)
             if psf is not None and i >= skip:
+                t0 = time.perf_counter()
                 psf.add(residual)
+                self.stage_seconds["metrics"] += time.perf_counter() - t0
             if progress is not None:
                 progress(i + 1)
         return self.telemetry

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
+from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from .atmosphere import phase_covariance
@@ -74,6 +76,23 @@ class AsmGeometry:
         R = self.diameter_m / 2
         area = np.pi * R**2 * (1 - self.obstruction**2)
         return float(np.sqrt(area / self.n_actuators))
+
+    def sparse_influence_functions(self, pupil: Pupil, floor: float = 1e-4):
+        """The same as a CSR matrix, responses below ``floor`` (of the peak) dropped: beyond
+        sqrt(ln(floor) / ln(c)) pitches (2.2 for c = 0.15), ~40 actuators per pixel instead of
+        672.  For the per-frame mirror shape and modal projections of the closed loop."""
+        x, y = pupil.coordinates()
+        p = self.positions()
+        radius2 = np.log(floor) / np.log(self.coupling) * self.pitch_m**2
+        tree = cKDTree(p)
+        rows, cols = [], []
+        for i, neighbours in enumerate(tree.query_ball_point(np.stack([x, y], axis=1), np.sqrt(radius2))):
+            rows.extend([i] * len(neighbours))
+            cols.extend(neighbours)
+        rows, cols = np.array(rows), np.array(cols)
+        d2 = (x[rows] - p[cols, 0]) ** 2 + (y[rows] - p[cols, 1]) ** 2
+        values = np.exp(np.log(self.coupling) * d2 / self.pitch_m**2)
+        return csr_matrix((values, (rows, cols)), shape=(x.size, self.n_actuators))
 
     def influence_functions(self, pupil: Pupil) -> np.ndarray:
         """(n_valid_pixels, n_actuators): each actuator's unit response on the pupil pixels."""

@@ -119,3 +119,12 @@ def test_truncation_and_bad_inputs():
         b.truncated(700)
     with pytest.raises(InputError):
         kl_basis(AsmGeometry(), pupil, L0_m=0.0)
+
+
+def test_sparse_influence_functions_match_the_dense_ones():
+    g = AsmGeometry()
+    pupil = Pupil(80)
+    dense = g.influence_functions(pupil)
+    sparse = g.sparse_influence_functions(pupil, floor=1e-4)
+    assert np.abs(sparse.toarray() - dense).max() <= 1e-4
+    assert sparse.nnz < 0.1 * dense.size  # ~40 actuators per pixel of 672
