@@ -6,6 +6,8 @@ Cases (R9.7-like photometry, seeing 1", LBT vibrations, 127 Hz resonance, noise 
   default sampling (o = 2: 80-px pupil, 192^2 FFTs) and at o = 4 (160-px pupil, 4 px per
   sub-aperture, 384^2 FFTs), the sampling of the peer figure quoted in issue 5 (OOPAO: 18.5
   it/s at 160 px with 20 points and 336^2 FFTs; 36 it/s at 80 px).
+  A last case at o = 4 uses the peer's 20 modulation points instead of soulctl's 24.
+BLAS is limited to one thread inside ClosedLoop.run (threadpoolctl).
 Stages: atmosphere, mirror (delay line, F c, structure), wfs_optics (pyramid propagation),
 detector, slopes (C++), rtc (C++), telemetry (modal projections), metrics (PSF).
 Calibration: modal basis + interaction matrix with an empty cache (cold), then from the cache.
@@ -41,7 +43,8 @@ from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
 
-CASES = [("40x40", 1, 500, 1700.0), ("20x20", 2, 250, 1148.0), ("10x10", 4, 54, 390.0)]
+CASES = [("40x40", 1, 500, 1700.0, None), ("20x20", 2, 250, 1148.0, None), ("10x10", 4, 54, 390.0, None),
+         ("40x40 20 pts", 1, 500, 1700.0, 20)]  # the peer's 20 modulation points (at o = 4 only)
 
 
 def main() -> None:
@@ -52,9 +55,11 @@ def main() -> None:
     args = p.parse_args()
     rows = []
     for o in (int(x) for x in args.oversampling.split(",")):
-        for label, binning, modes, rate in CASES:
+        for label, binning, modes, rate, points in CASES:
+            if points is not None and o != 4:
+                continue
             obs = dataclasses.replace(observation_for_magnitude(9.7), binning=binning, modes=modes, frame_rate_hz=rate)
-            setup = CalibrationSetup(PyramidConfig(binning=binning, oversampling=o), modes, BasisSetup())
+            setup = CalibrationSetup(PyramidConfig(binning=binning, oversampling=o, n_modulation=points), modes, BasisSetup())
             with tempfile.TemporaryDirectory() as tmp:
                 cache = ArrayCache(Path(tmp))
                 t0 = time.perf_counter()
@@ -81,11 +86,11 @@ def main() -> None:
                          "stage_ms": stages, "calibration_cold_s": cold, "calibration_cached_s": cached})
             print(json.dumps(rows[-1]), flush=True)
     t = Table(title=f"Closed loop per iteration ({args.frames} frames per case), ms and share", title_justify="left")
-    for col in ("case", "pupil/FFT", "it/s", *STAGES, "metrics", "cal. cold s", "cached s"):
+    for col in ("case", "pupil/FFT/points", "it/s", *STAGES, "metrics", "cal. cold s", "cached s"):
         t.add_column(col, justify="right" if col != "case" else "left")
     for r in rows:
         total = r["ms_per_iteration"]
-        t.add_row(r["case"], f"{r['pupil_pixels']}/{r['fft_size']}", f"{r['iterations_per_s']:.1f}",
+        t.add_row(r["case"], f"{r['pupil_pixels']}/{r['fft_size']}/{r['modulation_points']}", f"{r['iterations_per_s']:.1f}",
                   *[f"{r['stage_ms'][s]:.2f} ({100 * r['stage_ms'][s] / total:.0f}%)" for s in (*STAGES, "metrics")],
                   f"{r['calibration_cold_s']:.1f}", f"{r['calibration_cached_s']:.2f}")
     Console(width=200).print(t)
