@@ -138,7 +138,7 @@ def run_cmd(
     vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml)."),
     no_vibrations: bool = typer.Option(False, "--no-vibrations", help="No telescope vibrations."),
     no_resonance: bool = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance."),
-    oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4)."),
+    oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes)."),
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),

@@ -37,5 +37,7 @@ def test_request_limits():
         RunRequest(obs, duration_s=0.0)
     with pytest.raises(InputError, match="unknown band"):
         RunRequest(obs, band="L")
+    with pytest.raises(InputError, match="too coarse for 500 modes: accepted up to 90"):
+        RunRequest(obs, oversampling=1)
     r = RunRequest(obs, duration_s=1.0)
     assert r.frames == 1700 and r.skip == 340
