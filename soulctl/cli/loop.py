@@ -21,12 +21,12 @@ from ..errors import InputError
 from ..files import check_output_path, read_toml
 from ..loop.metrics import BANDS
 from ..loop.run import RunRequest, run
-from ..loop.simulation import LoopGains
+from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..loop.telemetry_file import write_telemetry
 from ..observation import Observation, observation_for_magnitude
 from ..plots.loop import write_loop_figures
 from .configure import parse_magnitude
-from .optics import _cache, _CACHE_DIR, _NO_CACHE
+from .optics import _CACHE_DIR, _NO_CACHE, _cache, _observation
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -34,9 +34,8 @@ DEFAULT_MAGNITUDE = "9.7"  # the paper's bright-star on-sky tests
 
 
 def observation_from(config: Path | None, mag: str | None, tt_control: str | None) -> Observation:
-    if config is not None and mag is not None:
-        raise InputError("give either --config or --mag, not both")
-    obs = Observation.read_toml(config) if config is not None else observation_for_magnitude(parse_magnitude(mag or DEFAULT_MAGNITUDE))
+    """--config or --mag (the default star without either), with --tt-control applied."""
+    obs = _observation(config, mag) or observation_for_magnitude(parse_magnitude(DEFAULT_MAGNITUDE))
     if tt_control is None or tt_control == obs.tt_control:
         return obs
     if tt_control == "int":
@@ -165,7 +164,7 @@ def run_cmd(
     if plot is not None and not plot.is_dir():
         raise InputError(f"--plot must be an existing folder, got {plot}")
     obs = observation_from(config, mag, tt_control)
-    loop_gains = parse_gains(gains, LoopGains(0, 0, 0).forgetting)
+    loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
     vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
     request = RunRequest(obs, seeing, wind, L0, duration, loop_gains, band, seed, not no_noise, vib, oversampling,
                          None if no_resonance else StructuralResonance(), allow_unstable)

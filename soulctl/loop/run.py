@@ -20,7 +20,7 @@ from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
 from ..optics.pwfs import PyramidConfig
 from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
-from .simulation import ClosedLoop, LoopDiverged, LoopGains, Telemetry
+from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry
 
 VIBRATION_HZ = 13.0
 MAX_DURATION_S = 600.0
@@ -82,7 +82,7 @@ def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structur
         f = Filter.iir(observation.tt_zeros, observation.tt_poles, gain) if observation.tt_control == "iir" else Filter.integrator(gain)
         plant = Plant.with_structure(d, structure, rate) if structure is not None else Plant(d)
     else:
-        f = Filter.leaky(LoopGains(0, 0, 0).forgetting, gain)
+        f = Filter.leaky(DEFAULT_FORGETTING, gain)
         plant = Plant(d)
     return Loop(f, plant, rate)
 

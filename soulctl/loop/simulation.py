@@ -54,6 +54,7 @@ class LoopDiverged(RuntimeError):
 
 
 MID_GROUP_END = 120
+DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
 # Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
 STAGES = ("atmosphere", "mirror", "wfs_optics", "detector", "slopes", "rtc", "telemetry")  # the paper's gain groups: modes 1-2, 3-120, 121-last
 
@@ -63,7 +64,7 @@ class LoopGains:
     tip_tilt: float
     mid: float
     high: float
-    forgetting: float = 0.99  # of the leaky integrators of modes 3..last (proposal)
+    forgetting: float = DEFAULT_FORGETTING
     modes: tuple[float, ...] | None = None  # one gain per mode (a gain file): overrides the groups
 
     def __post_init__(self):
@@ -77,7 +78,7 @@ class LoopGains:
             raise InputError("per-mode gains must be numbers in 0..10")
 
     @classmethod
-    def from_modes(cls, gains, forgetting: float = 0.99) -> "LoopGains":
+    def from_modes(cls, gains, forgetting: float = DEFAULT_FORGETTING) -> "LoopGains":
         g = tuple(float(x) for x in gains)
         if len(g) < 2:
             raise InputError(f"a per-mode gain list needs at least the 2 Tip/Tilt gains, got {len(g)}")
@@ -172,10 +173,12 @@ class ClosedLoop:
         self.rtc = self.rtc_matrices.controller(n_threads=1)
         d = observation.delay_frames if delay_frames is None else delay_frames
         self.delay = DelayLine(basis.M.shape[0], d)
+        # A tilt of 1 mas is a unit-RMS ramp of RMS(x) * 1 mas (in rad) * 1e9 nm.
         tip, tilt = pupil.tilt()
         x, _ = pupil.coordinates()
-        self._tilt_opd_per_mas = np.stack([tip, tilt]) * (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
-        self.mas_per_nm_tt = 1.0 / (np.sqrt(np.mean((x - x.mean()) ** 2)) * 1e9 / MAS_PER_RAD)
+        nm_per_mas = float(np.sqrt(np.mean((x - x.mean()) ** 2))) * 1e9 / MAS_PER_RAD
+        self._tilt_opd_per_mas = np.stack([tip, tilt]) * nm_per_mas
+        self.mas_per_nm_tt = 1.0 / nm_per_mas
         # The structure's Tip/Tilt, excited by the mirror's own Tip/Tilt (control.structure).
         self.structure = structure
         if structure is not None:
