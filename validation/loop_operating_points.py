@@ -23,10 +23,9 @@ from rich.table import Table
 
 from soulctl.files import atomic_write_text
 from soulctl.loop.run import RunRequest, default_gains, run
-from soulctl.loop.simulation import LoopGains
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
-from soulctl.cli.optics import default_cache_dir
+from soulctl.cli.common import default_cache_dir
 
 CASES = [
     # label, magnitude, rate, binning, modes, tt_control, tt_gain (None: default), seeing, band, paper

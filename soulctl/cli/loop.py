@@ -13,7 +13,6 @@ import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
 
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSpectrum
@@ -26,7 +25,7 @@ from ..loop.telemetry_file import write_telemetry
 from ..observation import Observation, observation_for_magnitude
 from ..plots.loop import write_loop_figures
 from .configure import parse_magnitude
-from .optics import _CACHE_DIR, _NO_CACHE, _cache, _observation
+from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -35,7 +34,7 @@ DEFAULT_MAGNITUDE = "9.7"  # the paper's bright-star on-sky tests
 
 def observation_from(config: Path | None, mag: str | None, tt_control: str | None) -> Observation:
     """--config or --mag (the default star without either), with --tt-control applied."""
-    obs = _observation(config, mag) or observation_for_magnitude(parse_magnitude(DEFAULT_MAGNITUDE))
+    obs = observation_option(config, mag) or observation_for_magnitude(parse_magnitude(DEFAULT_MAGNITUDE))
     if tt_control is None or tt_control == obs.tt_control:
         return obs
     if tt_control == "int":
@@ -104,10 +103,8 @@ def _result_dict(result) -> dict:
 def _render(result, console: Console) -> None:
     r, m = result.request, result.metrics
     obs = r.observation
-    t = Table(title=f"Closed loop: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
-              f"{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\", {r.duration_s:g} s", title_justify="left")
-    t.add_column("quantity")
-    t.add_column("value", justify="right")
+    t = quantity_table(f"Closed loop: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
+                       f"{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\", {r.duration_s:g} s")
     g = result.gains
     t.add_row("Tip/Tilt control", f"{'IIR' if obs.tt_control == 'iir' else 'integrator'}, gain {g.tip_tilt:.3g}")
     t.add_row("gains modes 3-120 / 121-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
@@ -123,7 +120,7 @@ def _render(result, console: Console) -> None:
 
 @app.command("run")
 def run_cmd(
-    config: Path | None = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out')."),
+    config: Path | None = CONFIG,
     mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {DEFAULT_MAGNITUDE}, the paper's bright star)."),
     seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight (0.05..10)."),
     wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective wind speed of the LBT profile."),
@@ -141,8 +138,8 @@ def run_cmd(
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
-    no_cache: bool = _NO_CACHE,
-    cache_dir: Path | None = _CACHE_DIR,
+    no_cache: bool = NO_CACHE,
+    cache_dir: Path | None = CACHE_DIR,
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> int:
     """Close a simulated SOUL loop: LBT turbulence and vibrations, the adaptive secondary with
@@ -168,7 +165,7 @@ def run_cmd(
     vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
     request = RunRequest(obs, seeing, wind, L0, duration, loop_gains, band, seed, not no_noise, vib, oversampling,
                          None if no_resonance else StructuralResonance(), allow_unstable)
-    cache = _cache(no_cache, cache_dir)
+    cache = array_cache(no_cache, cache_dir)
     show = not json_output and sys.stderr.isatty()
     progress = Progress(TextColumn("closed loop"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
                         TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -17,13 +16,13 @@ from .. import tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
 from ..files import check_output_path
-from ..observation import BINNINGS, Observation, observation_for_magnitude
+from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..optics.pwfs import PyramidConfig
-from .configure import parse_magnitude
+from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
 
@@ -33,32 +32,12 @@ def table_modes(binning: int) -> int:
     return next(band.modes for band in tables.magnitude_table() if band.binning == binning)
 
 
-def default_cache_dir() -> Path:
-    """$XDG_CACHE_HOME/soulctl, else ~/.cache/soulctl."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "soulctl"
-
-
-def _cache(no_cache: bool, cache_dir: Path | None) -> ArrayCache:
-    return ArrayCache(None if no_cache else (cache_dir or default_cache_dir()))
-
-
-def _observation(config: Path | None, mag: str | None) -> Observation | None:
-    if config is not None and mag is not None:
-        raise InputError("give either --config or --mag, not both")
-    if config is not None:
-        return Observation.read_toml(config)
-    if mag is not None:
-        return observation_for_magnitude(parse_magnitude(mag))
-    return None
-
-
 def sensing_setup(
     config: Path | None, mag: str | None, binning: int | None, modes: int | None, modulation: float | None, oversampling: int
 ) -> CalibrationSetup:
     """The calibration set-up from --config/--mag (the look-up table), overridden by explicit
     --binning/--modes/--modulation; without either, binning 1 and the table's modes for it."""
-    obs = _observation(config, mag)
+    obs = observation_option(config, mag)
     b = binning if binning is not None else (obs.binning if obs else 1)
     if b not in BINNINGS:
         raise InputError(f"--binning must be one of 1, 2, 3, 4, got {b}")
@@ -71,14 +50,11 @@ def sensing_setup(
     return CalibrationSetup(PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling), n, BasisSetup())
 
 
-_CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
 _MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
 _BINNING = typer.Option(None, "--binning", help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
 _MODES = typer.Option(None, "--modes", help="Controlled modes (default: the look-up table's for the binning).")
 _MODULATION = typer.Option(None, "--modulation", metavar="LAMBDA/D", help="Modulation radius in lambda/D (default 3).")
 _OVERSAMPLING = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4).")
-_NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (the cache is otherwise reused).")
-_CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder (default $XDG_CACHE_HOME/soulctl or ~/.cache/soulctl).")
 _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
 
@@ -121,9 +97,7 @@ def atmosphere(
     if json_output:
         print(json.dumps(result))
         return
-    t = Table(title=f"Turbulence: seeing {seeing:g}\" at 500 nm, L0 {L0:g} m, LBT profile", title_justify="left")
-    t.add_column("quantity")
-    t.add_column("value", justify="right")
+    t = quantity_table(f"Turbulence: seeing {seeing:g}\" at 500 nm, L0 {L0:g} m, LBT profile")
     t.add_row("r0 at 500 / 750 / 1650 nm", f"{r0 * 100:.1f} / {result['r0_750nm_m'] * 100:.1f} / {result['r0_1650nm_m'] * 100:.1f} cm")
     t.add_row("effective wind", f"{result['effective_wind_m_s']:.1f} m/s")
     t.add_row("tau0 at 500 nm", f"{result['tau0_500nm_ms']:.2f} ms")
@@ -158,14 +132,14 @@ def _calibration_dict(cal, cache: ArrayCache) -> dict:
 
 @app.command("calibrate")
 def calibrate_cmd(
-    config: Path | None = _CONFIG,
+    config: Path | None = CONFIG,
     mag: str | None = _MAG,
     binning: int | None = _BINNING,
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
-    no_cache: bool = _NO_CACHE,
-    cache_dir: Path | None = _CACHE_DIR,
+    no_cache: bool = NO_CACHE,
+    cache_dir: Path | None = CACHE_DIR,
     json_output: bool = _JSON,
 ) -> None:
     """Calibrate the PWFS on the ASM's modes: push-pull interaction matrix around the
@@ -175,16 +149,14 @@ def calibrate_cmd(
     Example: soulctl optics calibrate --mag 13
     """
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
-    cache = _cache(no_cache, cache_dir)
+    cache = array_cache(no_cache, cache_dir)
     with nullcontext() if json_output else Console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
         cal = calibrate(setup, cache)
     d = _calibration_dict(cal, cache)
     if json_output:
         print(json.dumps(d))
         return
-    t = Table(title="PWFS calibration", title_justify="left")
-    t.add_column("quantity")
-    t.add_column("value", justify="right")
+    t = quantity_table("PWFS calibration")
     t.add_row("binning / sub-apertures across", f"{d['binning']} / {d['subapertures_across']}")
     t.add_row("valid sub-apertures / slopes", f"{d['valid_subapertures']} / {d['slopes']}")
     t.add_row("controlled modes", f"{d['modes']}")
@@ -202,7 +174,7 @@ def gains_cmd(
     seeing: float = typer.Option(0.8, "--seeing", metavar="ARCSEC", help="Seeing of the correction level (the paper's table: 0.8)."),
     L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
     controlled_fraction: float = typer.Option(0.1, "--controlled-fraction", help="Amplitude of the controlled modes left in the residual (0..1)."),
-    config: Path | None = _CONFIG,
+    config: Path | None = CONFIG,
     mag: str | None = _MAG,
     binning: int | None = _BINNING,
     modes: int | None = _MODES,
@@ -211,8 +183,8 @@ def gains_cmd(
     screens: int = typer.Option(4, "--screens", help="Residual phase realisations to average (1..1000)."),
     seed: int = typer.Option(1, "--seed", help="Seed of the residual phase screens."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
-    no_cache: bool = _NO_CACHE,
-    cache_dir: Path | None = _CACHE_DIR,
+    no_cache: bool = NO_CACHE,
+    cache_dir: Path | None = CACHE_DIR,
     json_output: bool = _JSON,
 ) -> None:
     """Modal optical gains of the PWFS at a correction level: each mode's sensitivity around
@@ -225,7 +197,7 @@ def gains_cmd(
     if out is not None:
         check_output_path(out, "--out")
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
-    cache = _cache(no_cache, cache_dir)
+    cache = array_cache(no_cache, cache_dir)
     with nullcontext() if json_output else Console(stderr=True).status(
         f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
     ):

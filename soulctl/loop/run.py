@@ -102,7 +102,7 @@ def check_stability(observation: Observation, gains: LoopGains, structure: Struc
     """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
     plant (chi = 1, the structural resonance on Tip/Tilt)."""
     if gains.modes is not None:
-        groups = [("Tip/Tilt", g, True) for g in set(gains.modes[:2])] + [(f"mode gain", g, False) for g in set(gains.modes[2:])]
+        groups = [("Tip/Tilt", g, True) for g in set(gains.modes[:2])] + [("mode gain", g, False) for g in set(gains.modes[2:])]
     else:
         groups = [("Tip/Tilt", gains.tip_tilt, True), ("modes 3-120", gains.mid, False), ("modes 121-last", gains.high, False)]
     for name, g, tt in groups:
@@ -222,7 +222,4 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     return RunResult(request, gains, cal, loop.telemetry, metrics, image, diverged_at, diverged_rms, seconds, t_cal,
                      loop.mas_per_nm_tt, spectra)
 
-
-def per_mode_gains(result: RunResult) -> np.ndarray:
-    return result.gains.per_mode(result.calibration.basis.n_modes)
 
