@@ -158,7 +158,7 @@ def main() -> None:
         else:
             t.add_row(r["case"], "40", "80/192", f"{r['propagation']['median_ms']:.2f} ({r['propagation']['p99_ms']:.2f})", "", "", "", "",
                       f"{r['ratio_to_library']:.2f}×")
-    Console().print(t)
+    Console(width=160).print(t)
     result = {"benchmark": "pwfs", "soulctl": __version__, "machine": platform.machine(), "cpus": os.cpu_count(),
               "numpy": np.__version__, "scipy": scipy.__version__, "frames": args.frames, "rounds": args.rounds, "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)

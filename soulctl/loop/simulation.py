@@ -167,6 +167,14 @@ class ClosedLoop:
         self._influence_t = self.influence.T.tocsr()
         self._M_t = np.ascontiguousarray(basis.M.T)
         self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
+        # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the
+        # projection is linear, so P d = P r + (P F) c + (P shapes_tt) y + piston P 1, with
+        # small dense matrices instead of a second projection of all pupil pixels per frame.
+        n_valid = pupil.n_valid
+        self._project_mirror = self._M_t @ (self._influence_t @ self.influence).toarray() / n_valid
+        self._project_tt = self._M_t @ (self._influence_t @ self.shapes_tt) / n_valid
+        self._project_piston = self.project(np.ones(n_valid))
+        self._reconstructor32 = calibration.reconstructor.astype(np.float32)  # R s of float32 slopes
         self.n_modes = basis.n_modes
         self.filters = mode_filters(observation, gains, self.n_modes)
         self.rtc_matrices = build_rtc(self.filters, calibration.reconstructor, basis.M)
@@ -219,16 +227,17 @@ class ClosedLoop:
         t1 = clock()
         applied = self.delay.applied()
         mirror = self.influence @ applied
+        y = np.zeros(2)  # the structure's Tip/Tilt (nm)
         if self.structure is not None:
             b, a = self._structure_ba
             u = self.calibration.basis.M_inv[:2] @ applied  # the mirror's Tip/Tilt (nm)
-            y = np.empty(2)
             for axis in range(2):
                 out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
                 y[axis] = out[0]
             mirror = mirror + self.shapes_tt @ y
         residual = disturbance - mirror
-        residual -= residual.mean()
+        piston = residual.mean()
+        residual -= piston
         opd = np.zeros((self.pupil.n_pixels,) * 2, dtype=np.float32)
         opd[self.pupil.mask] = residual
         t2 = clock()
@@ -245,11 +254,12 @@ class ClosedLoop:
         self.delay.push(commands)
         t6 = clock()
         tm = self.telemetry
-        tm.residual_modes.append(self.project(residual))
-        tm.disturbance_modes.append(self.project(disturbance))
+        residual_modes = self.project(residual)
+        tm.residual_modes.append(residual_modes)
+        tm.disturbance_modes.append(residual_modes + self._project_mirror @ applied + self._project_tt @ y + piston * self._project_piston)
         tm.slopes.append(slopes)
         tm.commands.append(commands.copy())
-        tm.measured_modes.append(self.calibration.reconstructor @ slopes)
+        tm.measured_modes.append(self._reconstructor32 @ slopes)
         tm.command_modes.append(self.calibration.basis.M_inv @ commands)
         tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
         rms = float(np.sqrt(np.mean(residual**2)))

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..files import atomic_write
 
-MODEL_VERSION = 1
+MODEL_VERSION = 2  # 2: the pyramid sums its modulation points per thread (float32 rounding changed)
 
 
 def cache_key(kind: str, params: dict) -> str:

@@ -62,6 +62,18 @@ def test_turbulence_is_corrected(small_calibration):
     assert tm["residual_rms_nm"][100:].mean() < 0.6 * open_loop_rms
 
 
+def test_disturbance_modes_are_the_projection_of_the_disturbance(small_calibration):
+    """The telemetry's disturbance modes come from the residual's by linearity (mirror,
+    structure and piston terms): they equal the direct projection of the disturbance OPD."""
+    obs = observation_for_magnitude(9.7)
+    loop = ClosedLoop(obs, small_calibration, AtmosphereConfig.lbt_default(1.0), LoopGains(0.5, 0.4, 0.4),
+                      vibrations=VibrationSpectrum.lbt_default(), noise=True, seed=3)
+    tm = loop.run(60).arrays()
+    direct = np.array([loop.project(loop.disturbance_opd(k, 60)) for k in range(60)])
+    assert np.abs(direct[-1]).max() > 10  # a real disturbance, with the structure excited
+    np.testing.assert_allclose(tm["disturbance_modes"], direct, atol=1e-6 * np.abs(direct).max())
+
+
 def test_same_seed_same_loop(small_calibration):
     obs = observation_for_magnitude(12.0)
     runs = []

@@ -126,3 +126,21 @@ def test_wrong_opd_shape_is_an_input_error():
     p = Pyramid(PyramidConfig(binning=4, oversampling=1))
     with pytest.raises(InputError, match="40x40"):
         p.intensity(np.zeros((41, 41)))
+
+
+def test_threads_share_the_modulation_points_without_changing_the_frame():
+    """The modulation points shared between threads, in chunks, give the one-thread frame, and
+    the same frame every time; the binning equals the plain sum over detector pixels."""
+    config = PyramidConfig(binning=2, oversampling=1)
+    n = config.pupil.n_pixels
+    opd = np.random.default_rng(4).standard_normal((2, n, n)).astype(np.float32) * 150
+    one, two = Pyramid(config, workers=1), Pyramid(config, workers=2)
+    frames = two.intensity(opd)
+    np.testing.assert_allclose(frames, one.intensity(opd), rtol=1e-5, atol=1e-5 * frames.max())
+    assert np.array_equal(frames, two.intensity(opd))
+    # the unbinned intensity binned by hand
+    unbinned = Pyramid(PyramidConfig(binning=1, oversampling=1), workers=2).intensity(opd[0])
+    plain = unbinned.reshape(config.frame_shape[0], 2, config.frame_shape[1], 2).sum(axis=(1, 3))
+    np.testing.assert_allclose(frames[0], plain, rtol=1e-4, atol=1e-6 * plain.max())
+    with pytest.raises(InputError):
+        Pyramid(config, workers=0)
