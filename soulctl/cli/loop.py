@@ -23,6 +23,7 @@ from ..loop.run import RunRequest, run
 from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..loop.telemetry_file import write_telemetry
 from ..observation import Observation, observation_for_magnitude
+from ..optics.atmosphere import SEEING_RANGE_ARCSEC
 from ..plots.loop import write_loop_figures
 from .configure import parse_magnitude
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
@@ -150,7 +151,9 @@ def run_cmd(
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
-    _check_number("--seeing", seeing, 0.0, 10.0, "arcsec")
+    lo, hi = SEEING_RANGE_ARCSEC
+    if not (math.isfinite(seeing) and lo <= seeing <= hi):
+        raise InputError(f"--seeing must be in {lo:g}..{hi:g} arcsec, got {seeing:g}")
     _check_number("--wind", wind, 0.0, 100.0, "m/s")
     _check_number("--L0", L0, 0.0, 1e4, "m")
     _check_number("--duration", duration, 0.0, 600.0, "s")

@@ -34,6 +34,8 @@ from scipy import integrate, special
 from ..disturbance.turbulence import r0_from_seeing
 from ..errors import InputError
 
+SEEING_RANGE_ARCSEC = (0.05, 10.0)  # accepted seeing at 500 nm (arcsec)
+
 LAMBDA_REF_M = 500e-9
 PSD_COEFFICIENT = 0.0229  # Γ(11/6)^2 / (2 π^(11/3)) (24/5 Γ(6/5))^(5/6) = 0.022896, rounded
 _KOLMOGOROV_D = 2.0 * (24.0 / 5.0 * special.gamma(6.0 / 5.0)) ** (5.0 / 6.0)  # 6.8839
@@ -335,8 +337,9 @@ class AtmosphereConfig:
     layers: tuple[Layer, ...] = (Layer(),)
 
     def __post_init__(self):
-        if not (0.05 <= self.seeing_arcsec <= 10.0):
-            raise InputError(f"seeing must be in 0.05..10 arcsec, got {self.seeing_arcsec:g}")
+        lo, hi = SEEING_RANGE_ARCSEC
+        if not (lo <= self.seeing_arcsec <= hi):
+            raise InputError(f"seeing must be in {lo:g}..{hi:g} arcsec, got {self.seeing_arcsec:g}")
         if not (self.L0_m > 0):  # inf allowed: Kolmogorov
             raise InputError(f"outer scale L0 must be > 0 m (inf for Kolmogorov), got {self.L0_m:g}")
         layers = tuple(self.layers)
