@@ -1,0 +1,302 @@
+"""The Modal Gain Machine: per-mode optimal integrator gains from closed-loop telemetry.
+
+For each controlled mode i, from the pseudo-open-loop (POL) modal time series recorded at fixed
+gains (its reconstruction is not done here), MGM estimates the POL power spectral density
+Phi_i(f) (Welch) and picks the gain that minimises (paper, Eq. cost)
+
+    J_i(g) = sum_f |W_i(f, g)|^2 Phi_i(f),   W = 1 / (1 + g L1_i(f)),
+
+with the unit-gain open loop (paper, Eq. plant)
+
+    L1_i(f) = chi_i H_unit,i(e^{jw}) z^-d,   w = 2 pi f / rate,
+
+chi_i the mode's optical gain times the slope sensitivity, H_unit,i its control filter at unit
+gain and z^-d the loop delay, fractional delays as linear interpolation between frames
+(``transfer.Plant``).  With a strictly causal loop (d >= 1) and white measurement noise,
+sum |W|^2 Phi_pol is the variance of the measured residual, which is the variance of the true
+residual plus a constant (the noise variance): its minimum is the true residual's.  The search
+is over [0, (1 - margin) g_max,i], g_max,i the largest stable gain.  The RTC gain then moves
+towards the optimum (paper, Eq. gainUpdate):
+
+    g_RTC(kappa) = (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa).
+
+Choices where the paper is silent:
+
+* The filters' own gains are ignored: only their zeros and poles are used (the gain is what MGM
+  chooses).  Each distinct (zeros, poles) filter is evaluated once.
+* A loop stable for all gains (no finite g_max) gets the upper limit ``UNBOUNDED_LOOP_GAIN /
+  chi_i`` (a loop gain g chi of 10), without margin.  A loop unstable at every gain gets 0.
+* A mode whose PSD is identically zero (no signal) gets the gain 0: J is flat, and 0 is the
+  first grid point; the refinement only replaces a grid optimum by a strictly better gain.
+* The minimisation: J on a grid of ``grid`` gains uniform over [0, upper_i], then a golden-section
+  search, all modes at once, over the two grid cells around the best grid point, with as many
+  iterations as bring that bracket below ``REL_TOL * upper_i`` (13 for the default grid).
+* J is summed over the Welch frequencies without the DC bin and without the factor df (it does
+  not move the minimum).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import welch
+
+from ..errors import InputError
+from .filters import Filter
+from .transfer import Loop, Plant, max_stable_gain
+
+UNBOUNDED_LOOP_GAIN = 10.0  # g chi of a loop with no finite maximum stable gain
+REL_TOL = 1e-4  # tolerance of the refined gain, relative to the upper limit
+MIN_SEGMENTS = 4  # Welch segments a window must hold (50 % overlap)
+_CHUNK_ELEMENTS = 131_072  # float64 elements per (modes, gains, frequencies) temporary: 1 MB, cache-sized
+_INVPHI = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618..., the golden-section ratio
+
+
+@dataclass(frozen=True)
+class MgmSettings:
+    """nu, rho of Eq. gainUpdate; the stability margin; the Welch segment and the coarse grid."""
+
+    nu: float = 0.9
+    rho: float = 0.5
+    margin: float = 0.1
+    segment: int = 512  # Welch segment, frames
+    grid: int = 48  # coarse gain grid points
+
+    def __post_init__(self):
+        if not (0.0 < self.nu <= 1.0):
+            raise InputError(f"MGM nu must be in (0, 1], got {self.nu!r}")
+        if not (0.0 < self.rho <= 1.0):
+            raise InputError(f"MGM rho must be in (0, 1], got {self.rho!r}")
+        if not (0.0 <= self.margin < 1.0):
+            raise InputError(f"MGM gain margin must be in [0, 1), got {self.margin!r}")
+        s = self.segment
+        if not (isinstance(s, (int, np.integer)) and not isinstance(s, bool) and 32 <= s <= 65536 and s & (s - 1) == 0):
+            raise InputError(f"MGM PSD segment must be a power of two in 32..65536 frames, got {s!r}")
+        g = self.grid
+        if not (isinstance(g, (int, np.integer)) and not isinstance(g, bool) and g >= 8):
+            raise InputError(f"MGM gain grid must be an integer >= 8 points, got {g!r}")
+
+
+def min_frames(settings: MgmSettings) -> int:
+    """Shortest telemetry window accepted: 4 Welch segments with 50 % overlap."""
+    return settings.segment * (MIN_SEGMENTS + 1) // 2
+
+
+def psd_frequencies(rate_hz: float, settings: MgmSettings) -> np.ndarray:
+    """The frequencies (Hz) of ``pol_psd``: the Welch bins without DC, up to Nyquist."""
+    _check_rate(rate_hz)
+    return np.fft.rfftfreq(settings.segment, 1.0 / rate_hz)[1:]
+
+
+def pol_psd(pol, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(f, Phi_pol) of the POL modal series pol (frames, n_modes): Welch, Hann window, 50 %
+    overlap, constant detrend, one-sided density; f without DC (F,), Phi (n_modes, F)."""
+    _check_rate(rate_hz)
+    pol = np.asarray(pol, dtype=float)
+    if pol.ndim != 2 or pol.shape[1] < 1:
+        raise InputError(f"POL telemetry must be a 2-D array (frames, modes), got shape {pol.shape}")
+    n, need, s = pol.shape[0], min_frames(settings), settings.segment
+    if n < need:
+        raise InputError(f"telemetry window of {n} frames ({n / rate_hz:.3g} s) is shorter than {need} frames "
+                         f"({need / rate_hz:.3g} s): at least {MIN_SEGMENTS} PSD segments of {s} frames with 50 % overlap")
+    if not np.isfinite(pol).all():
+        bad = np.nonzero(~np.isfinite(pol).all(axis=0))[0]
+        raise InputError(f"POL telemetry must be finite: NaN or inf in {bad.size} mode(s), first mode {int(bad[0])}")
+    f, psd = welch(pol, fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant",
+                   return_onesided=True, scaling="density", axis=0)
+    return f[1:], np.ascontiguousarray(psd[1:].T)
+
+
+def _check_rate(rate_hz: float) -> None:
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise InputError(f"frame rate must be a finite number > 0 Hz, got {rate_hz!r}")
+
+
+def _check_modes(filters, chi) -> np.ndarray:
+    chi = np.asarray(chi, dtype=float)
+    if chi.ndim != 1 or chi.size != len(filters) or chi.size < 1:
+        raise InputError(f"chi must be a 1-D array with one value per filter ({len(filters)}), got shape {chi.shape}")
+    if not (np.isfinite(chi).all() and (chi > 0).all()):
+        raise InputError("chi (optical gain x slope sensitivity) must be finite and > 0 for every mode")
+    for i, h in enumerate(filters):
+        if not isinstance(h, Filter):
+            raise InputError(f"filters must be soulctl Filter objects, got {type(h).__name__} for mode {i}")
+    return chi
+
+
+def _distinct(filters, structure) -> tuple[list[tuple], np.ndarray]:
+    """The distinct (zeros, poles, structured) loops and each mode's index into them; the
+    structural resonance applies to modes 0 and 1 (Tip/Tilt) only."""
+    keys: dict[tuple, int] = {}
+    idx = np.empty(len(filters), dtype=np.intp)
+    for i, h in enumerate(filters):
+        key = (tuple(h.zeros), tuple(h.poles), structure is not None and i < 2)
+        idx[i] = keys.setdefault(key, len(keys))
+    return list(keys), idx
+
+
+def _plant(delay_frames: float, structure, structured: bool) -> Plant:
+    s = None if not structured else tuple(tuple(float(c) for c in x) for x in structure)
+    return Plant(delay_frames, 1.0, s)
+
+
+def unit_open_loops(filters, chi, delay_frames: float, rate_hz: float, f, structure=None) -> np.ndarray:
+    """L1_i(f) = chi_i H_unit,i z^-d (paper, Eq. plant), (n_modes, F) complex; ``structure``, a
+    (b, a) resonance at this rate (``transfer.Plant``), multiplies the Tip/Tilt plants (modes 0, 1)."""
+    chi = _check_modes(filters, chi)
+    _check_rate(rate_hz)
+    w = 2.0 * np.pi * np.asarray(f, dtype=float) / rate_hz
+    keys, idx = _distinct(filters, structure)
+    plants = {s: _plant(delay_frames, structure, s).frequency_response(w) for s in {k[2] for k in keys}}
+    table = np.stack([Filter(z, p, 1.0).frequency_response(w) * plants[s] for z, p, s in keys])
+    return chi[:, None] * table[idx]
+
+
+def gain_limits(filters, chi, delay_frames: float, rate_hz: float, margin: float, structure=None) -> np.ndarray:
+    """Upper gain limit per mode, (1 - margin) g_max,i with g_max,i the maximum stable gain of
+    Loop(H_unit,i, Plant(d, chi_i)): computed once per distinct loop at chi = 1 and divided by
+    chi_i; a loop stable at all gains gets UNBOUNDED_LOOP_GAIN / chi_i."""
+    chi = _check_modes(filters, chi)
+    if not (0.0 <= margin < 1.0):
+        raise InputError(f"MGM gain margin must be in [0, 1), got {margin!r}")
+    keys, idx = _distinct(filters, structure)
+    unit = np.array([max_stable_gain(Loop(Filter(z, p, 1.0), _plant(delay_frames, structure, s), rate_hz))
+                     for z, p, s in keys])
+    limit = np.where(np.isfinite(unit), (1.0 - margin) * unit, UNBOUNDED_LOOP_GAIN)
+    return limit[idx] / chi
+
+
+def _parts(psd, L1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    psd = np.asarray(psd, dtype=float)
+    L1 = np.asarray(L1)
+    if psd.ndim != 2 or L1.shape != psd.shape:
+        raise InputError(f"psd and L1 must both be (n_modes, F) arrays, got shapes {psd.shape} and {L1.shape}")
+    return psd, 2.0 * L1.real, L1.real**2 + L1.imag**2
+
+
+def _cost(psd, a, b, gains) -> np.ndarray:
+    """J with |1 + g L|^2 = 1 + g (a + g b), a = 2 Re L, b = |L|^2, real arithmetic."""
+    if gains.ndim == 1:
+        g = gains[:, None]
+        return np.einsum("mf,mf->m", psd, 1.0 / (1.0 + g * (a + g * b)))
+    n, G = gains.shape
+    out = np.empty((n, G))
+    step = max(1, _CHUNK_ELEMENTS // max(1, G * psd.shape[1]))
+    for lo in range(0, n, step):
+        s = slice(lo, lo + step)
+        g = gains[s, :, None]
+        den = b[s, None, :] * g
+        den += a[s, None, :]
+        den *= g
+        den += 1.0
+        np.divide(psd[s, None, :], den, out=den)
+        out[s] = den.sum(axis=-1)
+    return out
+
+
+def cost(psd, L1, gains) -> np.ndarray:
+    """J_i(g) = sum_f Phi_i(f) / |1 + g L1_i(f)|^2 (paper, Eq. cost); gains (n_modes,) gives
+    (n_modes,), gains (n_modes, G) gives (n_modes, G)."""
+    psd, a, b = _parts(psd, L1)
+    gains = np.asarray(gains, dtype=float)
+    if gains.ndim not in (1, 2) or gains.shape[0] != psd.shape[0]:
+        raise InputError(f"gains must be (n_modes,) or (n_modes, G) with n_modes = {psd.shape[0]}, got shape {gains.shape}")
+    return _cost(psd, a, b, gains)
+
+
+def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid) -> np.ndarray:
+    """g_hat_i = argmin J_i over [0, upper_i] (paper, Eq. cost): a grid of ``grid`` gains, then a
+    golden-section search over the grid cells around the best point, all modes at once, to
+    REL_TOL * upper_i.  A mode with J flat (psd = 0) gets 0."""
+    psd, a, b = _parts(psd, L1)
+    upper = np.asarray(upper, dtype=float)
+    if upper.shape != (psd.shape[0],) or not (np.isfinite(upper).all() and (upper >= 0).all()):
+        raise InputError(f"upper gain limits must be finite, >= 0 and one per mode ({psd.shape[0]}), got shape {upper.shape}")
+    if grid < 8:
+        raise InputError(f"MGM gain grid must be an integer >= 8 points, got {grid!r}")
+    rows = np.arange(psd.shape[0])
+    steps = np.linspace(0.0, 1.0, grid)
+    J = _cost(psd, a, b, upper[:, None] * steps[None, :])
+    best = np.argmin(J, axis=1)
+    g_grid, J_grid = upper * steps[best], J[rows, best]
+
+    # Golden-section over [g_{best-1}, g_{best+1}] (clipped to the range), vectorised.
+    lo = upper * steps[np.maximum(best - 1, 0)]
+    hi = upper * steps[np.minimum(best + 1, grid - 1)]
+    width = 2.0 / (grid - 1)
+    iterations = max(1, math.ceil(math.log(REL_TOL / width) / math.log(_INVPHI)))
+    c = hi - _INVPHI * (hi - lo)
+    d = lo + _INVPHI * (hi - lo)
+    Jc, Jd = _cost(psd, a, b, c), _cost(psd, a, b, d)
+    for _ in range(iterations):
+        left = Jc < Jd  # the minimum is in [lo, d]: d <- c, new c; else in [c, hi]: c <- d, new d
+        hi = np.where(left, d, hi)
+        lo = np.where(left, lo, c)
+        x = np.where(left, hi - _INVPHI * (hi - lo), lo + _INVPHI * (hi - lo))
+        Jx = _cost(psd, a, b, x)
+        c, d = np.where(left, x, d), np.where(left, c, x)
+        Jc, Jd = np.where(left, Jx, Jd), np.where(left, Jc, Jx)
+    left = Jc < Jd
+    g_ref, J_ref = np.where(left, c, d), np.where(left, Jc, Jd)
+    better = J_ref < J_grid  # ties (a flat J) keep the grid point
+    return np.clip(np.where(better, g_ref, g_grid), 0.0, upper)
+
+
+def update_gains(previous, optimum, settings: MgmSettings) -> np.ndarray:
+    """g_RTC(kappa) = (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa) (paper, Eq. gainUpdate)."""
+    previous = np.asarray(previous, dtype=float)
+    optimum = np.asarray(optimum, dtype=float)
+    if previous.shape != optimum.shape:
+        raise InputError(f"previous and optimal gains must have the same shape, got {previous.shape} and {optimum.shape}")
+    return (1.0 - settings.rho) * previous + settings.rho * settings.nu * optimum
+
+
+@dataclass(frozen=True, eq=False)
+class ModalGainMachine:
+    """MGM for one set of controlled modes: unit-gain filters (one per mode; their gains are
+    ignored), chi per mode, the loop delay (frames) and rate; ``structure`` an optional (b, a)
+    resonance of the Tip/Tilt plants.  The gain limits and the unit open loops on the Welch
+    frequencies are computed once, at construction."""
+
+    filters: tuple[Filter, ...]
+    chi: np.ndarray
+    delay_frames: float
+    rate_hz: float
+    settings: MgmSettings = field(default_factory=MgmSettings)
+    structure: tuple | None = None
+    upper: np.ndarray = field(init=False, repr=False)
+    frequencies: np.ndarray = field(init=False, repr=False)
+    open_loops: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self):
+        filters = tuple(self.filters)
+        chi = _check_modes(filters, self.chi)
+        chi.setflags(write=False)
+        f = psd_frequencies(self.rate_hz, self.settings)
+        upper = gain_limits(filters, chi, self.delay_frames, self.rate_hz, self.settings.margin, self.structure)
+        L1 = unit_open_loops(filters, chi, self.delay_frames, self.rate_hz, f, self.structure)
+        for name, value in (("filters", filters), ("chi", chi), ("upper", upper), ("frequencies", f), ("open_loops", L1)):
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def n_modes(self) -> int:
+        return len(self.filters)
+
+    def optimum(self, pol) -> tuple[np.ndarray, dict]:
+        """(g_hat, info) from the POL series pol (frames, n_modes); info holds f (Hz), psd
+        (n_modes, F) and upper (the gain limits)."""
+        pol = np.asarray(pol, dtype=float)
+        if pol.ndim != 2 or pol.shape[1] != self.n_modes:
+            raise InputError(f"POL telemetry must be (frames, {self.n_modes}) for {self.n_modes} modes, got shape {pol.shape}")
+        f, psd = pol_psd(pol, self.rate_hz, self.settings)
+        gains = optimal_gains(psd, self.open_loops, self.upper, self.settings.grid)
+        return gains, {"f": f, "psd": psd, "upper": self.upper}
+
+    def step(self, previous_gains, pol) -> np.ndarray:
+        """New RTC gains: Eq. gainUpdate from the previous gains and the optimum of pol."""
+        gains, _ = self.optimum(pol)
+        return update_gains(previous_gains, gains, self.settings)

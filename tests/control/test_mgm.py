@@ -1,0 +1,256 @@
+"""The Modal Gain Machine (paper, Eqs. cost, plant, gainUpdate) against a brute-force closed loop.
+
+The acceptance check simulates one mode frame by frame at many gains at once and compares the
+gain of least residual variance with MGM's optimum from pseudo-open-loop telemetry recorded at
+another gain.  Disturbance: an AR(2) low-pass (turbulence-like), x(k) = 1.89 x(k-1) - 0.891
+x(k-2) + w(k), poles 0.99 and 0.9, w unit white noise (std(x) ~ 66, frame-to-frame step ~ 2.2);
+measurement noise white, std 3 (in measurement units); chi = 0.8; 1000 Hz.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from soulctl.control import mgm
+from soulctl.control.filters import Filter
+from soulctl.control.mgm import (MgmSettings, ModalGainMachine, cost, gain_limits, min_frames, optimal_gains, pol_psd,
+                                 unit_open_loops, update_gains)
+from soulctl.control.structure import StructuralResonance
+from soulctl.control.transfer import Loop, Plant, max_stable_gain
+from soulctl.errors import InputError
+
+RATE = 1000.0
+CHI = 0.8
+AR_POLES = (0.99, 0.9)
+NOISE_STD = 3.0
+FRAMES = 20000
+SETTLE = 2000
+G0 = 0.3  # the fixed gain of the telemetry MGM reads
+
+
+def closed_loop(x, noise, chi, gains, delay, alpha):
+    """One mode's loop, frame by frame, for all gains at once (arrays of length G):
+    m(k) = chi (x(k) - y(k)) + n(k), c(k) = alpha c(k-1) + g m(k),
+    y(k) = (1 - e) c(k-n) + e c(k-n-1) for delay = n + e; returns m and y, (frames, G)."""
+    n = math.floor(delay)
+    e = delay - n
+    c = np.zeros((x.size + n + 1, gains.size))  # c[k + n + 1] holds c(k); c(k < 0) = 0
+    m = np.empty((x.size, gains.size))
+    y = np.empty((x.size, gains.size))
+    for k in range(x.size):
+        yk = (1.0 - e) * c[k + 1] + e * c[k]  # c(k - n), c(k - n - 1)
+        mk = chi * (x[k] - yk) + noise[k]
+        c[k + n + 1] = alpha * c[k + n] + gains * mk
+        m[k], y[k] = mk, yk
+    return m, y
+
+
+def disturbance(seed):
+    rng = np.random.default_rng(seed)
+    x = lfilter([1.0], np.poly(AR_POLES), rng.standard_normal(FRAMES + 5000))[5000:]  # stationary
+    return x, NOISE_STD * rng.standard_normal(FRAMES)
+
+
+@pytest.mark.parametrize("delay, alpha", [(2.0, 1.0), (1.5, 1.0), (2.0, 0.99), (1.5, 0.99)])
+def test_mgm_optimum_matches_brute_force_closed_loop(delay, alpha):
+    unit = Filter.integrator(1.0) if alpha == 1.0 else Filter.leaky(alpha, 1.0)
+    machine = ModalGainMachine([unit], np.array([CHI]), delay, RATE)
+    upper = machine.upper[0]
+    gains = np.linspace(0.02, 1.0, 50) * upper
+    x, noise = disturbance(seed=0)
+    m, y = closed_loop(x, noise, CHI, np.append(gains, G0), delay, alpha)
+
+    # Brute force: residual variance after the transient, parabola through the best points.
+    variance = np.var((x[:, None] - y[:, :-1])[SETTLE:], axis=0)
+    i = int(np.argmin(variance))
+    assert 3 <= i <= gains.size - 4, "the brute-force optimum must be inside the grid"
+    p = np.polyfit(gains[i - 3 : i + 4], variance[i - 3 : i + 4], 2)
+    g_bf = -p[1] / (2 * p[0])
+
+    # MGM from the telemetry at G0: pseudo-open loop = measurement / chi + mirror of that frame.
+    pol = m[:, -1] / CHI + y[:, -1]
+    g_hat, info = machine.optimum(pol[:, None])
+    rel = (g_hat[0] - g_bf) / g_bf
+    msg = (f"d = {delay:g}, alpha = {alpha:g}: MGM g_hat = {g_hat[0]:.4f}, brute force g = {g_bf:.4f}, "
+           f"relative difference {rel:+.4f} (upper {upper:.4f})")
+    print(msg)
+    assert abs(rel) < 0.05, msg
+    assert info["f"].shape == (machine.settings.segment // 2,) and info["f"][0] > 0
+
+
+def test_mgm_telemetry_tells_the_delay():
+    """The check above can fail: an MGM with a delay off by half a frame misses by > 5 %."""
+    x, noise = disturbance(seed=0)
+    pol = (x + noise / CHI)[:, None]  # the POL of any gain
+    right = ModalGainMachine([Filter.integrator(1.0)], [CHI], 2.0, RATE).optimum(pol)[0][0]
+    for wrong in (1.5, 2.5):
+        g = ModalGainMachine([Filter.integrator(1.0)], [CHI], wrong, RATE).optimum(pol)[0][0]
+        assert abs(g - right) / right > 0.05
+
+
+def test_cost_against_direct_complex_evaluation(monkeypatch):
+    rng = np.random.default_rng(1)
+    n, F, G = 7, 100, 9
+    psd = rng.random((n, F))
+    L1 = rng.standard_normal((n, F)) + 1j * rng.standard_normal((n, F))
+    gains = rng.random((n, G))
+    direct = np.array([[np.sum(psd[i] / np.abs(1 + gains[i, j] * L1[i]) ** 2) for j in range(G)] for i in range(n)])
+    # 1 + 2 g Re L + g^2 |L|^2 loses a few digits where 1 + g L is near 0 (random L goes there).
+    np.testing.assert_allclose(cost(psd, L1, gains), direct, rtol=1e-9)
+    np.testing.assert_allclose(cost(psd, L1, gains[:, 3]), direct[:, 3], rtol=1e-9)
+    monkeypatch.setattr(mgm, "_CHUNK_ELEMENTS", 2 * G * F)  # chunks of 2 modes
+    np.testing.assert_allclose(cost(psd, L1, gains), direct, rtol=1e-9)
+    with pytest.raises(InputError):
+        cost(psd, L1, gains[:3])
+
+
+def tt_iir():
+    # A 4-zero / 4-pole Tip/Tilt filter with integral action, as in the paper's table.
+    return Filter.iir((-0.31, 0.69, 0.698, 0.705), (0.042, 0.102, 0.954, 1.0), 1.0)
+
+
+def test_unit_open_loops_match_loop_open_loop():
+    filters = [tt_iir(), tt_iir(), Filter.leaky(0.99, 0.4), Filter.integrator(2.0), Filter.leaky(0.99, 1.0)]
+    chi = np.array([0.7, 0.9, 1.1, 0.5, 1.3])
+    f = np.linspace(1.0, 850.0, 300)
+    structure = tuple(tuple(c) for c in StructuralResonance().coefficients(1700.0))
+    for s in (None, structure):
+        L1 = unit_open_loops(filters, chi, 2.3, 1700.0, f, structure=s)
+        assert L1.shape == (5, f.size)
+        for i, h in enumerate(filters):
+            plant = Plant(2.3, chi[i], s if i < 2 else None)  # the resonance only on Tip/Tilt
+            np.testing.assert_allclose(L1[i], Loop(h.with_gain(1.0), plant, 1700.0).open_loop(f), rtol=1e-12)
+
+
+@pytest.mark.parametrize("unit", [Filter.integrator(1.0), Filter.leaky(0.99, 1.0)])
+@pytest.mark.parametrize("delay", [2.0, 1.5])
+def test_gain_limits_are_the_margin_times_max_stable_gain(unit, delay):
+    chi = np.array([0.5, 1.0, 2.0])
+    upper = gain_limits([unit] * 3, chi, delay, RATE, 0.1)
+    for i in range(3):
+        expected = 0.9 * max_stable_gain(Loop(unit, Plant(delay, chi[i]), RATE))
+        assert math.isfinite(expected)
+        assert upper[i] == pytest.approx(expected, rel=1e-9)
+    # The limit is a stability limit: unstable just above g_max, stable just below.
+    g_max = upper[1] / 0.9
+    assert Loop(unit.with_gain(0.999 * g_max), Plant(delay, 1.0), RATE).is_stable()
+    assert not Loop(unit.with_gain(1.001 * g_max), Plant(delay, 1.0), RATE).is_stable()
+
+
+def test_gain_limits_with_structure_and_unbounded_loop():
+    structure = tuple(tuple(c) for c in StructuralResonance().coefficients(1700.0))
+    unit = Filter.integrator(1.0)
+    upper = gain_limits([unit] * 3, [1.0, 1.0, 1.0], 2.0, 1700.0, 0.1, structure=structure)
+    assert upper[0] == upper[1] == pytest.approx(0.9 * max_stable_gain(Loop(unit, Plant(2.0, 1.0, structure), 1700.0)))
+    assert upper[2] == pytest.approx(0.9 * max_stable_gain(Loop(unit, Plant(2.0), 1700.0)))
+    assert upper[0] < upper[2]  # the resonance lowers the limit of Tip/Tilt only
+    # Without delay an integrator is stable at every gain: capped, finite.
+    assert max_stable_gain(Loop(unit, Plant(0.0), RATE)) == math.inf
+    np.testing.assert_allclose(gain_limits([unit] * 2, [0.5, 2.0], 0.0, RATE, 0.1),
+                               [mgm.UNBOUNDED_LOOP_GAIN / 0.5, mgm.UNBOUNDED_LOOP_GAIN / 2.0])
+
+
+def test_optimal_gains_inside_range_and_at_the_minimum():
+    rng = np.random.default_rng(2)
+    f = np.fft.rfftfreq(512, 1 / RATE)[1:]
+    n = 40
+    filters = [Filter.integrator(1.0)] * 20 + [Filter.leaky(0.99, 1.0)] * 20
+    chi = rng.uniform(0.3, 2.0, n)
+    L1 = unit_open_loops(filters, chi, 2.0, RATE, f)
+    upper = gain_limits(filters, chi, 2.0, RATE, 0.1)
+    # Low-pass signal plus white noise of random levels: optima spread from 0 to the limit.
+    level = 10.0 ** rng.uniform(-4, 4, n)
+    psd = level[:, None] / (1 + (f / 5.0) ** 2)[None, :] + 1.0
+    psd[0] = 1.0  # pure white noise: the best is the open loop, g = 0
+    psd[1] = 1e8 / f**4  # a steep low-pass without noise: the best is the limit
+    g = optimal_gains(psd, L1, upper)
+    assert np.all(np.isfinite(g)) and np.all(g >= 0) and np.all(g <= upper)
+    assert g[0] == 0.0
+    assert g[1] == pytest.approx(upper[1], rel=1e-3)
+    assert 0 < np.median(g / upper) < 1
+    # Against a dense scan: never worse, and the same gain to the tolerance.
+    dense = upper[:, None] * np.linspace(0, 1, 5001)[None, :]
+    J_dense = cost(psd, L1, dense)
+    J = cost(psd, L1, g)
+    assert np.all(J <= J_dense.min(axis=1) * (1 + 1e-9))
+    assert np.all(np.abs(g - dense[np.arange(n), J_dense.argmin(axis=1)]) <= 3e-4 * upper)
+
+
+def test_no_signal_gives_gain_zero():
+    f = np.fft.rfftfreq(512, 1 / RATE)[1:]
+    L1 = unit_open_loops([Filter.integrator(1.0)] * 2, [1.0, 1.0], 2.0, RATE, f)
+    g = optimal_gains(np.zeros((2, f.size)), L1, np.array([0.9, 0.0]))
+    assert np.array_equal(g, [0.0, 0.0])
+    machine = ModalGainMachine([Filter.integrator(1.0)] * 2, [1.0, 1.0], 2.0, RATE)
+    pol = np.zeros((2000, 2))
+    pol[:, 1] = 3.0  # constant: nothing left after the detrend
+    g, _ = machine.optimum(pol)
+    assert np.array_equal(g, [0.0, 0.0])
+
+
+def test_update_gains_formula():
+    s = MgmSettings(nu=0.8, rho=0.25)
+    prev, opt = np.array([0.2, 0.5, 0.0]), np.array([0.6, 0.1, 0.3])
+    np.testing.assert_allclose(update_gains(prev, opt, s), 0.75 * prev + 0.25 * 0.8 * opt)
+    np.testing.assert_allclose(update_gains(prev, opt, MgmSettings()), 0.5 * prev + 0.45 * opt)
+    with pytest.raises(InputError):
+        update_gains(prev, opt[:2], s)
+
+
+def test_machine_matches_single_modes_and_steps():
+    """Vectorised over modes with mixed filters and the Tip/Tilt resonance: each mode as alone."""
+    rng = np.random.default_rng(3)
+    structure = tuple(tuple(c) for c in StructuralResonance().coefficients(1700.0))
+    filters = [tt_iir(), tt_iir()] + [Filter.leaky(0.99, 1.0)] * 3 + [Filter.integrator(1.0)]
+    chi = np.array([0.8, 0.9, 1.0, 0.6, 1.2, 0.7])
+    pol = lfilter([1.0], [1.0, -0.995], rng.standard_normal((3000, 6)), axis=0) + rng.standard_normal((3000, 6))
+    machine = ModalGainMachine(filters, chi, 2.0, 1700.0, structure=structure)
+    g, info = machine.optimum(pol)
+    assert set(info) == {"f", "psd", "upper"} and info["psd"].shape == (6, 256)
+    for i in (0, 1, 3, 5):  # Tip/Tilt keeps its resonance when alone as mode 0
+        alone = ModalGainMachine([filters[i]], chi[i : i + 1], 2.0, 1700.0, structure=structure if i < 2 else None)
+        assert alone.upper[0] == pytest.approx(machine.upper[i], rel=1e-12)
+        assert alone.optimum(pol[:, i : i + 1])[0][0] == pytest.approx(g[i], rel=1e-9)
+    prev = np.full(6, 0.3)
+    np.testing.assert_allclose(machine.step(prev, pol), 0.5 * prev + 0.45 * g)
+    with pytest.raises(InputError):
+        machine.optimum(pol[:, :5])
+
+
+@pytest.mark.parametrize("kwargs", [dict(nu=0.0), dict(nu=1.1), dict(rho=0.0), dict(rho=1.5), dict(margin=-0.1),
+                                    dict(margin=1.0), dict(segment=500), dict(segment=16), dict(segment=131072),
+                                    dict(segment=512.0), dict(grid=7), dict(nu=float("nan"))])
+def test_bad_settings(kwargs):
+    with pytest.raises(InputError):
+        MgmSettings(**kwargs)
+
+
+def test_short_window_and_bad_telemetry():
+    s = MgmSettings(segment=256)
+    assert min_frames(s) == 640 and min_frames(MgmSettings()) == 1280
+    f, psd = pol_psd(np.random.default_rng(4).standard_normal((640, 3)), RATE, s)
+    assert f.shape == (128,) and psd.shape == (3, 128) and f[0] == pytest.approx(RATE / 256)
+    with pytest.raises(InputError, match=r"639 frames \(0.639 s\) is shorter than 640 frames \(0.64 s\).*4 PSD segments of 256"):
+        pol_psd(np.zeros((639, 3)), RATE, s)
+    bad = np.zeros((640, 3))
+    bad[10, 2] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        pol_psd(bad, RATE, s)
+    bad[10, 2] = np.inf
+    with pytest.raises(InputError, match="finite"):
+        pol_psd(bad, RATE, s)
+    with pytest.raises(InputError):
+        pol_psd(np.zeros(1000), RATE, s)
+    with pytest.raises(InputError):
+        ModalGainMachine([Filter.integrator(1.0)], [0.0], 2.0, RATE)
+    with pytest.raises(InputError):
+        ModalGainMachine([Filter.integrator(1.0)] * 2, [1.0], 2.0, RATE)
+
+
+def test_welch_density_scaling():
+    """White noise of variance s^2 has the one-sided density 2 s^2 / rate."""
+    pol = 2.0 * np.random.default_rng(5).standard_normal((40000, 2))
+    _, psd = pol_psd(pol, RATE, MgmSettings())
+    assert np.mean(psd) == pytest.approx(2 * 4.0 / RATE, rel=0.02)
