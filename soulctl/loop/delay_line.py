@@ -22,6 +22,7 @@ class DelayLine:
         if n < 1:
             raise InputError(f"the simulated loop needs a delay of at least 1 frame, got {delay_frames:g}")
         self.n, self.e = n, e
+        self.delay_frames = float(delay_frames)
         zero = np.zeros(n_commands)
         self._history = deque([zero] * (n + 1), maxlen=n + 1)  # c(k-1) ... c(k-n-1), newest first
 

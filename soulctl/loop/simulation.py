@@ -7,7 +7,11 @@
        Xi = B R and Sigma = M C from the reconstructor R and modes-to-commands M;
     5. c(k) enters the delay line; it shapes the mirror from frame k + n on (fractional part
        interpolated, see ``delay_line``); the mirror's Tip/Tilt also drives the 127 Hz
-       structural resonance (``control.structure``), whose Tip/Tilt adds to the mirror's.
+       structural resonance (``control.structure``), whose Tip/Tilt adds to the mirror's;
+    6. between two frames, the auxiliary loops (``auxloop``: OGTL, MGM, trial-and-error, live
+       metrics) whose period has come read the latest telemetry and may write the gains, the
+       slope sensitivity k (slopes are multiplied by k before the RTC) and a modal probe added
+       to the commands.
 
 A residual RMS above ``divergence_ratio`` x the largest disturbance RMS so far (at least
 10 nm) raises LoopDiverged.
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +45,7 @@ from ..optics.calibration import Calibration
 from ..optics.detector import Detector
 from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
+from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
 
 class LoopDiverged(RuntimeError):
@@ -121,11 +127,27 @@ class Telemetry:
     command_modes: list = field(default_factory=list)  # (n_modes,) nm, M^-1 c(k)
     mirror_modes: list = field(default_factory=list)  # (n_modes,) nm, the mirror during frame k
     residual_rms_nm: list = field(default_factory=list)
-    slopes: list = field(default_factory=list)  # (n_slopes,) float32
+    slopes: list = field(default_factory=list)  # (n_slopes,) float32, scaled by k
     commands: list = field(default_factory=list)  # (n_actuators,) float32, c(k)
+    sensitivity: list = field(default_factory=list)  # k during frame k
+    flux: list = field(default_factory=list)  # detected electrons in the frame
+    # Gains in force from a frame on: [(frame, gains)], the first at frame 0.
+    gain_history: list = field(default_factory=list, repr=False)
+    # Auxiliary loops' records: name -> [{"frame": f, ...}], f the first frame after the update.
+    aux: dict = field(default_factory=dict, repr=False)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list)}
+        """Per-frame records as arrays (rows = frames)."""
+        return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list) and k != "gain_history"}
+
+    def aux_arrays(self, name: str) -> dict[str, np.ndarray]:
+        """One auxiliary loop's records as arrays (rows = updates)."""
+        records = self.aux.get(name, [])
+        return {key: np.asarray([r[key] for r in records]) for key in (records[0] if records else {})}
+
+    def gain_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frames where gains were set, (changes, n_modes) gains)."""
+        return np.array([f for f, _ in self.gain_history]), np.array([g for _, g in self.gain_history])
 
 
 class ClosedLoop:
@@ -145,6 +167,8 @@ class ClosedLoop:
         delay_frames: float | None = None,
         structure: StructuralResonance | None = StructuralResonance(),
         divergence_ratio: float = 3.0,
+        aux_loops: Sequence[AuxLoop] = (),
+        sensitivity: float = 1.0,
     ):
         self.observation = observation
         self.calibration = calibration
@@ -198,6 +222,27 @@ class ClosedLoop:
         self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.frame = 0
         self._vibration_series = None
+        self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self._apply_gains, sensitivity)
+        self.telemetry.gain_history.append((0, self.rtc_parameters.gains))
+        self.aux_loops = list(aux_loops)
+        self._parameters_since = 0  # first frame at the current gains and k
+        for aux in self.aux_loops:
+            aux.start(self.rtc_parameters, self.rate_hz)
+            self.telemetry.aux[aux.name] = []
+
+    def add_aux_loop(self, aux: AuxLoop) -> None:
+        """Start an auxiliary loop from the next frame on."""
+        aux.start(self.rtc_parameters, self.rate_hz)
+        self.aux_loops.append(aux)
+        self.telemetry.aux.setdefault(aux.name, [])
+        self.telemetry.gain_history.append((self.frame, self.rtc_parameters.gains))
+        self._parameters_since = self.frame
+
+    def remove_aux_loop(self, aux: AuxLoop) -> None:
+        self.aux_loops.remove(aux)
+
+    def _apply_gains(self, gains: np.ndarray) -> None:
+        self.rtc.set_gains(self.rtc_matrices.delta_from_gains(gains).astype(np.float32))
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
@@ -249,8 +294,14 @@ class ClosedLoop:
             frame = self.sensor.detector.read(intensity, self.sensor.photons_per_frame, self.noise_rng)
         t4 = clock()
         slopes = self.sensor.slopes_of_frame(frame)
+        k_slopes = self.rtc_parameters.sensitivity
+        if k_slopes != 1.0:
+            slopes *= np.float32(k_slopes)
         t5 = clock()
         commands = self.rtc.step(slopes)
+        probe = self.rtc_parameters.probe
+        if probe is not None:
+            commands += np.float32(probe.value(k, self.rate_hz)) * self._mode_commands(probe.mode)
         self.delay.push(commands)
         t6 = clock()
         tm = self.telemetry
@@ -264,6 +315,8 @@ class ClosedLoop:
         tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
         rms = float(np.sqrt(np.mean(residual**2)))
         tm.residual_rms_nm.append(rms)
+        tm.sensitivity.append(k_slopes)
+        tm.flux.append(float(frame.sum()))
         t7 = clock()
         for stage, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
             self.stage_seconds[stage] += dt
@@ -271,7 +324,46 @@ class ClosedLoop:
         self._disturbance_peak = max(self._disturbance_peak, float(np.std(disturbance)), 10.0)
         if not np.isfinite(rms) or rms > self.divergence_ratio * self._disturbance_peak:
             raise LoopDiverged(k, rms)
+        self._run_aux_loops()
         return residual
+
+    def _mode_commands(self, mode: int) -> np.ndarray:
+        return self.calibration.basis.M[:, mode].astype(np.float32)
+
+    def window(self, frames: int) -> TelemetryWindow:
+        """The last ``frames`` frames, but none from before the latest change of gains or k."""
+        tm = self.telemetry
+        start = max(self.frame - frames, self._parameters_since)
+        rows = slice(start, self.frame)
+        return TelemetryWindow(
+            first_frame=start,
+            rate_hz=self.rate_hz,
+            delay_frames=self.delay.delay_frames,
+            measured_modes=np.asarray(tm.measured_modes[rows]),
+            command_modes=np.asarray(tm.command_modes[rows]),
+            mirror_modes=np.asarray(tm.mirror_modes[rows]),
+            slopes=np.asarray(tm.slopes[rows]),
+            flux=np.asarray(tm.flux[rows]),
+            gains=self.rtc_parameters.gains,
+            sensitivity=self.rtc_parameters.sensitivity,
+        )
+
+    def _run_aux_loops(self) -> None:
+        due = [aux for aux in self.aux_loops if self.frame % aux.period_frames == 0]
+        if not due:
+            return
+        params = self.rtc_parameters
+        before = (params.gains, params.sensitivity)
+        # Every task of this update reads the same data, at the gains and k that made it.
+        windows = [self.window(aux.period_frames) for aux in due]
+        for aux, window in zip(due, windows):
+            record = aux.update(window, params)
+            if record:
+                self.telemetry.aux[aux.name].append({"frame": self.frame, **record})
+        if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity:
+            self._parameters_since = self.frame
+            if not np.array_equal(before[0], params.gains):
+                self.telemetry.gain_history.append((self.frame, params.gains))
 
     def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into

@@ -1,0 +1,108 @@
+"""Auxiliary loops in the simulated closed loop: the interface (windows, writes between two
+frames, records), OGTL converging to the model's optical gain of its mode, the trial-and-error
+scan, and the probe on the mirror."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from soulctl.control.trial import scan_gains
+from soulctl.loop.auxloop import AuxLoop
+from soulctl.loop.auxloops import OgtlTask, TrialAndErrorTask
+from soulctl.loop.simulation import ClosedLoop, LoopGains
+from soulctl.observation import observation_for_magnitude
+from soulctl.optics.atmosphere import AtmosphereConfig
+from soulctl.optics.calibration import CalibrationSetup, calibrate, calibration_sensor, mode_maps, push_pull
+from soulctl.optics.pwfs import PyramidConfig
+
+OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0)
+
+
+@pytest.fixture(scope="module")
+def small_calibration(optics_cache):
+    return calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 54), optics_cache)
+
+
+class Recorder(AuxLoop):
+    """Doubles the Tip gain at each update and records what it saw."""
+
+    name = "recorder"
+
+    def __init__(self, period):
+        super().__init__(period)
+        self.windows = []
+
+    def update(self, window, rtc):
+        self.windows.append((window.first_frame, window.frames, window.gains[0], window.sensitivity))
+        g = rtc.gains
+        g[0] *= 2
+        rtc.set_gains(g)
+        return {"tip_gain": g[0]}
+
+
+def test_aux_loops_read_their_window_and_write_between_two_frames(small_calibration):
+    rec = Recorder(25)
+    loop = ClosedLoop(OBS, small_calibration, None, LoopGains(0.05, 0.3, 0.3), noise=False, aux_loops=[rec])
+    tm = loop.run(100)
+    assert rec.windows == [(0, 25, 0.05, 1.0), (25, 25, 0.1, 1.0), (50, 25, 0.2, 1.0), (75, 25, 0.4, 1.0)]
+    assert tm.aux_arrays("recorder")["frame"].tolist() == [25, 50, 75, 100]
+    frames, gains = tm.gain_arrays()
+    assert frames.tolist() == [0, 25, 50, 75, 100] and gains[:, 0].tolist() == [0.05, 0.1, 0.2, 0.4, 0.8]
+    assert loop.rtc_matrices.mode_gains(np.asarray(loop.rtc.gains))[0] == pytest.approx(0.8)
+
+
+def test_probe_is_on_the_mirror_and_k_scales_the_slopes(small_calibration):
+    task = OgtlTask(10_000)  # starts the probe, never updates within the run
+    loop = ClosedLoop(OBS, small_calibration, None, LoopGains(0.3, 0.3, 0.3), noise=False, aux_loops=[task], sensitivity=1.5)
+    tm = loop.run(400).arrays()
+    mode = task.settings.mode - 1
+    amplitude = 2 * np.abs(np.fft.rfft(tm["command_modes"][:, mode])) / 400
+    f = np.fft.rfftfreq(400, 1 / 1000.0)
+    assert f[np.argmax(amplitude)] == pytest.approx(250.0)
+    assert 10 < amplitude.max() <= 20.5  # the probe (20 nm) less what the loop takes back
+    assert np.all(tm["sensitivity"] == 1.5)
+    np.testing.assert_allclose(tm["measured_modes"], tm["slopes"] @ small_calibration.reconstructor.T.astype(np.float32), rtol=1e-3, atol=1e-3)
+
+
+def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(small_calibration):
+    """The sensitivity k OGTL settles on makes chi = gamma k = 1 for mode 30, so 1/k must be
+    the PWFS's optical gain of mode 30 around the loop's own residual phases (push-pull of
+    the optical model around snapshots of the residual)."""
+    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.6), LoopGains(0.2, 0.25, 0.25),
+                      noise=True, seed=2, aux_loops=[OgtlTask(200)])
+    snapshots = []
+    for i in range(2400):
+        residual = loop.step(2400)
+        if i >= 1000 and i % 200 == 100:
+            snapshots.append(residual.copy())
+    k = loop.telemetry.aux_arrays("ogtl")["sensitivity"]
+    assert k[0] > 1.2 and np.all(np.abs(np.diff(np.log(k[-4:]))) < 0.1)  # it moved, then settled
+    sensor = calibration_sensor(small_calibration.setup.pyramid)
+    pupil = sensor.pupil
+    maps = mode_maps(small_calibration.basis.shapes(pupil)[:, 29:30], pupil)
+    d0 = small_calibration.interaction_matrix[:, 29]
+    gamma = []
+    for r in snapshots:
+        phi = np.zeros((pupil.n_pixels,) * 2, dtype=np.float32)
+        phi[pupil.mask] = r
+        gamma.append(push_pull(sensor, maps, small_calibration.setup.push_nm, around=phi)[:, 0] @ d0 / (d0 @ d0))
+    model = float(np.mean(gamma))
+    assert 0.2 < model < 0.8  # a real loss of sensitivity, not the diffraction-limited 1
+    assert 1 / np.mean(k[-3:]) == pytest.approx(model, rel=0.10), (1 / np.mean(k[-3:]), model)
+
+
+def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_calibration):
+    scans = [scan_gains(0.6, 4), scan_gains(0.6, 4)]
+    task = TrialAndErrorTask(54, scans, settle=30, measure=70)
+    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.3, 0.3),
+                      noise=True, seed=1, aux_loops=[task])
+    tm = loop.run(900)
+    rec = tm.aux_arrays("trial")
+    assert rec["group"].tolist() == [0] * 4 + [1] * 4 and task.done
+    np.testing.assert_allclose(rec["gain"], np.concatenate(scans))
+    final = loop.rtc_parameters.gains
+    assert final[0] == final[1] == task.best[0] and np.all(final[2:] == task.best[1])
+    assert scans[0][0] <= task.best[0] <= scans[0][-1]
+    # Tip/Tilt at the lowest scanned gain leaves the turbulence's Tip/Tilt nearly unrejected
+    assert rec["merit"][0] > rec["merit"][1:4].min()
