@@ -226,6 +226,7 @@ class ClosedLoop:
         self.telemetry.gain_history.append((0, self.rtc_parameters.gains))
         self.aux_loops = list(aux_loops)
         self._parameters_since = 0  # first frame at the current gains and k
+        self._probe_shape: tuple[int, np.ndarray] | None = None
         for aux in self.aux_loops:
             aux.start(self.rtc_parameters, self.rate_hz)
             self.telemetry.aux[aux.name] = []
@@ -328,7 +329,10 @@ class ClosedLoop:
         return residual
 
     def _mode_commands(self, mode: int) -> np.ndarray:
-        return self.calibration.basis.M[:, mode].astype(np.float32)
+        """Actuator commands of one mode (float32), kept for the probe's next frames."""
+        if self._probe_shape is None or self._probe_shape[0] != mode:
+            self._probe_shape = (mode, self.calibration.basis.M[:, mode].astype(np.float32))
+        return self._probe_shape[1]
 
     def window(self, frames: int) -> TelemetryWindow:
         """The last ``frames`` frames, but none from before the latest change of gains or k."""
