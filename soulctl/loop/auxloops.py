@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..control import mgm, ogtl, trial
+from ..control.delay import fractional_taps
 from ..errors import InputError
 from .auxloop import AuxLoop, ModalProbe, RtcParameters, TelemetryWindow
 from .metrics import pseudo_open_loop
@@ -56,12 +57,12 @@ class MgmTask(AuxLoop):
         self.machine = machine
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
-        n, _ = divmod(window.delay_frames, 1.0)
-        usable = window.frames - int(n) - 1  # the first n + 1 frames lack their commands
+        n, _ = fractional_taps(window.delay_frames)
+        usable = window.frames - n - 1  # the first n + 1 frames lack their commands
         if usable < mgm.min_frames(self.machine.settings):
             return {}
         pol = pseudo_open_loop(window.measured_modes / self.machine.chi, window.command_modes, window.delay_frames)
-        optimum, _ = self.machine.optimum(pol[int(n) + 1 :])
+        optimum, _ = self.machine.optimum(pol[n + 1 :])
         gains = mgm.update_gains(window.gains, optimum, self.machine.settings) * (window.sensitivity / rtc.sensitivity)
         rtc.set_gains(gains)
         return {"gains": gains, "optimum": optimum}

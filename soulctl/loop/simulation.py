@@ -36,6 +36,7 @@ from threadpoolctl import threadpool_limits
 from ..control.filters import Filter
 from ..control.structure import StructuralResonance
 from ..control.rtc import build_rtc
+from ..control.trial import MID_GROUP_END  # the paper's gain groups: 1-2, 3-120, 121-last
 from ..disturbance.turbulence import MAS_PER_RAD
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -59,7 +60,6 @@ class LoopDiverged(RuntimeError):
         self.residual_nm = residual_nm
 
 
-MID_GROUP_END = 120
 DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
 # Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
 STAGES = ("atmosphere", "mirror", "wfs_optics", "detector", "slopes", "rtc", "telemetry")  # the paper's gain groups: modes 1-2, 3-120, 121-last
