@@ -78,21 +78,8 @@ class VibrationSpectrum:
         return sum(line.rms_mas(axis) ** 2 for line in self.lines)
 
     def time_series(self, n_frames: int, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
-        """(n_frames, 2) Tip and Tilt in mas sampled at ``rate_hz``: each line an AR(2) process
-        with the oscillator's poles exp((-zeta w0 +- j w0 sqrt(1 - zeta^2)) / rate) (the
-        sampled oscillator), driven by white noise and scaled to the line's RMS on each axis,
-        started from its stationary state (a burn-in of 10 decay times is discarded)."""
-        out = np.zeros((n_frames, 2))
-        for line in self.lines:
-            a1, a2 = line.ar2_coefficients(rate_hz)
-            burn = int(min(10.0 / (line.damping * 2 * np.pi * line.frequency_hz) * rate_hz, 1e6)) + 2
-            # stationary variance of x_k = a1 x_{k-1} + a2 x_{k-2} + e_k with unit-variance e
-            unit_var = (1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1**2))
-            for axis, rms in enumerate((line.tip_mas, line.tilt_mas)):
-                e = rng.standard_normal(n_frames + burn)
-                x = lfilter([1.0], [1.0, -a1, -a2], e)[burn:]
-                out[:, axis] += x * (rms / np.sqrt(unit_var))
-        return out
+        """(n_frames, 2) Tip and Tilt in mas sampled at ``rate_hz`` (see ``VibrationSource``)."""
+        return VibrationSource(self, rate_hz, rng).next(n_frames)
 
     @classmethod
     def from_dict(cls, data: dict, where: str) -> "VibrationSpectrum":
@@ -122,3 +109,34 @@ class VibrationSpectrum:
     @classmethod
     def lbt_default(cls) -> "VibrationSpectrum":
         return cls.read(tables.tables_dir() / "lbt_vibrations.toml")
+
+
+class VibrationSource:
+    """Tip/Tilt vibrations (mas) drawn frame block after frame block: each line an AR(2)
+    process with the oscillator's poles exp((-zeta w0 +- j w0 sqrt(1 - zeta^2)) / rate) (the
+    sampled oscillator), driven by white noise and scaled to the line's RMS on each axis,
+    started from its stationary state (a burn-in of 10 decay times is discarded).  The filter
+    state carries over from one block to the next, so the blocks are one stationary series
+    however a run is split."""
+
+    def __init__(self, spectrum: VibrationSpectrum, rate_hz: float, rng: np.random.Generator):
+        self.rng = rng
+        self._lines = []  # (a, per-axis scale, per-axis lfilter state)
+        for line in spectrum.lines:
+            a1, a2 = line.ar2_coefficients(rate_hz)
+            a = np.array([1.0, -a1, -a2])
+            burn = int(min(10.0 / (line.damping * 2 * np.pi * line.frequency_hz) * rate_hz, 1e6)) + 2
+            # stationary variance of x_k = a1 x_{k-1} + a2 x_{k-2} + e_k with unit-variance e
+            unit_var = (1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1**2))
+            scale = np.array([line.tip_mas, line.tilt_mas]) / np.sqrt(unit_var)
+            states = [lfilter([1.0], a, rng.standard_normal(burn), zi=np.zeros(2))[1] for _ in range(2)]
+            self._lines.append((a, scale, states))
+
+    def next(self, n_frames: int) -> np.ndarray:
+        """The next (n_frames, 2) samples."""
+        out = np.zeros((n_frames, 2))
+        for a, scale, states in self._lines:
+            for axis in range(2):
+                x, states[axis] = lfilter([1.0], a, self.rng.standard_normal(n_frames), zi=states[axis])
+                out[:, axis] += x * scale[axis]
+        return out

@@ -38,7 +38,7 @@ from ..control.structure import StructuralResonance
 from ..control.rtc import build_rtc
 from ..control.trial import MID_GROUP_END  # the paper's gain groups: 1-2, 3-120, 121-last
 from ..disturbance.turbulence import MAS_PER_RAD
-from ..disturbance.vibrations import VibrationSpectrum
+from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
 from ..errors import InputError
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
@@ -61,6 +61,7 @@ class LoopDiverged(RuntimeError):
 
 
 DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
+VIBRATION_BLOCK = 4096  # frames of vibrations drawn at a time
 # Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
 STAGES = ("atmosphere", "mirror", "wfs_optics", "detector", "slopes", "rtc", "telemetry")  # the paper's gain groups: modes 1-2, 3-120, 121-last
 
@@ -221,7 +222,7 @@ class ClosedLoop:
         self.telemetry = Telemetry(self.rate_hz)
         self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.frame = 0
-        self._vibration_series = None
+        self._vibration_source: VibrationSource | None = None
         self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self._apply_gains, sensitivity)
         self.telemetry.gain_history.append((0, self.rtc_parameters.gains))
         self.aux_loops = list(aux_loops)
@@ -236,7 +237,10 @@ class ClosedLoop:
         aux.start(self.rtc_parameters, self.rate_hz)
         self.aux_loops.append(aux)
         self.telemetry.aux.setdefault(aux.name, [])
-        self.telemetry.gain_history.append((self.frame, self.rtc_parameters.gains))
+        history = self.telemetry.gain_history
+        if history and history[-1][0] == self.frame:
+            history.pop()  # several tasks added before the same frame: one entry
+        history.append((self.frame, self.rtc_parameters.gains))
         self._parameters_since = self.frame
 
     def remove_aux_loop(self, aux: AuxLoop) -> None:
@@ -250,26 +254,32 @@ class ClosedLoop:
         are orthonormal on the pupil)."""
         return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
 
-    def _vibration_tt(self, k: int, n_frames: int) -> np.ndarray:
+    def _vibration_tt(self, k: int) -> np.ndarray:
+        """Tip/Tilt vibrations (mas) at frame k, drawn in blocks of VIBRATION_BLOCK frames (the
+        same series however the frames are split between ``run`` calls)."""
         if self.vibrations is None:
             return np.zeros(2)
-        if self._vibration_series is None or k >= len(self._vibration_series):
-            self._vibration_series = self.vibrations.time_series(max(n_frames, k + 1), self.rate_hz, self.vibration_rng)
-        return self._vibration_series[k]
+        if self._vibration_source is None:
+            self._vibration_source = VibrationSource(self.vibrations, self.rate_hz, self.vibration_rng)
+            self._vibration_series, self._vibration_first = self._vibration_source.next(VIBRATION_BLOCK), 0
+        while k >= self._vibration_first + len(self._vibration_series):
+            self._vibration_first += len(self._vibration_series)
+            self._vibration_series = self._vibration_source.next(VIBRATION_BLOCK)
+        return self._vibration_series[k - self._vibration_first]
 
-    def disturbance_opd(self, k: int, n_frames: int) -> np.ndarray:
+    def disturbance_opd(self, k: int) -> np.ndarray:
         """OPD (nm) on the pupil pixels at frame k: turbulence + Tip/Tilt vibrations."""
         t = k / self.rate_hz
         phi = self.atmosphere.opd_nm(t)[self.pupil.mask] if self.atmosphere else np.zeros(self.pupil.n_valid)
-        return phi + self._vibration_tt(k, n_frames) @ self._tilt_opd_per_mas
+        return phi + self._vibration_tt(k) @ self._tilt_opd_per_mas
 
-    def step(self, n_frames: int = 1) -> np.ndarray:
+    def step(self) -> np.ndarray:
         """One frame; returns the residual OPD on the pupil pixels (nm).  The time spent in
         each stage is added to ``stage_seconds``."""
         clock = time.perf_counter
         t0 = clock()
         k = self.frame
-        disturbance = self.disturbance_opd(k, n_frames)
+        disturbance = self.disturbance_opd(k)
         t1 = clock()
         applied = self.delay.applied()
         mirror = self.influence @ applied
@@ -378,7 +388,7 @@ class ClosedLoop:
         FFTs) by ~25 % (42 against 34 iterations/s at 40x40, 160-px pupil)."""
         with threadpool_limits(limits=1, user_api="blas"):
             for i in range(n_frames):
-                residual = self.step(n_frames)
+                residual = self.step()
                 if psf is not None and i >= skip:
                     t0 = time.perf_counter()
                     psf.add(residual)

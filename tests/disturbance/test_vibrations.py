@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
+from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum, VibrationSource
 from soulctl.errors import InputError
 
 
@@ -64,7 +64,7 @@ def test_time_series_has_each_lines_rms_and_frequency():
     the same seed giving the same series."""
     spec = VibrationSpectrum.lbt_default()
     rate = 1700.0
-    x = spec.time_series(2**17, rate, np.random.default_rng(3))
+    x = spec.time_series(2**18, rate, np.random.default_rng(3))  # 154 s: each line's band to ~10 %
     for axis, name in enumerate(("tip", "tilt")):
         assert x[:, axis].std() == pytest.approx(np.sqrt(spec.variance_mas2(name)), rel=0.08)
     f, p = welch(x[:, 0], fs=rate, nperseg=2**13)
@@ -75,6 +75,20 @@ def test_time_series_has_each_lines_rms_and_frequency():
         assert p[band].mean() == pytest.approx(spec.psd(f[band], "tip").mean(), rel=0.3)
     again = spec.time_series(1000, rate, np.random.default_rng(3))
     assert np.array_equal(again, spec.time_series(1000, rate, np.random.default_rng(3)))
+
+
+def test_blocks_continue_one_stationary_series():
+    """Drawn in blocks, the series keeps the oscillators' RMS and their correlation across a
+    block's edge (a series restarted every block would lose it: a 13 Hz line at 1700 Hz is
+    correlated at 0.99 from one frame to the next)."""
+    line = VibrationLine(13.0, 0.02, tip_mas=5.0, tilt_mas=3.0)
+    source = VibrationSource(VibrationSpectrum((line,)), 1700.0, np.random.default_rng(5))
+    blocks = [source.next(n) for n in (1, 7, 500) * 40]
+    x = np.concatenate(blocks)
+    assert x[:, 0].std() == pytest.approx(5.0, rel=0.25)
+    edges = np.cumsum([len(b) for b in blocks])[:-1]
+    lag1 = np.corrcoef(x[edges - 1, 0], x[edges, 0])[0, 1]
+    assert lag1 > 0.95
 
 
 def test_time_series_needs_a_rate_above_twice_each_line():

@@ -73,7 +73,7 @@ def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(small_calibration
                       noise=True, seed=2, aux_loops=[OgtlTask(200)])
     snapshots = []
     for i in range(2400):
-        residual = loop.step(2400)
+        residual = loop.step()
         if i >= 1000 and i % 200 == 100:
             snapshots.append(residual.copy())
     k = loop.telemetry.aux_arrays("ogtl")["sensitivity"]
