@@ -61,7 +61,8 @@ class MgmTask(AuxLoop):
         usable = window.frames - n - 1  # the first n + 1 frames lack their commands
         if usable < mgm.min_frames(self.machine.settings):
             return {}
-        pol = pseudo_open_loop(window.measured_modes / self.machine.chi, window.command_modes, window.delay_frames)
+        pol = pseudo_open_loop(window.measured_modes / self.machine.chi, window.command_modes, window.delay_frames,
+                               self.machine.structure)
         optimum, _ = self.machine.optimum(pol[n + 1 :])
         gains = mgm.update_gains(window.gains, optimum, self.machine.settings) * (window.sensitivity / rtc.sensitivity)
         rtc.set_gains(gains)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-from scipy.signal import welch
+from scipy.signal import lfilter, welch
 
 from ..control.delay import fractional_taps
 from ..errors import InputError
@@ -73,17 +73,25 @@ def cumulative_spectrum(x: np.ndarray, rate_hz: float, nperseg: int | None = Non
     return f, cum
 
 
-def pseudo_open_loop(measured: np.ndarray, command_modes: np.ndarray, delay_frames: float) -> np.ndarray:
+def pseudo_open_loop(measured: np.ndarray, command_modes: np.ndarray, delay_frames: float, structure_ba=None) -> np.ndarray:
     """Pseudo-open-loop modes from telemetry: m_pol(k) = m(k) + (mirror modes during frame k),
     the mirror holding the commands delayed by d = n + e frames,
     (1 - e) c(k - n) + e c(k - n - 1) (the delay line's own rule).  Rows are frames; the first
-    n + 1 rows use commands from before the record (taken as zero)."""
+    n + 1 rows use commands from before the record (taken as zero).
+
+    ``structure_ba``: the structural resonance G(z) = b/a on Tip/Tilt (``control.structure``),
+    whose wavefront Tip/Tilt adds G u to the mirror's u: the plant is z^-d (1 + G), and so is
+    the term added to Tip/Tilt (started at rest with the record; it rings down in ~3/(zeta w0),
+    25 ms at 127 Hz)."""
     n, e = fractional_taps(delay_frames)
     c = np.asarray(command_modes, dtype=float)
     shifted = np.zeros_like(c)
     shifted[n:] += (1 - e) * c[: len(c) - n]
     if e:
         shifted[n + 1 :] += e * c[: len(c) - n - 1]
+    if structure_ba is not None:
+        b, a = structure_ba
+        shifted[:, :2] += lfilter(b, a, shifted[:, :2], axis=0)
     return np.asarray(measured, dtype=float) + shifted
 
 
