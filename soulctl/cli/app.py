@@ -2,7 +2,7 @@
 
 Exit status: 0 success; 2 bad input (one line on stderr naming the problem and the accepted
 range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed; ``loop run``: the simulated
-loop diverged, telemetry still written);
+loop diverged, telemetry still written; ``optimize gains``: the loop diverged, no gain file written);
 1 an unexpected internal error.
 """
 
@@ -18,6 +18,7 @@ from . import configure
 from . import filter as filter_cli
 from . import loop as loop_cli
 from . import optics as optics_cli
+from . import optimize as optimize_cli
 
 app = typer.Typer(
     name="soulctl",
@@ -30,6 +31,7 @@ app.command(name="configure")(configure.configure)
 app.add_typer(filter_cli.app, name="filter")
 app.add_typer(optics_cli.app, name="optics")
 app.add_typer(loop_cli.app, name="loop")
+app.add_typer(optimize_cli.app, name="optimize")
 
 
 def _version(value: bool) -> None:

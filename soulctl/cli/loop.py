@@ -9,11 +9,11 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -21,7 +21,8 @@ from ..files import check_output_path, read_toml
 from ..loop.metrics import BANDS
 from ..loop.run import RunRequest, run
 from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
-from ..loop.telemetry_file import write_telemetry
+from ..loop.optimize import LiveOptimisers
+from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..observation import Observation, observation_for_magnitude
 from ..optics.atmosphere import SEEING_RANGE_ARCSEC
 from ..plots.loop import write_loop_figures
@@ -84,6 +85,17 @@ def _check_number(name: str, value: float, lo: float, hi: float, unit: str) -> N
         raise InputError(f"{name} must be in {lo:g}..{hi:g} {unit} (> {lo:g}), got {value:g}")
 
 
+def check_conditions(seeing: float, wind: float, L0: float, band: str) -> None:
+    """InputError naming the option and its range for --seeing, --wind, --L0, --band."""
+    lo, hi = SEEING_RANGE_ARCSEC
+    if not (math.isfinite(seeing) and lo <= seeing <= hi):
+        raise InputError(f"--seeing must be in {lo:g}..{hi:g} arcsec, got {seeing:g}")
+    _check_number("--wind", wind, 0.0, 100.0, "m/s")
+    _check_number("--L0", L0, 0.0, 1e4, "m")
+    if band not in BANDS:
+        raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
+
+
 def _result_dict(result) -> dict:
     m = result.metrics
     d = {
@@ -96,6 +108,10 @@ def _result_dict(result) -> dict:
         "diverged_at_frame": result.diverged_at,
         "metrics": None,
     }
+    if result.telemetry.aux:
+        d["auxiliary_loops"] = sorted(result.telemetry.aux)
+        d["final_gains"] = result.final_gains.tolist()
+        d["final_sensitivity"] = result.final_sensitivity
     if m is not None:
         d["metrics"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.to_dict().items()}
     return d
@@ -115,6 +131,12 @@ def _render(result, console: Console) -> None:
     t.add_row("residual wavefront error", f"{m.residual_nm:.0f} nm RMS")
     t.add_row("rejection at 13 Hz (telemetry)", "n/a (run too short)" if not math.isfinite(m.rejection_13hz) else f"{m.rejection_13hz:.3f}")
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")
+    if result.telemetry.aux:
+        fg = result.final_gains
+        t.add_row("auxiliary loops", ", ".join(sorted(result.telemetry.aux)))
+        t.add_row("final gains Tip / Tilt / 3-120 / 121-last", f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / "
+                  + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"))
+        t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
     t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s")
     console.print(t)
 
@@ -137,7 +159,13 @@ def run_cmd(
     no_resonance: bool = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance."),
     oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes)."),
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
-    telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5)."),
+    mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
+    ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
+    period: float = typer.Option(1.0, "--period", metavar="S", help="Update period of --mgm and --ogtl (the paper: 1 s)."),
+    probe_mode: int = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based)."),
+    probe_amplitude: float = typer.Option(20.0, "--probe-amplitude", metavar="NM", help="OGTL probe amplitude, nm peak."),
+    probe_frequency: float | None = typer.Option(None, "--probe-frequency", metavar="HZ", help="OGTL probe frequency (default: frame rate / 4)."),
+    telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
@@ -151,14 +179,8 @@ def run_cmd(
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
-    lo, hi = SEEING_RANGE_ARCSEC
-    if not (math.isfinite(seeing) and lo <= seeing <= hi):
-        raise InputError(f"--seeing must be in {lo:g}..{hi:g} arcsec, got {seeing:g}")
-    _check_number("--wind", wind, 0.0, 100.0, "m/s")
-    _check_number("--L0", L0, 0.0, 1e4, "m")
+    check_conditions(seeing, wind, L0, band)
     _check_number("--duration", duration, 0.0, 600.0, "s")
-    if band not in BANDS:
-        raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
     if telemetry is not None:
         check_output_path(telemetry, "--telemetry")
     if plot is not None and not plot.is_dir():
@@ -168,17 +190,20 @@ def run_cmd(
     vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
     request = RunRequest(obs, seeing, wind, L0, duration, loop_gains, band, seed, not no_noise, vib, oversampling,
                          None if no_resonance else StructuralResonance(), allow_unstable)
+    aux = None
+    if mgm or ogtl:
+        aux = LiveOptimisers(mgm, ogtl, period, OgtlSettings(probe_mode, probe_amplitude, probe_frequency))
+        aux.check(obs)
     cache = array_cache(no_cache, cache_dir)
     show = not json_output and sys.stderr.isatty()
     progress = Progress(TextColumn("closed loop"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
                         TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
     with progress if show else nullcontext():
         task = progress.add_task("loop", total=request.frames) if show else None
-        result = run(request, cache, progress=(lambda k: progress.update(task, completed=k)) if show else None)
+        result = run(request, cache, progress=(lambda k: progress.update(task, completed=k)) if show else None, aux=aux)
     if telemetry is not None:
-        tm = result.telemetry.arrays()
-        tm["frame_time_s"] = np.arange(len(tm["residual_rms_nm"])) / obs.frame_rate_hz
-        tm["gains"] = result.gains.per_mode(result.calibration.basis.n_modes)
+        tm = telemetry_arrays(result.telemetry)
+        tm["gains"] = result.final_gains
         write_telemetry(telemetry, tm, {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames,
                                         "n_modes": result.calibration.basis.n_modes,
                                         "diverged_at": -1 if result.diverged_at is None else result.diverged_at},

@@ -1,8 +1,12 @@
 """Gain optimisation in the simulated loop (`soulctl optimize gains`, `loop run --mgm`).
 
-One continuous closed loop in three phases:
+One continuous closed loop in phases:
 
-1. *before*: ``measure_s`` at the initial gains (OGTL already running when asked);
+0. *closing*: the loop closes at the initial gains and k = 1 (``closing_frames``: 0.1 s, at
+   least 50 frames), as a real loop is closed before its auxiliary loops start;
+   *settling* (with OGTL): ``OGTL_SETTLING_PERIODS`` OGTL periods for k to settle;
+1. *before*: ``measure_s`` at the initial gains (OGTL already running when asked), stretched to
+   end on an update period boundary so that MGM's windows are whole periods, in step with OGTL;
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running).
@@ -11,10 +15,13 @@ Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter are measured over
 *after*.  MGM's plant model takes chi_i from the optical-gain table of the calibration at a
 reference correction level (0.8" seeing, the paper's choice), computed with the optical models
 and cached with the calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
-without, gamma_i times the fixed sensitivity k = 1.  With OGTL the loop starts at k = 1 /
-gamma_30 of that table (OGTL then tracks the real one), so that neither optimiser scans while k
-is still far from its value: at k = 1 a poorly corrected loop's effective gains are several
-times lower than they will be once OGTL has converged.
+without, gamma_i times the fixed sensitivity k = 1.  With OGTL, once the loop is closed, k is
+set to 1 / gamma_30 of that table (OGTL then tracks the real one), so that neither optimiser
+scans while k is still far from its value: at k = 1 a poorly corrected loop's effective gains
+are several times lower than they will be once OGTL has converged.  (Setting it before the
+loop is closed diverges: the open-loop residual is far outside the PWFS's linear range, and
+k = 1 / gamma_30 over-drives the first corrections.)  The initial gains are capped at half the
+plant model's maximum stable gain (``capped_gains``).
 
 Trial-and-error scans each group up to 0.8 x the nominal maximum stable gain divided by the
 largest chi_i of the group (the same table): the scan stays stable for every mode of the group
@@ -30,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..control import mgm
+from ..control.delay import fractional_taps
 from ..control.ogtl import OgtlSettings
 from ..control.transfer import max_stable_gain
 from ..control.trial import gain_groups, scan_gains
@@ -41,12 +49,29 @@ from ..optics.optical_gains import CorrectionLevel, optical_gains
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
 from .run import RunRequest, calibration_for, check_stability, default_gains, nominal_loop, sampled_structure
-from .simulation import ClosedLoop, LoopDiverged, LoopGains, mode_filters
+from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
 
 METHODS = ("trial", "mgm")
 MIN_SEGMENT = 64  # frames: the shortest Welch segment MGM accepts
+MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them settling)
 TRIAL_VALUES = 8  # gains per group
 TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches
+INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
+CLOSING_S = 0.1  # the loop closes at k = 1 before the auxiliary loops start ...
+MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
+OGTL_SETTLING_PERIODS = 3  # OGTL updates before the "before" measurement
+
+
+def closing_frames(rate_hz: float) -> int:
+    """Frames the loop runs at k = 1, without auxiliary loops, before they start."""
+    return max(MIN_CLOSING_FRAMES, round(CLOSING_S * rate_hz))
+
+
+def start_aux_loops(loop: ClosedLoop, tasks, sensitivity: float) -> None:
+    """Set k and start ``tasks`` from the loop's next frame (after the closing phase)."""
+    loop.rtc_parameters.set_sensitivity(sensitivity)
+    for task in tasks:
+        loop.add_aux_loop(task)
 
 
 @dataclass(frozen=True)
@@ -65,32 +90,55 @@ class OptimizeRequest:
     def __post_init__(self):
         if self.method not in METHODS:
             raise InputError(f"--method must be one of {', '.join(METHODS)}, got '{self.method}'")
-        for name, lo, hi in (("duration_s", 0, 3600), ("period_s", 0, 600), ("measure_s", 0, 600), ("trial_sequence_s", 0, 60)):
+        for name, option, lo, hi in (("duration_s", "--duration", 0, 3600), ("period_s", "--period", 0, 600),
+                                     ("measure_s", "--measure", 0, 600), ("trial_sequence_s", "--sequence", 0, 60)):
             v = getattr(self, name)
             if not (math.isfinite(v) and lo < v <= hi):
-                raise InputError(f"{name.replace('_s', '')} must be in {lo:g}..{hi:g} s (> 0), got {v:g}")
-        rate = self.run.observation.frame_rate_hz
+                raise InputError(f"{option} must be in {lo:g}..{hi:g} s (> 0), got {v:g}")
+        obs = self.run.observation
         if self.method == "mgm":
-            self.settings_for_rate(rate)  # refuses a period too short for the PSDs
-        if self.ogtl and self.ogtl_settings.mode > self.run.observation.modes:
-            raise InputError(f"the OGTL probe mode {self.ogtl_settings.mode} is beyond the {self.run.observation.modes} controlled modes")
+            self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
+        if self.method == "trial" and self.frames(self.trial_sequence_s) < MIN_SEQUENCE:
+            raise InputError(f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
+                             f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s")
+        if self.ogtl:
+            check_probe(self.ogtl_settings, obs)
 
     def frames(self, seconds: float) -> int:
         return max(1, round(seconds * self.run.observation.frame_rate_hz))
 
     def settings_for_rate(self, rate_hz: float) -> mgm.MgmSettings:
-        """MGM settings with the longest power-of-two Welch segment (<= 512) that gives 4
-        segments in one period; InputError with the minimum period when even 64 does not fit."""
-        period = self.frames(self.period_s)
-        segment = 512
-        while segment > MIN_SEGMENT and mgm.min_frames(mgm.MgmSettings(segment=segment)) > period:
-            segment //= 2
-        settings = self.mgm_settings or mgm.MgmSettings(segment=segment)
-        need = mgm.min_frames(settings)
-        if period < need:
-            raise InputError(f"--period must be at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: 4 PSD segments of "
-                             f"{settings.segment} frames), got {self.period_s:g} s")
-        return settings
+        """MGM settings for windows of one period (see ``period_settings``)."""
+        return self.mgm_settings or period_settings(self.frames(self.period_s), self.run.observation)
+
+
+def check_probe(settings: OgtlSettings, observation) -> None:
+    """InputError for an OGTL probe beyond the controlled modes or above Nyquist."""
+    if settings.mode > observation.modes:
+        raise InputError(f"--probe-mode {settings.mode} is beyond the {observation.modes} controlled modes (accepted 1..{observation.modes})")
+    settings.probe_frequency(observation.frame_rate_hz)
+
+
+def period_settings(period_frames: int, observation) -> mgm.MgmSettings:
+    """MGM settings for a window of one period, less the first n + 1 frames whose delayed
+    commands precede the window (``welch_settings``; InputError names --period)."""
+    n, _ = fractional_taps(observation.delay_frames)
+    return welch_settings(period_frames - n - 1, observation.frame_rate_hz, "--period (less the loop delay)")
+
+
+def welch_settings(frames: int, rate_hz: float, what: str) -> mgm.MgmSettings:
+    """MGM settings with the longest power-of-two Welch segment (<= 512) that gives MGM's 4
+    segments in ``frames``; InputError naming ``what`` and the minimum duration when even
+    64-frame segments do not fit."""
+    segment = 512
+    while segment > MIN_SEGMENT and mgm.min_frames(mgm.MgmSettings(segment=segment)) > frames:
+        segment //= 2
+    settings = mgm.MgmSettings(segment=segment)
+    need = mgm.min_frames(settings)
+    if frames < need:
+        raise InputError(f"{what} must span at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: "
+                         f"{mgm.MIN_SEGMENTS} PSD segments of {segment} frames), got {frames / rate_hz:.3g} s ({frames} frames)")
+    return settings
 
 
 @dataclass
@@ -134,12 +182,15 @@ def mgm_chi(gamma: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
     return gamma / gamma[probe_mode - 1] if ogtl else gamma.copy()
 
 
-def mgm_machine(request: OptimizeRequest, calibration: Calibration, chi: np.ndarray) -> mgm.ModalGainMachine:
-    obs = request.run.observation
-    unit = mode_filters(obs, LoopGains(1.0, 1.0, 1.0), calibration.basis.n_modes)
-    structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
-    ba = None if structure is None else tuple(tuple(map(float, x)) for x in structure.coefficients(obs.frame_rate_hz))
-    return mgm.ModalGainMachine(tuple(unit), chi, obs.delay_frames, obs.frame_rate_hz, request.settings_for_rate(obs.frame_rate_hz), ba)
+def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettings,
+                forgetting: float = DEFAULT_FORGETTING, delay_frames: float | None = None) -> mgm.ModalGainMachine:
+    """MGM for the observation's filters (unit gain), plant chi_i z^-d and, on Tip/Tilt, the
+    structural resonance when the frame rate samples it."""
+    rate = observation.frame_rate_hz
+    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), len(chi))
+    ba = _structure_ba(sampled_structure(structure, rate), rate)
+    d = observation.delay_frames if delay_frames is None else delay_frames
+    return mgm.ModalGainMachine(tuple(unit), chi, d, rate, settings, ba)
 
 
 def trial_scans(request: OptimizeRequest, chi: np.ndarray) -> list[np.ndarray]:
@@ -152,6 +203,77 @@ def trial_scans(request: OptimizeRequest, chi: np.ndarray) -> list[np.ndarray]:
         g_max = max_stable_gain(nominal_loop(obs, 1.0, modes.start == 0, structure))
         scans.append(scan_gains(TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(chi[modes]))), TRIAL_VALUES))
     return scans
+
+
+@dataclass(frozen=True)
+class LiveOptimisers:
+    """`loop run --mgm [--ogtl]`: MGM and/or OGTL beside the loop for the whole run, from the
+    run's initial gains, plus the live metrics.  Called by ``run.run`` once the calibration is
+    known; returns the tasks, the initial slope sensitivity k and the initial gains (the run's,
+    capped by ``capped_gains``)."""
+
+    mgm: bool = True
+    ogtl: bool = True
+    period_s: float = 1.0
+    ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
+    chi_seeing_arcsec: float = 0.8
+
+    def check(self, observation) -> None:
+        """InputError for a period too short for MGM's PSDs, or a probe beyond the modes."""
+        if not (math.isfinite(self.period_s) and 0 < self.period_s <= 600):
+            raise InputError(f"--period must be in 0..600 s (> 0), got {self.period_s:g}")
+        if self.mgm:
+            period_settings(self._frames(observation), observation)
+        if self.ogtl:
+            check_probe(self.ogtl_settings, observation)
+
+    def _frames(self, observation) -> int:
+        return max(1, round(self.period_s * observation.frame_rate_hz))
+
+    @staticmethod
+    def closing_frames(rate_hz: float) -> int:
+        return closing_frames(rate_hz)
+
+    @staticmethod
+    def start(loop: ClosedLoop, tasks, sensitivity: float) -> None:
+        start_aux_loops(loop, tasks, sensitivity)
+
+    def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, photons_per_frame: float):
+        obs = request.observation
+        period = self._frames(obs)
+        chi, k0 = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, self.chi_seeing_arcsec)
+        tasks = [OgtlTask(period, self.ogtl_settings)] if self.ogtl else []
+        if self.mgm:
+            settings = period_settings(period, obs)
+            tasks.append(MgmTask(period, mgm_machine(obs, request.structure, chi, settings, gains.forgetting)))
+        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, photons_per_frame))
+        initial = capped_gains(gains.per_mode(len(chi)), obs, request.structure, chi, gains.forgetting)
+        return tasks, k0, initial
+
+
+def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float,
+                 fraction: float = INITIAL_GAIN_FRACTION) -> np.ndarray:
+    """The initial gains, each capped at ``fraction`` of its maximum stable gain for the
+    optimisers' plant (chi_i z^-d, the structure on Tip/Tilt).  With OGTL the loop starts at
+    k = 1 / gamma_30: gains chosen for k = 1 would be multiplied by chi_i = gamma_i / gamma_30,
+    several times 1 for the low orders of a poorly corrected loop, and diverge at once."""
+    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), len(chi))
+    limits = mgm.gain_limits(unit, chi, observation.delay_frames, observation.frame_rate_hz, 0.0,
+                             _structure_ba(sampled_structure(structure, observation.frame_rate_hz), observation.frame_rate_hz))
+    return np.minimum(gains, fraction * limits)
+
+
+def _structure_ba(structure, rate_hz: float):
+    return None if structure is None else tuple(tuple(map(float, x)) for x in structure.coefficients(rate_hz))
+
+
+def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> tuple[np.ndarray, float]:
+    """(chi_i of the optimisers' plant, initial k): with OGTL, gamma_i / gamma_probe and
+    k = 1 / gamma_probe of the reference table (OGTL then tracks the real one); without, gamma_i
+    and k = 1."""
+    gamma = optical_gain_table(calibration, cache, seeing_arcsec)
+    chi = mgm_chi(gamma, ogtl, probe_mode)
+    return chi, (1.0 / gamma[probe_mode - 1] if ogtl else 1.0)
 
 
 def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int) -> PhaseMetrics:
@@ -171,26 +293,27 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         check_stability(obs, gains, structure)
     cal = calibration_for(r, cache)
     n_modes = cal.basis.n_modes
-    gamma = optical_gain_table(cal, cache, request.chi_seeing_arcsec)
-    chi = mgm_chi(gamma, request.ogtl, request.ogtl_settings.mode)
-    k0 = 1.0 / gamma[request.ogtl_settings.mode - 1] if request.ogtl else 1.0
+    chi, k0 = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
     if request.method == "mgm":
-        optimiser = MgmTask(request.frames(request.period_s), mgm_machine(request, cal, chi))
+        machine = mgm_machine(obs, r.structure, chi, request.settings_for_rate(obs.frame_rate_hz), gains.forgetting)
+        optimiser = MgmTask(request.frames(request.period_s), machine)
         n_opt = request.frames(request.duration_s)
     else:
         sequence = request.frames(request.trial_sequence_s)
         settle = max(1, sequence // 5)
         optimiser = TrialAndErrorTask(n_modes, trial_scans(request, chi), settle, sequence - settle)
         n_opt = sequence * sum(len(s) for s in optimiser.scans)
-    aux = [OgtlTask(request.frames(request.period_s), request.ogtl_settings)] if request.ogtl else []
     atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
-    loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed,
-                      structure=structure, aux_loops=aux, sensitivity=k0)
-    loop.add_aux_loop(LiveMetricsTask(request.frames(request.period_s), chi, band_wavelength(r.band), obs.magnitude_r,
-                                      loop.sensor.photons_per_frame))
+    gains = LoopGains.from_modes(capped_gains(gains.per_mode(n_modes), obs, r.structure, chi, gains.forgetting), gains.forgetting)
+    loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
+    period = request.frames(request.period_s)
+    aux = [OgtlTask(period, request.ogtl_settings)] if request.ogtl else []
+    aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
     initial = loop.rtc_parameters.gains
+    n_close = closing_frames(obs.frame_rate_hz)
     n_measure = request.frames(request.measure_s)
-    total = 2 * n_measure + n_opt
+    n_settle = OGTL_SETTLING_PERIODS * period if request.ogtl else 0
+    total = n_close + n_settle + 2 * n_measure + n_opt
     wavelength = band_wavelength(r.band)
     psf_before, psf_after = PsfAccumulator(loop.pupil, wavelength), PsfAccumulator(loop.pupil, wavelength)
     done = 0
@@ -204,13 +327,25 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     result = OptimizeResult(request, initial, initial, None, None, loop, chi)
     t0 = time.perf_counter()
     try:
-        loop.run(n_measure, psf=psf_before, skip=min(n_measure // 2, request.frames(0.05)), progress=tick)
-        result.before = _phase_metrics(loop, psf_before, n_measure // 2, n_measure)
-        result.phases["before"] = (0, n_measure)
+        loop.run(n_close, progress=tick)
+        result.phases["closing"] = (0, n_close)
+        start_aux_loops(loop, aux, k0)
+        if n_settle:
+            loop.run(n_settle, progress=tick)
+            result.phases["settling"] = (n_close, loop.frame)
+        start = loop.frame
+        # ends on a period boundary, where OGTL updates: the optimiser starts with it and its
+        # windows are whole periods (auxiliary loops run when frame % period == 0)
+        n_before = n_measure + (-(start + n_measure)) % period
+        total += n_before - n_measure
+        loop.run(n_before, psf=psf_before, skip=min(n_measure // 2, request.frames(0.05)), progress=tick)
+        result.before = _phase_metrics(loop, psf_before, start + n_measure // 2, loop.frame)
+        result.phases["before"] = (start, loop.frame)
+        start = loop.frame
         loop.add_aux_loop(optimiser)
         loop.run(n_opt, progress=tick)
         loop.remove_aux_loop(optimiser)
-        result.phases["optimisation"] = (n_measure, n_measure + n_opt)
+        result.phases["optimisation"] = (start, loop.frame)
         result.gains = loop.rtc_parameters.gains
         start = loop.frame
         loop.run(n_measure, psf=psf_after, skip=min(n_measure // 2, request.frames(0.05)), progress=tick)

@@ -131,6 +131,8 @@ class RunResult:
     calibration_seconds: float
     mas_per_nm: float
     spectra: dict = field(default_factory=dict)
+    final_gains: np.ndarray | None = None  # per mode, at the end (auxiliary loops may change them)
+    final_sensitivity: float = 1.0  # the slope sensitivity k at the end
 
     def configuration(self) -> dict:
         r = self.request
@@ -193,8 +195,9 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
     return calibrate(CalibrationSetup(config, obs.modes, BasisSetup()), cache)
 
 
-def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None) -> RunResult:
-    """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module)."""
+def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None) -> RunResult:
+    """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
+    ``aux`` (``optimize.LiveOptimisers``) adds auxiliary loops once the loop has closed (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`)."""
     obs = request.observation
     structure = sampled_structure(request.structure, obs.frame_rate_hz)
     gains = request.gains or default_gains(obs, structure)
@@ -206,11 +209,21 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
     loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise,
                       seed=request.seed, structure=structure)
+    n_close, start_aux = 0, None
+    if aux is not None:
+        tasks, k0, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
+        loop.set_gains(initial)
+        n_close = min(request.frames, aux.closing_frames(obs.frame_rate_hz))
+        start_aux = (tasks, k0)
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
     try:
-        loop.run(request.frames, psf=psf, skip=request.skip, progress=progress)
+        if start_aux is not None:  # the loop closes at k = 1, then the auxiliary loops start
+            loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
+            aux.start(loop, *start_aux)
+        loop.run(request.frames - n_close, psf=psf, skip=max(0, request.skip - n_close),
+                 progress=None if progress is None else (lambda k: progress(n_close + k)))
     except LoopDiverged as e:
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1
@@ -220,6 +233,6 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
         metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
         image = psf.psf
     return RunResult(request, gains, cal, loop.telemetry, metrics, image, diverged_at, diverged_rms, seconds, t_cal,
-                     loop.mas_per_nm_tt, spectra)
+                     loop.mas_per_nm_tt, spectra, loop.rtc_parameters.gains, loop.rtc_parameters.sensitivity)
 
 

@@ -237,11 +237,24 @@ class ClosedLoop:
         aux.start(self.rtc_parameters, self.rate_hz)
         self.aux_loops.append(aux)
         self.telemetry.aux.setdefault(aux.name, [])
-        history = self.telemetry.gain_history
-        if history and history[-1][0] == self.frame:
-            history.pop()  # several tasks added before the same frame: one entry
-        history.append((self.frame, self.rtc_parameters.gains))
+        self._record_gains()
         self._parameters_since = self.frame
+
+    def set_gains(self, gains: np.ndarray) -> None:
+        """New modal gains from the next frame on (recorded in the gain history)."""
+        self.rtc_parameters.set_gains(gains)
+        self._record_gains()
+        self._parameters_since = self.frame
+
+    def _record_gains(self) -> None:
+        """Add the current gains to the history if they changed (one entry per frame)."""
+        history = self.telemetry.gain_history
+        gains = self.rtc_parameters.gains
+        if np.array_equal(history[-1][1], gains):
+            return
+        if history[-1][0] == self.frame:
+            history.pop()
+        history.append((self.frame, gains))
 
     def remove_aux_loop(self, aux: AuxLoop) -> None:
         self.aux_loops.remove(aux)

@@ -14,10 +14,22 @@ Layout (rows are frames):
     /disturbance_modes (frames, n_modes)  float32   the simulation's true disturbance, nm
     /residual_rms_nm   (frames,)          float64
     /frame_time_s      (frames,)          float64   k / frame rate
-    /gains             (n_modes,)         float64   per-mode gains (Delta of each mode)
+    /sensitivity       (frames,)          float64   slope sensitivity k during frame k
+    /flux              (frames,)          float64   detected electrons in frame k
+    /gains             (n_modes,)         float64   per-mode gains (Delta of each mode) at the end
+    /gain_history/frames (changes,)       int64     first frame of each gain vector
+    /gain_history/gains  (changes, n_modes) float64 the gain vectors in force from those frames
+    /aux/<task>/<field> (updates, ...)    float64   auxiliary loops' records (e.g. /aux/ogtl/
+                                                    sensitivity, /aux/mgm/gains, /aux/metrics/
+                                                    strehl_estimate), /aux/<task>/frame the
+                                                    first frame after each update
     attributes: rate_hz, delay_frames, n_modes, soulctl_version, diverged_at (-1 if not),
                 configuration (JSON: observation, atmosphere, gains, seed, ...)
 The file is written to a temporary name and renamed (never half-written).
+
+Offline MGM (`optimize gains --telemetry`) needs measured_modes, command_modes, gains and the
+rate_hz and delay_frames attributes; it uses sensitivity, gain_history, /aux/ogtl and the
+configuration when present (see ``loop.offline``).
 """
 
 from __future__ import annotations
@@ -36,11 +48,27 @@ FLOAT32 = ("slopes", "measured_modes", "commands", "command_modes", "mirror_mode
 REQUIRED = ("measured_modes", "command_modes", "gains")
 
 
+def telemetry_arrays(telemetry) -> dict[str, np.ndarray]:
+    """The datasets of a ``simulation.Telemetry``: per-frame records, frame times, the gain
+    history and the auxiliary loops' records (names with '/' become HDF5 groups)."""
+    arrays = telemetry.arrays()
+    arrays["frame_time_s"] = np.arange(len(arrays["residual_rms_nm"])) / telemetry.rate_hz
+    frames, gains = telemetry.gain_arrays()
+    arrays["gain_history/frames"] = frames.astype(np.int64)
+    arrays["gain_history/gains"] = gains
+    for task in telemetry.aux:
+        for key, value in telemetry.aux_arrays(task).items():
+            arrays[f"aux/{task}/{key}"] = value.astype(np.int64) if key == "frame" else value
+    return arrays
+
+
 def write_telemetry(path: str | Path, arrays: dict[str, np.ndarray], attributes: dict, configuration: dict) -> None:
     def write(tmp: str) -> None:
         with h5py.File(tmp, "w") as f:
             for name, data in arrays.items():
-                data = np.asarray(data, dtype=np.float32 if name in FLOAT32 else np.float64)
+                data = np.asarray(data)
+                if data.dtype.kind != "i":
+                    data = data.astype(np.float32 if name in FLOAT32 else np.float64)
                 opts = {"compression": "gzip", "compression_opts": 1, "chunks": True} if data.ndim == 2 and data.size > 4096 else {}
                 f.create_dataset(name, data=data, **opts)
             for k, v in attributes.items():
@@ -60,7 +88,8 @@ def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
             if missing or "rate_hz" not in f.attrs or "delay_frames" not in f.attrs:
                 need = missing + [a for a in ("rate_hz", "delay_frames") if a not in f.attrs]
                 raise InputError(f"telemetry file {path} lacks {', '.join(need)}")
-            arrays = {k: f[k][()] for k in f.keys()}
+            arrays = {}
+            f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
             attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
     except (OSError, KeyError) as e:
         raise InputError(f"cannot read telemetry file {path}: {e}") from None

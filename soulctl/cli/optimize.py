@@ -1,0 +1,220 @@
+"""``soulctl optimize gains``: trial-and-error or the Modal Gain Machine, live in the simulated
+loop (with the optical gain tracking loop) or offline on a recorded telemetry file."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from ..control.ogtl import OgtlSettings
+from ..control.structure import StructuralResonance
+from ..control.trial import gain_groups
+from ..disturbance.vibrations import VibrationSpectrum
+from ..errors import InputError
+from ..files import atomic_write_text, check_output_path
+from ..loop.metrics import BANDS
+from ..loop.offline import offline_mgm
+from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
+from ..loop.run import RunRequest
+from ..loop.simulation import DEFAULT_FORGETTING
+from ..plots.gains import write_gain_figures
+from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from .loop import check_conditions, observation_from, parse_gains
+
+app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
+
+METHOD_CHOICES = METHODS + ("both",)
+
+
+def probe_settings(mode: int, amplitude: float, frequency: float | None) -> OgtlSettings:
+    """The OGTL probe of the --probe-* options (checked by OgtlSettings)."""
+    return OgtlSettings(mode=mode, amplitude_nm=amplitude, frequency_hz=frequency)
+
+
+def gains_toml(gains: np.ndarray, comment: str) -> str:
+    """A gain file `loop run --gains` reads: ``gains = [...]``, one per mode."""
+    body = ",\n".join("  " + ", ".join(f"{g:.5f}" for g in gains[i : i + 8]) for i in range(0, len(gains), 8))
+    return f"# {comment}\n# one gain per mode (mode 1 = Tip); use with: soulctl loop run --gains FILE\ngains = [\n{body},\n]\n"
+
+
+def group_summary(gains: np.ndarray) -> list[dict]:
+    """Per paper group: name, mean, min, max of the gains."""
+    return [{"group": name, "modes": f"{m.start + 1}-{min(m.stop, len(gains)) if m.stop else len(gains)}",
+             "mean": float(np.mean(gains[m])), "min": float(np.min(gains[m])), "max": float(np.max(gains[m]))}
+            for name, m in gain_groups(len(gains)) if len(gains[m])]
+
+
+def _result_dict(result: OptimizeResult) -> dict:
+    r = result.request
+    tm = result.loop.telemetry
+    ogtl = tm.aux_arrays("ogtl")
+    return {
+        "method": r.method,
+        "ogtl": r.ogtl,
+        "diverged_at_frame": result.diverged_at,
+        "seconds": result.seconds,
+        "phases": {k: {"first_frame": a, "end_frame": b} for k, (a, b) in result.phases.items()},
+        "before": result.before.to_dict() if result.before else None,
+        "after": result.after.to_dict() if result.after else None,
+        "groups": group_summary(result.gains),
+        "gains": result.gains.tolist(),
+        "initial_gains": result.initial_gains.tolist(),
+        "sensitivity": result.loop.rtc_parameters.sensitivity,
+        "optical_gain_mode": r.ogtl_settings.mode if r.ogtl else None,
+        "optical_gain_estimate": float(ogtl["optical_gain"][-1]) if len(ogtl.get("optical_gain", [])) else None,
+        "trial_best": [float(g) for g in tm.aux_arrays("trial").get("best", []) if math.isfinite(g)] if r.method == "trial" else None,
+        "mgm_updates": len(tm.aux.get("mgm", [])),
+    }
+
+
+def _render(results: dict[str, OptimizeResult], console: Console) -> None:
+    first = next(iter(results.values()))
+    rr = first.request.run
+    obs = rr.observation
+    t = Table(title=f"Gain optimisation: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
+                    f"{obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}\", wind {rr.wind_m_s:g} m/s", title_justify="left")
+    t.add_column("quantity")
+    for method in results:
+        t.add_column("trial-and-error" if method == "trial" else "MGM", justify="right")
+    rows = [("Strehl ratio (" + rr.band + ") before → after", lambda x: f"{x.before.strehl:.3f} → {x.after.strehl:.3f}"),
+            ("residual before → after [nm]", lambda x: f"{x.before.residual_nm:.0f} → {x.after.residual_nm:.0f}"),
+            ("Tip/Tilt jitter before → after [mas]", lambda x: f"{x.before.tt_jitter_mas:.2f} → {x.after.tt_jitter_mas:.2f}")]
+    ok = {m: x for m, x in results.items() if x.diverged_at is None}
+    for label, fmt in rows:
+        t.add_row(label, *[fmt(x) if m in ok else "diverged" for m, x in results.items()])
+    for i, g in enumerate(group_summary(first.gains)):
+        t.add_row(f"gains {g['group']} (mean, min-max)",
+                  *[_group_text(group_summary(x.gains)[i]) for x in results.values()])
+    t.add_row("gains Tip / Tilt", *[f"{x.gains[0]:.3f} / {x.gains[1]:.3f}" for x in results.values()])
+    t.add_row("slope sensitivity k", *[f"{x.loop.rtc_parameters.sensitivity:.3f}" if x.request.ogtl else "1 (no OGTL)" for x in results.values()])
+    t.add_row("simulated / wall time [s]", *[f"{x.loop.frame / obs.frame_rate_hz:.1f} / {x.seconds:.0f}" for x in results.values()])
+    console.print(t)
+
+
+def _group_text(g: dict) -> str:
+    return f"{g['mean']:.3f}" if g["min"] == g["max"] else f"{g['mean']:.3f} ({g['min']:.3f}-{g['max']:.3f})"
+
+
+def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | None, json_output: bool, cache) -> int:
+    observation = observation_option(config, mag)
+    result = offline_mgm(telemetry, observation, cache)
+    if out is not None:
+        atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
+    if json_output:
+        print(json.dumps({**result.to_dict(), "groups": group_summary(result.gains)}))
+        return 0
+    console = Console()
+    obs = result.observation
+    t = quantity_table(f"MGM on {telemetry.name}: {obs.modes} modes, {obs.frame_rate_hz:g} Hz, window of {result.frames} frames "
+                       f"({result.frames / obs.frame_rate_hz:.2f} s, Welch segment {result.segment})")
+    for g_prev, g in zip(group_summary(result.previous_gains), group_summary(result.gains)):
+        t.add_row(f"gains {g['group']}: recorded → MGM", f"{_group_text(g_prev)} → {_group_text(g)}")
+    t.add_row("gains Tip / Tilt", f"{result.gains[0]:.3f} / {result.gains[1]:.3f}")
+    t.add_row("chi model", "gamma_i / gamma_30 (OGTL recorded)" if result.ogtl else f"gamma_i x k (k = {result.sensitivity:.3f})")
+    console.print(t)
+    if out is not None:
+        console.print(f"gains written to {out}")
+    return 0
+
+
+@app.command("gains")
+def gains_cmd(
+    method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side)."),
+    config: Path | None = CONFIG,
+    mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude (default 9.7)."),
+    telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5",
+                                          help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."),
+    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight (0.05..10)."),
+    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective wind speed of the LBT profile."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    duration: float = typer.Option(5.0, "--duration", metavar="S", help="MGM: simulated time of the optimisation (0..3600 s)."),
+    period: float = typer.Option(1.0, "--period", metavar="S", help="MGM and OGTL update period (the paper: 1 s); needs 4 Welch segments of >= 64 frames."),
+    measure: float = typer.Option(0.5, "--measure", metavar="S", help="Simulated time measured before and after the optimisation."),
+    sequence: float = typer.Option(0.25, "--sequence", metavar="S", help="Trial-and-error: one closed-loop sequence per gain (20 % settling)."),
+    ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
+    probe_mode: int = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based)."),
+    probe_amplitude: float = typer.Option(20.0, "--probe-amplitude", metavar="NM", help="OGTL probe amplitude, nm peak."),
+    probe_frequency: float | None = typer.Option(None, "--probe-frequency", metavar="HZ", help="OGTL probe frequency (default: frame rate / 4)."),
+    tt_control: str | None = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one)."),
+    gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."),
+    band: str = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}."),
+    seed: int = typer.Option(1, "--seed", help="Seed of turbulence, vibrations and noise."),
+    no_noise: bool = typer.Option(False, "--no-noise", help="Noiseless detector."),
+    vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml)."),
+    no_vibrations: bool = typer.Option(False, "--no-vibrations", help="No telescope vibrations."),
+    no_resonance: bool = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance."),
+    oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes)."),
+    out: Path | None = typer.Option(None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."),
+    plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."),
+    no_cache: bool = NO_CACHE,
+    cache_dir: Path | None = CACHE_DIR,
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+) -> int:
+    """Optimise the modal gains in the simulated closed loop: measure at the initial gains, run
+    the optimiser live as an auxiliary loop (trial-and-error: the three groups scanned in
+    sequence; MGM: every mode every --period from the pseudo-open-loop PSDs), measure at the
+    optimised gains.  With --ogtl the optical gain tracking loop runs throughout.  Prints the
+    gains and the Strehl ratio and residual before and after; exit status 3 if the loop
+    diverges.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
+    would apply.
+
+    Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/
+    """
+    if method not in METHOD_CHOICES:
+        raise InputError(f"--method must be one of {', '.join(METHOD_CHOICES)}, got '{method}'")
+    for path, option in ((out, "--out"),):
+        if path is not None:
+            check_output_path(path, option)
+    if plot is not None and not plot.is_dir():
+        raise InputError(f"--plot must be an existing folder, got {plot}")
+    cache = array_cache(no_cache, cache_dir)
+    if telemetry is not None:
+        if method != "mgm":
+            raise InputError("--telemetry runs MGM offline: use it with --method mgm")
+        if not telemetry.is_file():
+            raise InputError(f"telemetry file {telemetry} not found")
+        return _offline(telemetry, config, mag, out, json_output, cache)
+    check_conditions(seeing, wind, L0, band)
+    obs = observation_from(config, mag, tt_control)
+    vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
+    run = RunRequest(obs, seeing, wind, L0, max(duration, measure), parse_gains(gains, DEFAULT_FORGETTING), band, seed,
+                     not no_noise, vib, oversampling, None if no_resonance else StructuralResonance())
+    probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
+    methods = list(METHODS) if method == "both" else [method]
+    requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}
+    show = not json_output and sys.stderr.isatty()
+    results: dict[str, OptimizeResult] = {}
+    for m, request in requests.items():
+        progress = Progress(TextColumn("trial-and-error" if m == "trial" else "MGM"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+                            TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+        with progress if show else nullcontext():
+            task = progress.add_task(m, total=None) if show else None
+            results[m] = optimize(request, cache, progress=(lambda done, total: progress.update(task, completed=done, total=total)) if show else None)
+    diverged = [m for m, x in results.items() if x.diverged_at is not None]
+    final = results["mgm" if "mgm" in results else "trial"]
+    if out is not None and not diverged:
+        atomic_write_text(out, gains_toml(final.gains, f"{'MGM' if final.request.method == 'mgm' else 'trial-and-error'} gains, "
+                                                       f"R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {seeing:g}\", seed {seed}"))
+    if plot is not None:
+        write_gain_figures(plot, results)
+    if json_output:
+        print(json.dumps({m: _result_dict(x) for m, x in results.items()} if method == "both" else _result_dict(final)))
+    else:
+        console = Console()
+        _render(results, console)
+        if out is not None and not diverged:
+            console.print(f"gains written to {out}")
+        if plot is not None:
+            console.print(f"figures written to {plot}/")
+    for m in diverged:
+        print(f"soulctl: the loop diverged at frame {results[m].diverged_at} during the {m} optimisation; no gain file written", file=sys.stderr)
+    return 3 if diverged else 0

@@ -1,0 +1,90 @@
+"""Figures of a gain optimisation, as the paper's: the optimised gain per mode (MGM against
+trial-and-error, Fig. GAINday/GAINnight) and the time series of a few modal gains, the
+estimated optical gain and the Strehl ratio (Fig. timeSerie)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from .transfer import save_figure
+
+TIME_SERIES_MODES = (1, 2, 10, 50, 200)  # 1-based, as in the paper's figure (no. 1 is Tip)
+LABELS = {"mgm": "MGM", "trial": "trial-and-error"}
+COLOURS = {"mgm": "k", "trial": "C3"}  # the paper: black MGM, red trial-and-error
+
+
+def _figure(size=(6.4, 4.8)) -> Figure:
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def gain_vector_figure(gains: dict[str, np.ndarray], title: str) -> Figure:
+    """Gain per mode, one line per method."""
+    fig = _figure()
+    ax = fig.subplots()
+    for method, g in gains.items():
+        ax.plot(np.arange(1, len(g) + 1), g, color=COLOURS.get(method), label=LABELS.get(method, method), linewidth=1)
+    ax.set_xscale("log")
+    ax.set_xlabel("mode")
+    ax.set_ylabel("gain")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=9)
+    return fig
+
+
+def time_series_figure(result, title: str) -> Figure:
+    """Three panels against simulated time: gains of TIME_SERIES_MODES (steps at each change),
+    the slope sensitivity k and 1 / optical gain estimate of OGTL, the live Strehl estimate."""
+    tm = result.loop.telemetry
+    rate = tm.rate_hz
+    end = result.loop.frame / rate
+    fig = _figure((6.4, 7.2))
+    ax_g, ax_k, ax_s = fig.subplots(3, 1, sharex=True)
+    frames, gains = tm.gain_arrays()
+    t = np.append(frames / rate, end)
+    for mode in TIME_SERIES_MODES:
+        if mode <= gains.shape[1]:
+            ax_g.step(t, np.append(gains[:, mode - 1], gains[-1, mode - 1]), where="post", label=f"mode {mode}", linewidth=1)
+    ax_g.set_ylabel("gain")
+    k = np.asarray(tm.sensitivity)
+    ax_k.plot(np.arange(len(k)) / rate, k, color="C0", label="slope sensitivity k")
+    ogtl = tm.aux_arrays("ogtl")
+    if len(ogtl.get("frame", [])):
+        ax_k.plot(ogtl["frame"] / rate, 1.0 / np.maximum(ogtl["optical_gain"], 1e-3), ".", color="C1", label="1 / optical gain estimate")
+    ax_k.set_ylabel("k")
+    live = tm.aux_arrays("metrics")
+    if len(live.get("frame", [])):
+        ax_s.plot(live["frame"] / rate, live["strehl_estimate"], ".-", color="C2", label="Strehl estimate (controlled modes)")
+    for name, (a, b) in result.phases.items():
+        ax_s.axvspan(a / rate, b / rate, alpha=0.08, color={"before": "C0", "optimisation": "C1", "after": "C2"}.get(name, "0.5"))
+    ax_s.set_ylabel("Strehl")
+    ax_s.set_xlabel("time [s]")
+    for ax in (ax_g, ax_k, ax_s):
+        ax.grid(True, alpha=0.25)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8, ncol=3 if ax is ax_g else 1)
+    ax_g.set_title(title, fontsize=10)
+    return fig
+
+
+def write_gain_figures(directory: Path, results: dict) -> list[Path]:
+    """gains.png (all methods) and timeseries[_METHOD].png per method, written atomically."""
+    first = next(iter(results.values()))
+    rr = first.request.run
+    obs = rr.observation
+    label = f"R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}\""
+    figures = [("gains.png", gain_vector_figure({m: x.gains for m, x in results.items()}, f"Optimised gains, {label}"))]
+    for method, result in results.items():
+        name = "timeseries.png" if len(results) == 1 else f"timeseries_{method}.png"
+        figures.append((name, time_series_figure(result, f"{LABELS.get(method, method)}: {label}")))
+    out = []
+    for name, fig in figures:
+        save_figure(fig, directory / name)
+        out.append(directory / name)
+    return out

@@ -1,0 +1,196 @@
+"""`soulctl optimize gains` (live trial-and-error and MGM, offline MGM on a telemetry file) and
+`loop run --mgm --ogtl`: results, files, Tip/Tilt decoupling, errors with exit status 2."""
+
+import dataclasses
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from soulctl.cli.app import main
+from soulctl.cli.loop import parse_gains
+from soulctl.control import mgm
+from soulctl.loop.telemetry_file import read_telemetry
+from soulctl.observation import observation_for_magnitude
+
+# The R17 configuration (binning 4, 10x10 sub-apertures, 54 modes, 407 Hz, Tip/Tilt
+# integrator) on a 40-px pupil, with an R11 star's flux at 0.6" seeing: a small loop well inside
+# the PWFS's linear range.  (At R17's own flux the loop is noise-dominated and OGTL's k ~ 4.6
+# amplifies the noise past the linear range; see docs/physics.md.)
+OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
+SMALL = ["--oversampling", "1", "--seeing", "0.6"]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("optimize-cache")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def small_config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("config") / "small.toml"
+    OBS.write_toml(path)
+    SMALL[:0] = ["--config", str(path)]
+    yield
+    del SMALL[:2]
+
+
+def cli(args, capsys, cache_dir):
+    status = main([*args, "--cache-dir", str(cache_dir)])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, cache_dir):
+    """A 2 s loop at fixed gains, its telemetry written by `loop run`."""
+    path = tmp_path_factory.mktemp("tm") / "loop.h5"
+    assert main(["loop", "run", *SMALL, "--duration", "2", "--telemetry", str(path), "--cache-dir", str(cache_dir), "--json"]) == 0
+    return path
+
+
+def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir):
+    out_file = tmp_path / "gains.toml"
+    status, out, err = cli(["optimize", "gains", "--method", "both", *SMALL, "--duration", "2", "--measure", "0.3",
+                            "--sequence", "0.1", "--json", "--out", str(out_file), "--plot", str(tmp_path)], capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    assert set(d) == {"trial", "mgm"}
+    for method, r in d.items():
+        g = np.array(r["gains"])
+        assert g.shape == (54,) and np.all(np.isfinite(g)) and np.all(g >= 0)
+        assert 0 < r["before"]["strehl"] < 1 and 0 < r["after"]["strehl"] < 1 and r["after"]["residual_nm"] > 0
+        assert r["sensitivity"] > 1  # OGTL: k = 1 / optical gain of mode 30 of a partly corrected loop
+    trial = np.array(d["trial"]["gains"])
+    assert len(set(trial[:2])) == 1 and len(set(trial[2:])) == 1  # one gain per group (54 modes: two groups)
+    assert d["trial"]["trial_best"] == pytest.approx([trial[0], trial[2]])
+    assert d["mgm"]["mgm_updates"] == 2
+    assert not np.allclose(d["mgm"]["gains"], d["mgm"]["initial_gains"])
+    # the gain file is MGM's vector and `loop run --gains` reads it
+    assert np.allclose(parse_gains(str(out_file), 0.99).per_mode(54), d["mgm"]["gains"], atol=1e-5)
+    for name in ("gains.png", "timeseries_trial.png", "timeseries_mgm.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_table_output_and_same_seed_same_gains(capsys, cache_dir):
+    args = ["optimize", "gains", *SMALL, "--duration", "1", "--measure", "0.2", "--seed", "5"]
+    status, out, err = cli(args, capsys, cache_dir)
+    assert status == 0, err
+    for text in ("Strehl ratio", "before → after", "gains Tip / Tilt", "slope sensitivity k"):
+        assert text in out
+    a = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
+    b = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
+    assert a["gains"] == b["gains"] and a["after"] == b["after"]
+
+
+def _vibration_file(path, tip, tilt):
+    path.write_text(f"[[line]]\nfrequency_hz = 13.0\ndamping = 0.02\ntip_mas = {tip}\ntilt_mas = {tilt}\n")
+    return path
+
+
+def test_mgm_decouples_tip_and_tilt_with_different_vibrations(tmp_path, capsys, cache_dir):
+    """The paper's decoupling: the axis with the stronger 13 Hz vibration gets the higher gain,
+    and swapping the vibrations swaps the order."""
+    tip_gains = []
+    for tip, tilt in ((40.0, 2.0), (2.0, 40.0)):
+        vib = _vibration_file(tmp_path / f"v{tip:g}.toml", tip, tilt)
+        status, out, err = cli(["optimize", "gains", *SMALL, "--no-ogtl", "--duration", "3", "--measure", "0.2",
+                                "--vibrations", str(vib), "--json"], capsys, cache_dir)
+        assert status == 0, err
+        g = json.loads(out)["gains"]
+        tip_gains.append((g[0], g[1]))
+    (tip_a, tilt_a), (tip_b, tilt_b) = tip_gains
+    assert tip_a > 1.2 * tilt_a and tilt_b > 1.2 * tip_b
+
+
+def test_loop_run_with_mgm_and_ogtl_records_them_in_the_telemetry(tmp_path, capsys, cache_dir):
+    h5 = tmp_path / "aux.h5"
+    status, out, err = cli(["loop", "run", *SMALL, "--duration", "3", "--mgm", "--ogtl", "--telemetry", str(h5), "--json"],
+                           capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["auxiliary_loops"] == ["metrics", "mgm", "ogtl"] and d["final_sensitivity"] > 1
+    arrays, _ = read_telemetry(h5)
+    assert arrays["aux/mgm/gains"].shape == (3, 54) and arrays["aux/mgm/frame"].tolist() == [407, 814, 1221]
+    assert arrays["aux/ogtl/sensitivity"].shape == (3,) and np.all(arrays["aux/ogtl/optical_gain"] > 0)
+    assert arrays["gain_history/frames"].tolist() == [0, 407, 814, 1221]
+    np.testing.assert_allclose(arrays["gain_history/gains"][-1], d["final_gains"])
+    np.testing.assert_allclose(arrays["gains"], d["final_gains"])
+    k = arrays["sensitivity"]
+    # the loop closes at k = 1 (50 frames), then OGTL starts; k changes at its updates only
+    assert k.shape == (1221,) and np.all(k[:50] == 1) and len(set(k[50:407])) == 1 and k[50] > 1
+    np.testing.assert_array_equal(k[[407, 814]], arrays["aux/ogtl/sensitivity"][:2])
+
+
+def test_offline_mgm_on_a_recorded_loop(recorded, tmp_path, capsys, cache_dir):
+    out_file = tmp_path / "offline.toml"
+    status, out, err = cli(["optimize", "gains", "--method", "mgm", "--telemetry", str(recorded), "--json", "--out", str(out_file)],
+                           capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    previous, optimum, gains = (np.array(d[k]) for k in ("previous_gains", "optimum", "gains"))
+    arrays, _ = read_telemetry(recorded)
+    np.testing.assert_allclose(previous, arrays["gains"])
+    settings = mgm.MgmSettings()
+    np.testing.assert_allclose(gains, (1 - settings.rho) * previous + settings.rho * settings.nu * optimum, rtol=1e-9)
+    assert d["window"]["frames"] == 814 and d["window"]["first_frame"] == 0 and not d["ogtl"]
+    assert np.all(optimum >= 0) and np.all(np.isfinite(optimum)) and not np.allclose(optimum, previous)
+    assert np.allclose(parse_gains(str(out_file), 0.99).per_mode(54), gains, atol=1e-5)
+    status, out, _ = cli(["optimize", "gains", "--telemetry", str(recorded)], capsys, cache_dir)
+    assert status == 0 and "recorded → MGM" in out
+
+
+def _edited(recorded, tmp_path, edit):
+    path = tmp_path / "edited.h5"
+    path.write_bytes(recorded.read_bytes())
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    return path
+
+
+def _nan_commands(f):
+    data = f["command_modes"][()]
+    data[10, 3] = np.nan
+    del f["command_modes"]
+    f["command_modes"] = data
+
+
+def _short(f):
+    for name in ("measured_modes", "command_modes"):
+        data = f[name][:100]
+        del f[name]
+        f[name] = data
+
+
+@pytest.mark.parametrize("edit, args, message", [
+    (lambda f: f.__delitem__("measured_modes"), [], "lacks measured_modes"),
+    (_nan_commands, [], "field command_modes has 1 NaN"),
+    (lambda f: None, ["--mag", "15"], "field measured_modes has shape (814, 54), expected (frames, 90)"),
+    (lambda f: f.attrs.__delitem__("delay_frames"), [], "lacks delay_frames"),
+    (_short, [], "must span at least"),
+])
+def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, edit, args, message):
+    path = _edited(recorded, tmp_path, edit)
+    status, out, err = cli(["optimize", "gains", "--telemetry", str(path), *args, "--out", str(tmp_path / "g.toml")], capsys, cache_dir)
+    assert status == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "g.toml").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--method", "grid"], "--method must be one of"),
+    (["--method", "trial", "--telemetry", "x.h5"], "use it with --method mgm"),
+    (["--period", "0.2"], "--period (less the loop delay) must span at least"),
+    (["--probe-mode", "60"], "--probe-mode 60 is beyond the 54 controlled modes"),
+    (["--duration", "0"], "--duration must be in 0..3600 s"),
+    (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
+    (["--seeing", "0"], "--seeing must be in"),
+])
+def test_bad_input_exits_2_with_one_line(args, message, capsys, cache_dir):
+    status, out, err = cli(["optimize", "gains", *SMALL, *args], capsys, cache_dir)
+    assert status == 2 and message in err and err.count("\n") == 1
+
+
+def test_loop_run_refuses_a_period_too_short_for_mgm(capsys, cache_dir):
+    status, _, err = cli(["loop", "run", *SMALL, "--mgm", "--period", "0.1"], capsys, cache_dir)
+    assert status == 2 and "must span at least" in err
