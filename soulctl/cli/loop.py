@@ -11,11 +11,9 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
-from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import check_output_path, read_toml
 from ..loop.metrics import BANDS
@@ -27,7 +25,9 @@ from ..observation import Observation, observation_for_magnitude
 from ..optics.atmosphere import SEEING_RANGE_ARCSEC
 from ..plots.loop import write_loop_figures
 from .configure import parse_magnitude
-from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, OVERSAMPLING,
+                     PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
+                     frames_progress, observation_option, quantity_table, vibration_spectrum)
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -145,37 +145,39 @@ def _render(result, console: Console) -> None:
 def run_cmd(
     config: Path | None = CONFIG,
     mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {DEFAULT_MAGNITUDE}, the paper's bright star)."),
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight (0.05..10)."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective wind speed of the LBT profile."),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    seeing: float = SEEING,
+    wind: float = WIND,
+    L0: float = OUTER_SCALE,
     duration: float = typer.Option(0.2, "--duration", metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."),
-    tt_control: str | None = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one)."),
+    tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."),
-    band: str = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}."),
-    seed: int = typer.Option(1, "--seed", help="Seed of turbulence, vibrations and noise."),
-    no_noise: bool = typer.Option(False, "--no-noise", help="Noiseless detector."),
-    vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml)."),
-    no_vibrations: bool = typer.Option(False, "--no-vibrations", help="No telescope vibrations."),
-    no_resonance: bool = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance."),
-    oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes)."),
+    band: str = BAND,
+    seed: int = SEED,
+    no_noise: bool = NO_NOISE,
+    vibrations: Path | None = VIBRATIONS,
+    no_vibrations: bool = NO_VIBRATIONS,
+    no_resonance: bool = NO_RESONANCE,
+    oversampling: int = OVERSAMPLING,
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
-    period: float = typer.Option(1.0, "--period", metavar="S", help="Update period of --mgm and --ogtl (the paper: 1 s)."),
-    probe_mode: int = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based)."),
-    probe_amplitude: float = typer.Option(20.0, "--probe-amplitude", metavar="NM", help="OGTL probe amplitude, nm peak."),
-    probe_frequency: float | None = typer.Option(None, "--probe-frequency", metavar="HZ", help="OGTL probe frequency (default: frame rate / 4)."),
+    period: float = PERIOD,
+    probe_mode: int = PROBE_MODE,
+    probe_amplitude: float = PROBE_AMPLITUDE,
+    probe_frequency: float | None = PROBE_FREQUENCY,
     telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+    json_output: bool = JSON_OUTPUT,
 ) -> int:
     """Close a simulated SOUL loop: LBT turbulence and vibrations, the adaptive secondary with
     its 127 Hz structural resonance, the modulated pyramid with detector noise, the C++ slopes
     and RTC, the loop delay.  Prints the Strehl ratio, Tip/Tilt jitter (residual and
-    pseudo-open loop), residual wavefront error and the 13 Hz rejection.  Exit status 3 if the
-    loop diverges (the telemetry so far is still written).
+    pseudo-open loop), residual wavefront error and the 13 Hz rejection.  --mgm and --ogtl run
+    the Modal Gain Machine and the optical gain tracking loop beside it once the loop has
+    closed (their records go to the telemetry file).  Exit status 3 if the loop diverges (the
+    telemetry so far is still written).
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
@@ -187,7 +189,7 @@ def run_cmd(
         raise InputError(f"--plot must be an existing folder, got {plot}")
     obs = observation_from(config, mag, tt_control)
     loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
-    vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
+    vib = vibration_spectrum(no_vibrations, vibrations)
     request = RunRequest(obs, seeing, wind, L0, duration, loop_gains, band, seed, not no_noise, vib, oversampling,
                          None if no_resonance else StructuralResonance(), allow_unstable)
     aux = None
@@ -196,8 +198,7 @@ def run_cmd(
         aux.check(obs)
     cache = array_cache(no_cache, cache_dir)
     show = not json_output and sys.stderr.isatty()
-    progress = Progress(TextColumn("closed loop"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                        TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+    progress = frames_progress("closed loop")
     with progress if show else nullcontext():
         task = progress.add_task("loop", total=request.frames) if show else None
         result = run(request, cache, progress=(lambda k: progress.update(task, completed=k)) if show else None, aux=aux)

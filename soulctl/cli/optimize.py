@@ -12,22 +12,21 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
 from ..control.trial import gain_groups
-from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_path
-from ..loop.metrics import BANDS
 from ..loop.offline import offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
 from ..loop.run import RunRequest
 from ..loop.simulation import DEFAULT_FORGETTING
 from ..plots.gains import write_gain_figures
-from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, OVERSAMPLING,
+                     PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
+                     frames_progress, observation_option, quantity_table, vibration_spectrum)
 from .loop import check_conditions, observation_from, parse_gains
 
 app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
@@ -133,31 +132,31 @@ def gains_cmd(
     mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude (default 9.7)."),
     telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5",
                                           help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."),
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight (0.05..10)."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective wind speed of the LBT profile."),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    seeing: float = SEEING,
+    wind: float = WIND,
+    L0: float = OUTER_SCALE,
     duration: float = typer.Option(5.0, "--duration", metavar="S", help="MGM: simulated time of the optimisation (0..3600 s)."),
-    period: float = typer.Option(1.0, "--period", metavar="S", help="MGM and OGTL update period (the paper: 1 s); needs 4 Welch segments of >= 64 frames."),
+    period: float = PERIOD,
     measure: float = typer.Option(0.5, "--measure", metavar="S", help="Simulated time measured before and after the optimisation."),
     sequence: float = typer.Option(0.25, "--sequence", metavar="S", help="Trial-and-error: one closed-loop sequence per gain (20 % settling)."),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
-    probe_mode: int = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based)."),
-    probe_amplitude: float = typer.Option(20.0, "--probe-amplitude", metavar="NM", help="OGTL probe amplitude, nm peak."),
-    probe_frequency: float | None = typer.Option(None, "--probe-frequency", metavar="HZ", help="OGTL probe frequency (default: frame rate / 4)."),
-    tt_control: str | None = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one)."),
+    probe_mode: int = PROBE_MODE,
+    probe_amplitude: float = PROBE_AMPLITUDE,
+    probe_frequency: float | None = PROBE_FREQUENCY,
+    tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."),
-    band: str = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}."),
-    seed: int = typer.Option(1, "--seed", help="Seed of turbulence, vibrations and noise."),
-    no_noise: bool = typer.Option(False, "--no-noise", help="Noiseless detector."),
-    vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml)."),
-    no_vibrations: bool = typer.Option(False, "--no-vibrations", help="No telescope vibrations."),
-    no_resonance: bool = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance."),
-    oversampling: int = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes)."),
+    band: str = BAND,
+    seed: int = SEED,
+    no_noise: bool = NO_NOISE,
+    vibrations: Path | None = VIBRATIONS,
+    no_vibrations: bool = NO_VIBRATIONS,
+    no_resonance: bool = NO_RESONANCE,
+    oversampling: int = OVERSAMPLING,
     out: Path | None = typer.Option(None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+    json_output: bool = JSON_OUTPUT,
 ) -> int:
     """Optimise the modal gains in the simulated closed loop: measure at the initial gains, run
     the optimiser live as an auxiliary loop (trial-and-error: the three groups scanned in
@@ -185,7 +184,7 @@ def gains_cmd(
         return _offline(telemetry, config, mag, out, json_output, cache)
     check_conditions(seeing, wind, L0, band)
     obs = observation_from(config, mag, tt_control)
-    vib = None if no_vibrations else (VibrationSpectrum.read(vibrations) if vibrations else VibrationSpectrum.lbt_default())
+    vib = vibration_spectrum(no_vibrations, vibrations)
     run = RunRequest(obs, seeing, wind, L0, max(duration, measure), parse_gains(gains, DEFAULT_FORGETTING), band, seed,
                      not no_noise, vib, oversampling, None if no_resonance else StructuralResonance())
     probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
@@ -194,8 +193,7 @@ def gains_cmd(
     show = not json_output and sys.stderr.isatty()
     results: dict[str, OptimizeResult] = {}
     for m, request in requests.items():
-        progress = Progress(TextColumn("trial-and-error" if m == "trial" else "MGM"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                            TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+        progress = frames_progress("trial-and-error" if m == "trial" else "MGM")
         with progress if show else nullcontext():
             task = progress.add_task(m, total=None) if show else None
             results[m] = optimize(request, cache, progress=(lambda done, total: progress.update(task, completed=done, total=total)) if show else None)

@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from .loop import new_figure
 from .transfer import save_figure
 
 TIME_SERIES_MODES = (1, 2, 10, 50, 200)  # 1-based, as in the paper's figure (no. 1 is Tip)
@@ -17,15 +17,9 @@ LABELS = {"mgm": "MGM", "trial": "trial-and-error"}
 COLOURS = {"mgm": "k", "trial": "C3"}  # the paper: black MGM, red trial-and-error
 
 
-def _figure(size=(6.4, 4.8)) -> Figure:
-    fig = Figure(figsize=size, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
 def gain_vector_figure(gains: dict[str, np.ndarray], title: str) -> Figure:
     """Gain per mode, one line per method."""
-    fig = _figure()
+    fig = new_figure()
     ax = fig.subplots()
     for method, g in gains.items():
         ax.plot(np.arange(1, len(g) + 1), g, color=COLOURS.get(method), label=LABELS.get(method, method), linewidth=1)
@@ -44,7 +38,7 @@ def time_series_figure(result, title: str) -> Figure:
     tm = result.loop.telemetry
     rate = tm.rate_hz
     end = result.loop.frame / rate
-    fig = _figure((6.4, 7.2))
+    fig = new_figure((6.4, 7.2))
     ax_g, ax_k, ax_s = fig.subplots(3, 1, sharex=True)
     frames, gains = tm.gain_arrays()
     t = np.append(frames / rate, end)

@@ -16,7 +16,8 @@ from ..optics.pupil import LBT_DIAMETER_M
 from .transfer import save_figure
 
 
-def _figure(size=(6.4, 4.8)) -> Figure:
+def new_figure(size=(6.4, 4.8)) -> Figure:
+    """A constrained-layout figure on the Agg canvas (no pyplot state)."""
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
@@ -24,7 +25,7 @@ def _figure(size=(6.4, 4.8)) -> Figure:
 
 def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: float, pad: int = 2) -> Figure:
     """The PSF (peak = Strehl), log scale, +-20 lambda/D, axes in mas."""
-    fig = _figure((5.6, 4.8))
+    fig = new_figure((5.6, 4.8))
     ax = fig.subplots()
     n = psf.shape[0]
     half = min(n // 2, 20 * pad)
@@ -41,7 +42,7 @@ def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: flo
 def jitter_figure(f_hz: np.ndarray, residual_mas: np.ndarray, pol_mas: np.ndarray, title: str) -> Figure:
     """Cumulative Tip/Tilt jitter from the highest frequency down (paper, Fig. of the on-sky
     IIR tests): residual and pseudo-open loop, per axis."""
-    fig = _figure()
+    fig = new_figure()
     ax = fig.subplots()
     keep = f_hz > 0
     ax.semilogx(f_hz[keep], pol_mas[keep], label=f"pseudo-open loop ({pol_mas[1]:.1f} mas)", color="0.35")
@@ -56,7 +57,7 @@ def jitter_figure(f_hz: np.ndarray, residual_mas: np.ndarray, pol_mas: np.ndarra
 
 
 def modal_variance_figure(variance_nm2: np.ndarray, title: str) -> Figure:
-    fig = _figure()
+    fig = new_figure()
     ax = fig.subplots()
     modes = np.arange(1, len(variance_nm2) + 1)
     ax.loglog(modes, variance_nm2, ".", markersize=3, color="C0")
