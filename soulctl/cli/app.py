@@ -19,6 +19,7 @@ from . import filter as filter_cli
 from . import loop as loop_cli
 from . import optics as optics_cli
 from . import optimize as optimize_cli
+from .sweep import sweep
 
 app = typer.Typer(
     name="soulctl",
@@ -32,6 +33,7 @@ app.add_typer(filter_cli.app, name="filter")
 app.add_typer(optics_cli.app, name="optics")
 app.add_typer(loop_cli.app, name="loop")
 app.add_typer(optimize_cli.app, name="optimize")
+app.command(name="sweep")(sweep)
 
 
 def _version(value: bool) -> None:

@@ -283,15 +283,17 @@ def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int)
     return PhaseMetrics(psf.strehl, float(np.sqrt(np.mean(rms**2))), float(np.sqrt(np.mean(tt.var(axis=0)))))
 
 
-def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None) -> OptimizeResult:
-    """Run the three phases (see the module docstring).  ``progress(done, total)`` per frame."""
+def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None,
+             calibration: Calibration | None = None) -> OptimizeResult:
+    """Run the phases (see the module docstring).  ``progress(done, total)`` per frame;
+    ``calibration``: the request's, already computed."""
     r = request.run
     obs = r.observation
     structure = sampled_structure(r.structure, obs.frame_rate_hz)
     gains = r.gains or default_gains(obs, structure)
     if not r.allow_unstable:
         check_stability(obs, gains, structure)
-    cal = calibration_for(r, cache)
+    cal = calibration or calibration_for(r, cache)
     n_modes = cal.basis.n_modes
     chi, k0 = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
     if request.method == "mgm":

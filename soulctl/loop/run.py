@@ -195,16 +195,18 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
     return calibrate(CalibrationSetup(config, obs.modes, BasisSetup()), cache)
 
 
-def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None) -> RunResult:
+def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None,
+        calibration: Calibration | None = None) -> RunResult:
     """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
-    ``aux`` (``optimize.LiveOptimisers``) adds auxiliary loops once the loop has closed (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`)."""
+    ``aux`` (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`) adds auxiliary loops once
+    the loop has closed; ``calibration``: the request's, already computed (a sweep shares it)."""
     obs = request.observation
     structure = sampled_structure(request.structure, obs.frame_rate_hz)
     gains = request.gains or default_gains(obs, structure)
     if not request.allow_unstable:
         check_stability(obs, gains, structure)
     t0 = time.perf_counter()
-    cal = calibration_for(request, cache)
+    cal = calibration or calibration_for(request, cache)
     t_cal = time.perf_counter() - t0
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
     loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise,

@@ -1,0 +1,35 @@
+"""The picture an AO scientist expects of a sweep: Strehl ratio versus guide-star magnitude,
+one curve per seeing (and per binning where the grid varies it)."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+
+from .loop import new_figure
+from .transfer import save_figure
+
+
+def strehl_vs_magnitude(rows: list[dict], path: Path) -> Path:
+    curves = defaultdict(list)
+    binnings = {r.get("binning") for r in rows}
+    for r in rows:
+        if r.get("status") == "ok" and r.get("strehl") is not None and math.isfinite(r["strehl"]):
+            label = f"seeing {r['seeing']:g}\"" + (f", binning {r['binning']}" if len(binnings) > 1 else "")
+            curves[label].append((float(r["magnitude"]), float(r["strehl"])))
+    fig = new_figure()
+    ax = fig.subplots()
+    for label, points in sorted(curves.items()):
+        points.sort()
+        ax.plot([m for m, _ in points], [s for _, s in points], "o-", label=label, markersize=4)
+    band = next((r.get("band") for r in rows if r.get("band")), "H")
+    ax.set_xlabel("guide star R magnitude")
+    ax.set_ylabel(f"Strehl ratio ({band})")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.25)
+    if curves:
+        ax.legend(fontsize=8)
+    ax.set_title("Simulated Strehl ratio versus magnitude", fontsize=10)
+    save_figure(fig, path)
+    return path

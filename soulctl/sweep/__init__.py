@@ -1,0 +1,1 @@
+"""Grids of `loop run` cases on Dask (`soulctl sweep`)."""

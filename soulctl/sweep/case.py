@@ -1,0 +1,104 @@
+"""One case of a sweep: its parameters -> a `loop run` (or a gain optimisation) -> one row.
+
+The row holds every parameter, the metrics (Strehl at the band, Tip/Tilt jitter, residual),
+the status (ok, diverged, failed), its reason, the run time, the seed and soulctl's version.
+The same parameters and seed give the same numbers as `soulctl loop run` with the same
+options (the sweep's check)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import traceback
+
+from .. import __version__, tables
+from ..control.structure import StructuralResonance
+from ..disturbance.vibrations import VibrationSpectrum
+from ..errors import InputError
+from ..loop.optimize import OptimizeRequest, optimize
+from ..loop.run import RunRequest, run
+from ..observation import BINNINGS, Observation, observation_for_magnitude, tt_filter_roots
+from ..optics.cache import ArrayCache
+from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
+from ..optics.pwfs import PyramidConfig
+from .grid import case_id
+
+DEFAULTS = {"seeing": 1.0, "wind": 8.0, "L0": 25.0, "duration": 0.2, "gain_method": "default", "band": "H", "seed": 1,
+            "noise": True, "vibrations": True, "resonance": True, "oversampling": 2}
+METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
+STATUS = ("ok", "diverged", "failed")
+
+
+def observation_for(case: dict) -> Observation:
+    """The look-up table's configuration for the magnitude, with the case's binning (and that
+    binning's sub-apertures and modes from the table), frame rate (and the Tip/Tilt IIR of the
+    nearest tabulated rate, an integrator below the table) and Tip/Tilt control."""
+    obs = observation_for_magnitude(case["magnitude"])
+    if "binning" in case and case["binning"] != obs.binning:
+        rows = [b for b in tables.magnitude_table() if b.binning == case["binning"]]
+        if not rows:
+            raise InputError(f"binning {case['binning']} is not in the look-up table (accepted {', '.join(map(str, BINNINGS))})")
+        obs = dataclasses.replace(obs, binning=case["binning"], modes=rows[0].modes)
+    if "frame_rate" in case:
+        roots = tt_filter_roots(case["frame_rate"], tables.tt_iir_table())
+        obs = dataclasses.replace(obs, frame_rate_hz=float(case["frame_rate"]), tt_control="iir" if roots else "int",
+                                  tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
+                                  tt_zeros=roots.zeros if roots else (), tt_poles=roots.poles if roots else ())
+    if case.get("tt_control") == "int":
+        obs = dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=(), tt_filter_rate_hz=None)
+    elif case.get("tt_control") == "iir" and obs.tt_control != "iir":
+        raise InputError(f"tt_control iir: the roots table has no IIR filter at {obs.frame_rate_hz:g} Hz")
+    return obs
+
+
+def calibration_setup(case: dict) -> CalibrationSetup:
+    """What the case's calibration depends on (cases sharing it share one calibration)."""
+    obs = observation_for(case)
+    p = {**DEFAULTS, **case}
+    config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=p["oversampling"])
+    return CalibrationSetup(config, obs.modes, BasisSetup())
+
+
+def calibrate_case(setup: CalibrationSetup, cache_dir: str | None) -> Calibration:
+    """The calibration of a set-up (from the disk cache when there)."""
+    return calibrate(setup, ArrayCache(cache_dir))
+
+
+def failed_row(case: dict, reason: str) -> dict:
+    """The row of a case that did not run (``run_case`` fills it in when it does)."""
+    return {"case_id": case_id(case), **DEFAULTS, **case, **dict.fromkeys(METRICS, float("nan")), "status": "failed",
+            "reason": reason, "run_seconds": 0.0, "soulctl_version": __version__}
+
+
+def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str | None = None) -> dict:
+    """Run one case; never raises for a case's own failure (status 'failed' and the reason)."""
+    p = {**DEFAULTS, **case}
+    row = failed_row(case, "")
+    t0 = time.perf_counter()
+    try:
+        obs = observation_for(case)
+        request = RunRequest(obs, p["seeing"], p["wind"], p["L0"], p["duration"], None, p["band"], p["seed"], p["noise"],
+                             VibrationSpectrum.lbt_default() if p["vibrations"] else None, p["oversampling"],
+                             StructuralResonance() if p["resonance"] else None)
+        cache = ArrayCache(cache_dir)
+        if p["gain_method"] == "default":
+            result = run(request, cache, calibration=calibration)
+            if result.diverged_at is not None:
+                row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at}")
+            else:
+                m = result.metrics
+                row.update(status="ok", strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm)
+        else:
+            result = optimize(OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], measure_s=p["duration"]), cache,
+                              calibration=calibration)
+            if result.diverged_at is not None:
+                row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at} ({p['gain_method']})")
+            else:
+                a = result.after
+                row.update(status="ok", strehl=a.strehl, tt_jitter_mas=a.tt_jitter_mas, residual_nm=a.residual_nm)
+    except InputError as e:
+        row["reason"] = str(e)
+    except Exception as e:  # recorded, never stops the sweep
+        row["reason"] = f"{type(e).__name__}: {e} ({traceback.extract_tb(e.__traceback__)[-1].name})"
+    row["run_seconds"] = time.perf_counter() - t0
+    return row

@@ -1,0 +1,82 @@
+"""The results table of a sweep: one CSV row per case, the whole file rewritten atomically
+(temporary file, then rename) each time a case finishes, so that an interrupted sweep leaves
+the rows finished so far and never a half-written one.  `--resume` reads it back and skips
+the cases whose row is there (status ok or diverged; failed cases are run again)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+from ..errors import InputError
+from ..files import atomic_write_text
+from .case import DEFAULTS, METRICS
+from .grid import PARAMETERS
+
+COLUMNS = ("case_id", *PARAMETERS, *METRICS, "status", "reason", "run_seconds", "soulctl_version")
+FINISHED = ("ok", "diverged")
+FLOATS = {name for name, (types, _, _) in PARAMETERS.items() if float in types} | set(METRICS) | {"run_seconds"}
+INTS = {name for name, (types, _, _) in PARAMETERS.items() if types == (int,)}
+BOOLS = {name for name, (types, _, _) in PARAMETERS.items() if types == (bool,)}
+
+
+def _text(value) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def _value(name: str, text: str):
+    if text == "":
+        return float("nan") if name in METRICS else None
+    if name in FLOATS:
+        return float(text)
+    if name in INTS:
+        return int(text)
+    if name in BOOLS:
+        return text == "True"
+    return text
+
+
+class ResultsTable:
+    """Rows by case id, written to ``path`` (CSV) in the order of the grid's cases."""
+
+    def __init__(self, path: Path, order: list[str]):
+        self.path = Path(path)
+        self.order = {cid: i for i, cid in enumerate(order)}
+        self.rows: dict[str, dict] = {}
+
+    @staticmethod
+    def read_rows(path: Path) -> dict[str, dict]:
+        """The rows of an existing results file, by case id; InputError if it is not one."""
+        try:
+            with open(path, newline="") as f:
+                reader = csv.DictReader(f)
+                if reader.fieldnames is None or "case_id" not in reader.fieldnames:
+                    raise InputError(f"{path} is not a sweep results file (no case_id column)")
+                return {r["case_id"]: {k: _value(k, v) for k, v in r.items() if k in COLUMNS} for r in reader}
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise InputError(f"cannot read the results file {path}: {e}") from None
+
+    def resume(self) -> set[str]:
+        """Load the finished rows of the existing file (those of this grid); their case ids."""
+        if not self.path.exists():
+            return set()
+        kept = {cid: r for cid, r in self.read_rows(self.path).items() if cid in self.order and r.get("status") in FINISHED}
+        self.rows.update(kept)
+        return set(kept)
+
+    def add(self, row: dict) -> None:
+        self.rows[row["case_id"]] = row
+        self.write()
+
+    def write(self) -> None:
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow(COLUMNS)
+        for cid in sorted(self.rows, key=lambda c: self.order.get(c, len(self.order))):
+            row = {**DEFAULTS, **self.rows[cid]}
+            writer.writerow([_text(row.get(c)) for c in COLUMNS])
+        atomic_write_text(self.path, out.getvalue())
