@@ -50,5 +50,8 @@ class ArrayCache:
         path = self.path(key)
         if path is None:
             return
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
+        except OSError:  # a cache that cannot be written (e.g. a sweep worker on another host) is no cache
+            return

@@ -77,6 +77,14 @@ def test_a_corrupt_cache_entry_is_recomputed(tmp_path):
     assert np.array_equal(good.interaction_matrix, again.interaction_matrix)
 
 
+def test_an_unwritable_cache_is_no_cache(tmp_path):
+    """A sweep worker on another host gets the client's cache path: calibration still works."""
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    cal = calibrate(CalibrationSetup(SMALL, 5), ArrayCache(blocker / "cache"))
+    assert not cal.from_cache and cal.interaction_matrix.shape[1] == 5
+
+
 def test_no_cache_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     calibrate(CalibrationSetup(SMALL, 5), ArrayCache(None))
