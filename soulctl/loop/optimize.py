@@ -4,7 +4,7 @@ One continuous closed loop in phases:
 
 0. *closing*: the loop closes at the initial gains and k = 1 (``closing_frames``: 0.1 s, at
    least 50 frames), as a real loop is closed before its auxiliary loops start;
-   *settling* (with OGTL): ``OGTL_SETTLING_PERIODS`` OGTL periods for k to settle;
+   *settling* (with OGTL): OGTL starts from k = 1; ``OGTL_SETTLING_PERIODS`` updates for k to settle;
 1. *before*: ``measure_s`` at the initial gains (OGTL already running when asked), stretched to
    end on an update period boundary so that MGM's windows are whole periods, in step with OGTL;
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
@@ -15,13 +15,13 @@ Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter are measured over
 *after*.  MGM's plant model takes chi_i from the optical-gain table of the calibration at a
 reference correction level (0.8" seeing, the paper's choice), computed with the optical models
 and cached with the calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
-without, gamma_i times the fixed sensitivity k = 1.  With OGTL, once the loop is closed, k is
-set to 1 / gamma_30 of that table (OGTL then tracks the real one), so that neither optimiser
-scans while k is still far from its value: at k = 1 a poorly corrected loop's effective gains
-are several times lower than they will be once OGTL has converged.  (Setting it before the
-loop is closed diverges: the open-loop residual is far outside the PWFS's linear range, and
-k = 1 / gamma_30 over-drives the first corrections.)  The initial gains are capped at half the
-plant model's maximum stable gain (``capped_gains``).
+without, gamma_i times the fixed sensitivity k = 1.  OGTL starts from k = 1 once the loop is
+closed and has 4 updates to settle (log k within 6 % of its value) before anything is
+measured, so that neither optimiser scans while k is still far from it.  (Starting it at
+1/gamma_30 of the table instead over-drove the loops whose real optical gain was higher than
+the table's - a 0.6" loop has a higher gamma than the 0.8" reference - and before the loop is
+closed the open-loop residual is far outside the PWFS's linear range.)  The initial gains
+are capped at half the plant model's maximum stable gain (``capped_gains``).
 
 Trial-and-error scans each group up to 0.8 x the nominal maximum stable gain divided by the
 largest chi_i of the group (the same table): the scan stays stable for every mode of the group
@@ -59,7 +59,7 @@ TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the sca
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
 CLOSING_S = 0.1  # the loop closes at k = 1 before the auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
-OGTL_SETTLING_PERIODS = 3  # OGTL updates before the "before" measurement
+OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement
 
 
 def closing_frames(rate_hz: float) -> int:
@@ -67,9 +67,8 @@ def closing_frames(rate_hz: float) -> int:
     return max(MIN_CLOSING_FRAMES, round(CLOSING_S * rate_hz))
 
 
-def start_aux_loops(loop: ClosedLoop, tasks, sensitivity: float) -> None:
-    """Set k and start ``tasks`` from the loop's next frame (after the closing phase)."""
-    loop.rtc_parameters.set_sensitivity(sensitivity)
+def start_aux_loops(loop: ClosedLoop, tasks) -> None:
+    """Start ``tasks`` from the loop's next frame (after the closing phase)."""
     for task in tasks:
         loop.add_aux_loop(task)
 
@@ -209,8 +208,7 @@ def trial_scans(request: OptimizeRequest, chi: np.ndarray) -> list[np.ndarray]:
 class LiveOptimisers:
     """`loop run --mgm [--ogtl]`: MGM and/or OGTL beside the loop for the whole run, from the
     run's initial gains, plus the live metrics.  Called by ``run.run`` once the calibration is
-    known; returns the tasks, the initial slope sensitivity k and the initial gains (the run's,
-    capped by ``capped_gains``)."""
+    known; returns the tasks and the initial gains (the run's, capped by ``capped_gains``)."""
 
     mgm: bool = True
     ogtl: bool = True
@@ -235,28 +233,28 @@ class LiveOptimisers:
         return closing_frames(rate_hz)
 
     @staticmethod
-    def start(loop: ClosedLoop, tasks, sensitivity: float) -> None:
-        start_aux_loops(loop, tasks, sensitivity)
+    def start(loop: ClosedLoop, tasks) -> None:
+        start_aux_loops(loop, tasks)
 
     def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, photons_per_frame: float):
         obs = request.observation
         period = self._frames(obs)
-        chi, k0 = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, self.chi_seeing_arcsec)
+        chi = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, self.chi_seeing_arcsec)
         tasks = [OgtlTask(period, self.ogtl_settings)] if self.ogtl else []
         if self.mgm:
             settings = period_settings(period, obs)
             tasks.append(MgmTask(period, mgm_machine(obs, request.structure, chi, settings, gains.forgetting)))
         tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, photons_per_frame))
         initial = capped_gains(gains.per_mode(len(chi)), obs, request.structure, chi, gains.forgetting)
-        return tasks, k0, initial
+        return tasks, initial
 
 
 def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float,
                  fraction: float = INITIAL_GAIN_FRACTION) -> np.ndarray:
     """The initial gains, each capped at ``fraction`` of its maximum stable gain for the
-    optimisers' plant (chi_i z^-d, the structure on Tip/Tilt).  With OGTL the loop starts at
-    k = 1 / gamma_30: gains chosen for k = 1 would be multiplied by chi_i = gamma_i / gamma_30,
-    several times 1 for the low orders of a poorly corrected loop, and diverge at once."""
+    optimisers' plant (chi_i z^-d, the structure on Tip/Tilt): gains chosen for chi = 1 would
+    be multiplied by chi_i = gamma_i / gamma_30 once OGTL has converged, several times 1 for
+    the low orders of a poorly corrected loop."""
     unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), len(chi))
     limits = mgm.gain_limits(unit, chi, observation.delay_frames, observation.frame_rate_hz, 0.0,
                              _structure_ba(sampled_structure(structure, observation.frame_rate_hz), observation.frame_rate_hz))
@@ -267,13 +265,10 @@ def _structure_ba(structure, rate_hz: float):
     return None if structure is None else tuple(tuple(map(float, x)) for x in structure.coefficients(rate_hz))
 
 
-def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> tuple[np.ndarray, float]:
-    """(chi_i of the optimisers' plant, initial k): with OGTL, gamma_i / gamma_probe and
-    k = 1 / gamma_probe of the reference table (OGTL then tracks the real one); without, gamma_i
-    and k = 1."""
-    gamma = optical_gain_table(calibration, cache, seeing_arcsec)
-    chi = mgm_chi(gamma, ogtl, probe_mode)
-    return chi, (1.0 / gamma[probe_mode - 1] if ogtl else 1.0)
+def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> np.ndarray:
+    """chi_i of the optimisers' plant: gamma_i / gamma_probe of the reference table with OGTL
+    (OGTL holds the probed mode at 1), gamma_i without (k = 1)."""
+    return mgm_chi(optical_gain_table(calibration, cache, seeing_arcsec), ogtl, probe_mode)
 
 
 def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int) -> PhaseMetrics:
@@ -295,7 +290,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)
     n_modes = cal.basis.n_modes
-    chi, k0 = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
+    chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
     if request.method == "mgm":
         machine = mgm_machine(obs, r.structure, chi, request.settings_for_rate(obs.frame_rate_hz), gains.forgetting)
         optimiser = MgmTask(request.frames(request.period_s), machine)
@@ -331,7 +326,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     try:
         loop.run(n_close, progress=tick)
         result.phases["closing"] = (0, n_close)
-        start_aux_loops(loop, aux, k0)
+        start_aux_loops(loop, aux)
         if n_settle:
             loop.run(n_settle, progress=tick)
             result.phases["settling"] = (n_close, loop.frame)

@@ -213,17 +213,17 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
                       seed=request.seed, structure=structure)
     n_close, start_aux = 0, None
     if aux is not None:
-        tasks, k0, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
+        tasks, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
         loop.set_gains(initial)
         n_close = min(request.frames, aux.closing_frames(obs.frame_rate_hz))
-        start_aux = (tasks, k0)
+        start_aux = tasks
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
     try:
         if start_aux is not None:  # the loop closes at k = 1, then the auxiliary loops start
             loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
-            aux.start(loop, *start_aux)
+            aux.start(loop, start_aux)
         loop.run(request.frames - n_close, psf=psf, skip=max(0, request.skip - n_close),
                  progress=None if progress is None else (lambda k: progress(n_close + k)))
     except LoopDiverged as e:
