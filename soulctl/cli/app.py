@@ -2,7 +2,8 @@
 
 Exit status: 0 success; 2 bad input (one line on stderr naming the problem and the accepted
 range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed; ``loop run``: the simulated
-loop diverged, telemetry still written; ``optimize gains``: the loop diverged, no gain file written);
+loop diverged, telemetry still written; ``optimize gains``: the loop diverged, no gain file written;
+``sweep`` returns 0 once every case has a row, failed or not);
 1 an unexpected internal error.
 """
 

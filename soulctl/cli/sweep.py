@@ -42,7 +42,7 @@ def _render_derived(rows: list[dict], derived: list[dict], console: Console) -> 
 
 
 def sweep(
-    grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters, lists as axes (see --help of the docs)."),
+    grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis."),
     scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help="An existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)."),
     workers: int | None = typer.Option(None, "--workers", help="Processes of the local cluster (default: one per core)."),
     out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table)."),
@@ -57,7 +57,7 @@ def sweep(
     (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, written
     case by case.  A failed or diverged case is a row with its reason; --resume completes an
     interrupted sweep without recomputing its finished rows.  Each distinct calibration is
-    computed once and shared.
+    computed once and shared.  Exit status 0 once every case has a row, whatever its status.
 
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
