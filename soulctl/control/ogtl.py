@@ -9,7 +9,9 @@ noise are uncorrelated with the probe, so demodulating m and y there gives
     chi_hat = -Re(M conj(Y)) / |Y|^2 ,   M, Y the lock-in (single-bin DFT) amplitudes,
 
 and OGTL drives the sensitivity so that chi of the probed mode stays at 1 (the PWFS's unit
-gain restored): log k <- log k - g log chi_hat, an integrator on the log of the error.
+gain restored): log k <- log k - g log chi_hat, an integrator on the log of the error.  k is
+held (not raised) while the RMS of the commands grows by more than 30 % from one update to the
+next (``held_sensitivity``).
 
 Probe defaults (a proposal; the paper gives none): 20 nm peak on mode 30, at a quarter of the
 frame rate (425 Hz at 1700 Hz, 97.5 Hz at 390 Hz): well above the loop's bandwidth, so most of
@@ -39,6 +41,7 @@ class OgtlSettings:
     amplitude_nm: float = PROBE_AMPLITUDE_NM
     frequency_hz: float | None = None  # None: a quarter of the frame rate
     gain: float = 0.5  # integrator gain on log k
+    hold_growth: float = 1.3  # k is not raised while the commands' RMS grows by more than this per update
 
     def __post_init__(self):
         if self.mode < 1:
@@ -49,6 +52,8 @@ class OgtlSettings:
             raise InputError(f"OGTL probe frequency must be > 0 Hz, got {self.frequency_hz:g}")
         if not (0 < self.gain <= 1):
             raise InputError(f"OGTL gain must be in 0..1 (> 0), got {self.gain:g}")
+        if not (self.hold_growth >= 1):
+            raise InputError(f"OGTL hold growth must be >= 1 (inf: never hold), got {self.hold_growth:g}")
 
     def probe_frequency(self, rate_hz: float) -> float:
         f = PROBE_FREQUENCY_PER_RATE * rate_hz if self.frequency_hz is None else self.frequency_hz
@@ -73,6 +78,16 @@ def optical_gain_estimate(measured: np.ndarray, mirror: np.ndarray, frequency_hz
     if abs(Y) == 0:
         return math.nan
     return float(-(M * Y.conjugate()).real / abs(Y) ** 2)
+
+
+def held_sensitivity(k_now: float, k_new: float, commands_rms: float, previous_rms: float | None, growth: float) -> tuple[float, bool]:
+    """(k, held): k_new, except that k is not raised while the commands' RMS grew by more than
+    ``growth`` since the previous update.  A loop leaving the PWFS's linear range loses optical
+    gain; raising k then raises every effective gain and pushes it further out (the spiral of
+    a poorly corrected loop); holding k breaks that feedback until the loop has settled."""
+    if previous_rms is not None and k_new > k_now and commands_rms > growth * previous_rms:
+        return k_now, True
+    return k_new, False
 
 
 def updated_sensitivity(k: float, chi_hat: float, gain: float) -> float:

@@ -1,7 +1,8 @@
 """The auxiliary loops soulctl runs beside the closed loop (interface in ``auxloop``):
 
 * :class:`OgtlTask` - the optical gain tracking loop: a probe on mode 30, the slope
-  sensitivity k driven so that the probed mode's chi stays at 1 (``control.ogtl``);
+  sensitivity k driven so that the probed mode's chi stays at 1, held while the commands'
+  RMS grows (``control.ogtl``);
 * :class:`MgmTask` - the Modal Gain Machine: every period, per-mode gains from the
   pseudo-open-loop PSDs of the window (``control.mgm``), scaled by k_window / k_now when OGTL
   changed k in the same update (the paper's step 7);
@@ -31,6 +32,7 @@ class OgtlTask(AuxLoop):
         super().__init__(period_frames)
         self.settings = settings
         self.frequency_hz = math.nan
+        self._commands_rms: float | None = None  # of the previous window (the hold rule)
 
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
         self.frequency_hz = self.settings.probe_frequency(rate_hz)
@@ -41,8 +43,12 @@ class OgtlTask(AuxLoop):
         chi = ogtl.optical_gain_estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz,
                                          window.rate_hz, window.first_frame)
         k = ogtl.updated_sensitivity(window.sensitivity, chi, self.settings.gain)
+        others = np.arange(window.command_modes.shape[1]) != m  # the probe is not the loop's motion
+        rms = float(np.sqrt(np.mean(window.command_modes[:, others] ** 2)))
+        k, held = ogtl.held_sensitivity(window.sensitivity, k, rms, self._commands_rms, self.settings.hold_growth)
+        self._commands_rms = rms
         rtc.set_sensitivity(k)
-        return {"chi": chi, "optical_gain": chi / window.sensitivity, "sensitivity": k}
+        return {"chi": chi, "optical_gain": chi / window.sensitivity, "sensitivity": k, "held": held}
 
 
 class MgmTask(AuxLoop):

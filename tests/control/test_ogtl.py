@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from soulctl.control.ogtl import OgtlSettings, demodulate, optical_gain_estimate, updated_sensitivity
+from soulctl.control.ogtl import OgtlSettings, demodulate, held_sensitivity, optical_gain_estimate, updated_sensitivity
 from soulctl.errors import InputError
 
 
@@ -47,3 +47,11 @@ def test_probe_frequency_defaults_to_a_quarter_of_the_rate_and_must_be_below_nyq
     for bad in ({"mode": 0}, {"amplitude_nm": 0.0}, {"gain": 1.5}, {"frequency_hz": -1.0}):
         with pytest.raises(InputError):
             OgtlSettings(**bad)
+
+
+def test_k_is_held_while_the_commands_grow_and_only_raised_then():
+    assert held_sensitivity(2.0, 2.5, 140.0, 100.0, 1.3) == (2.0, True)  # growing 40 %: not raised
+    assert held_sensitivity(2.0, 2.5, 120.0, 100.0, 1.3) == (2.5, False)  # 20 %: raised
+    assert held_sensitivity(2.0, 1.5, 300.0, 100.0, 1.3) == (1.5, False)  # lowering is always allowed
+    assert held_sensitivity(2.0, 2.5, 300.0, None, 1.3) == (2.5, False)  # first update
+    assert held_sensitivity(2.0, 2.5, 300.0, 100.0, float("inf")) == (2.5, False)  # rule off
