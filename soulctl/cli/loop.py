@@ -195,7 +195,7 @@ def run_cmd(
     aux = None
     if mgm or ogtl:
         aux = LiveOptimisers(mgm, ogtl, period, OgtlSettings(probe_mode, probe_amplitude, probe_frequency))
-        aux.check(obs)
+        aux.check(obs, duration)
     cache = array_cache(no_cache, cache_dir)
     show = not json_output and sys.stderr.isatty()
     progress = frames_progress("closed loop")

@@ -185,8 +185,9 @@ def gains_cmd(
     check_conditions(seeing, wind, L0, band)
     obs = observation_from(config, mag, tt_control)
     vib = vibration_spectrum(no_vibrations, vibrations)
-    run = RunRequest(obs, seeing, wind, L0, max(duration, measure), parse_gains(gains, DEFAULT_FORGETTING), band, seed,
-                     not no_noise, vib, oversampling, None if no_resonance else StructuralResonance())
+    # the run's own duration is not used: --duration and --measure set the phases
+    run = RunRequest(obs, seeing, wind, L0, gains=parse_gains(gains, DEFAULT_FORGETTING), band=band, seed=seed, noise=not no_noise,
+                     vibrations=vib, oversampling=oversampling, structure=None if no_resonance else StructuralResonance())
     probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
     methods = list(METHODS) if method == "both" else [method]
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}

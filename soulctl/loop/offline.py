@@ -40,7 +40,7 @@ PER_FRAME = ("measured_modes", "command_modes")
 class OfflineMgmResult:
     path: str
     observation: Observation
-    previous_gains: np.ndarray  # in force during the window
+    previous_gains: np.ndarray  # in force during the window (from /gain_history, else /gains)
     optimum: np.ndarray  # g_hat_i (step 4)
     gains: np.ndarray  # what MGM would apply (step 5)
     chi: np.ndarray
@@ -88,11 +88,44 @@ def window_start(arrays: dict, frames: int) -> int:
 
 def _configuration(attrs: dict, observation: Observation | None, path) -> tuple[Observation, dict]:
     conf = attrs.get("configuration")
+    if conf is not None and not isinstance(conf, dict):
+        raise InputError(f"telemetry file {path}: attribute configuration must be a JSON object")
     if observation is None:
-        if not isinstance(conf, dict) or "observation" not in conf:
+        if not conf or "observation" not in conf:
             raise InputError(f"telemetry file {path} lacks the configuration attribute (observation); give --config or --mag")
-        observation = Observation.from_dict(conf["observation"])
-    return observation, conf if isinstance(conf, dict) else {}
+        try:
+            observation = Observation.from_dict(conf["observation"])
+        except (TypeError, KeyError, AttributeError, ValueError) as e:
+            raise InputError(f"telemetry file {path}: attribute configuration.observation is not an observation ({e})") from None
+    return observation, conf or {}
+
+
+def _structure(conf: dict, path) -> StructuralResonance | None:
+    d = conf.get("structure")
+    if not d:
+        return None
+    try:
+        return StructuralResonance(**d)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"telemetry file {path}: attribute configuration.structure is not a resonance ({e})") from None
+
+
+def _forgetting(conf: dict, path) -> float:
+    gains = conf.get("gains", {})
+    value = gains.get("forgetting", DEFAULT_FORGETTING) if isinstance(gains, dict) else None
+    if not isinstance(value, (int, float)) or not 0 <= value <= 1:
+        raise InputError(f"telemetry file {path}: attribute configuration.gains.forgetting must be a number in 0..1")
+    return float(value)
+
+
+def window_gains(arrays: dict, start: int, final: np.ndarray) -> np.ndarray:
+    """The gains in force from frame ``start`` on: the last /gain_history entry at or before
+    it (the file's /gains are those at the end, possibly set after the last frame)."""
+    frames, gains = arrays.get("gain_history/frames"), arrays.get("gain_history/gains")
+    if frames is None or gains is None or not len(frames):
+        return final
+    before = np.flatnonzero(np.asarray(frames) <= start)
+    return np.asarray(gains[before[-1]], dtype=float) if len(before) else final
 
 
 def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache = ArrayCache(None),
@@ -124,18 +157,21 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
     delay = float(attrs["delay_frames"])
     n, _ = fractional_taps(delay)
     window = frames - start
-    settings = settings or welch_settings(window - n - 1, rate, "the telemetry window after the last change of gains or k")
-    k = float(data["sensitivity"][-1]) if "sensitivity" in data else 1.0
+    settings = settings or welch_settings(window, rate, "the telemetry window after the last change of gains or k", dropped=n + 1)
+    k = float(data["sensitivity"][start]) if "sensitivity" in data else 1.0
     ogtl = any(name.startswith("aux/ogtl/") for name in arrays)
     run = RunRequest(observation, oversampling=int(conf.get("oversampling", 2)))
     calibration = calibration_for(run, cache)
     gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
     chi = mgm_chi(gamma, ogtl, PROBE_MODE) if ogtl else gamma * k
-    structure = StructuralResonance(**conf["structure"]) if conf.get("structure") else None
-    forgetting = float(conf.get("gains", {}).get("forgetting", DEFAULT_FORGETTING))
+    structure = _structure(conf, path)
+    forgetting = _forgetting(conf, path)
     machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
     measured = data["measured_modes"][start:]
     pol = pseudo_open_loop(measured / chi, data["command_modes"][start:], delay, machine.structure)
     optimum, _ = machine.optimum(pol[n + 1 :])
-    gains = mgm.update_gains(data["gains"], optimum, settings)
-    return OfflineMgmResult(str(path), observation, data["gains"], optimum, gains, chi, ogtl, k, start, window, settings.segment)
+    previous = window_gains(arrays, start, data["gains"])
+    if previous.shape != (n_modes,) or not np.all(np.isfinite(previous)):
+        raise InputError(f"telemetry file {path}: field gain_history/gains does not hold {n_modes} finite gains per entry")
+    gains = mgm.update_gains(previous, optimum, settings)
+    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, k, start, window, settings.segment)

@@ -3,10 +3,11 @@
 One continuous closed loop in phases:
 
 0. *closing*: the loop closes at the initial gains and k = 1 (``closing_frames``: 0.1 s, at
-   least 50 frames), as a real loop is closed before its auxiliary loops start;
+   least 50 frames), as a real loop is closed before its auxiliary loops start; stretched so
+   that *before* ends on an update boundary (MGM's windows are then whole periods, in step
+   with OGTL's updates);
    *settling* (with OGTL): OGTL starts from k = 1; ``OGTL_SETTLING_PERIODS`` updates for k to settle;
-1. *before*: ``measure_s`` at the initial gains (OGTL already running when asked), stretched to
-   end on an update period boundary so that MGM's windows are whole periods, in step with OGTL;
+1. *before*: ``measure_s`` at the initial gains (OGTL running when asked);
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running).
@@ -97,6 +98,8 @@ class OptimizeRequest:
         obs = self.run.observation
         if self.method == "mgm":
             self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
+            if self.duration_s < self.period_s:
+                raise InputError(f"--duration ({self.duration_s:g} s) must hold at least one MGM update period (--period {self.period_s:g} s)")
         if self.method == "trial" and self.frames(self.trial_sequence_s) < MIN_SEQUENCE:
             raise InputError(f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
                              f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s")
@@ -119,24 +122,26 @@ def check_probe(settings: OgtlSettings, observation) -> None:
 
 
 def period_settings(period_frames: int, observation) -> mgm.MgmSettings:
-    """MGM settings for a window of one period, less the first n + 1 frames whose delayed
-    commands precede the window (``welch_settings``; InputError names --period)."""
+    """MGM settings for a window of one period (``welch_settings``; InputError names --period)."""
     n, _ = fractional_taps(observation.delay_frames)
-    return welch_settings(period_frames - n - 1, observation.frame_rate_hz, "--period (less the loop delay)")
+    return welch_settings(period_frames, observation.frame_rate_hz, "--period", dropped=n + 1)
 
 
-def welch_settings(frames: int, rate_hz: float, what: str) -> mgm.MgmSettings:
+def welch_settings(frames: int, rate_hz: float, what: str, dropped: int = 0) -> mgm.MgmSettings:
     """MGM settings with the longest power-of-two Welch segment (<= 512) that gives MGM's 4
-    segments in ``frames``; InputError naming ``what`` and the minimum duration when even
+    segments in ``frames`` less the ``dropped`` first ones (the loop delay leaves n + 1 frames
+    of a window without their commands); InputError naming ``what`` and its minimum when even
     64-frame segments do not fit."""
+    usable = frames - dropped
     segment = 512
-    while segment > MIN_SEGMENT and mgm.min_frames(mgm.MgmSettings(segment=segment)) > frames:
+    while segment > MIN_SEGMENT and mgm.min_frames(mgm.MgmSettings(segment=segment)) > usable:
         segment //= 2
     settings = mgm.MgmSettings(segment=segment)
-    need = mgm.min_frames(settings)
+    need = mgm.min_frames(settings) + dropped
     if frames < need:
-        raise InputError(f"{what} must span at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: "
-                         f"{mgm.MIN_SEGMENTS} PSD segments of {segment} frames), got {frames / rate_hz:.3g} s ({frames} frames)")
+        raise InputError(f"{what} must be at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: {mgm.MIN_SEGMENTS} PSD "
+                         f"segments of {segment} frames after the {dropped} the loop delay leaves without commands), "
+                         f"got {frames / rate_hz:.3g} s ({frames} frames)")
     return settings
 
 
@@ -216,12 +221,18 @@ class LiveOptimisers:
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
     chi_seeing_arcsec: float = 0.8
 
-    def check(self, observation) -> None:
-        """InputError for a period too short for MGM's PSDs, or a probe beyond the modes."""
+    def check(self, observation, duration_s: float) -> None:
+        """InputError for a period too short for MGM's PSDs, a run too short for one update
+        after the loop has closed, or a probe beyond the modes."""
         if not (math.isfinite(self.period_s) and 0 < self.period_s <= 600):
             raise InputError(f"--period must be in 0..600 s (> 0), got {self.period_s:g}")
         if self.mgm:
             period_settings(self._frames(observation), observation)
+        rate = observation.frame_rate_hz
+        need = closing_frames(rate) + 2 * self._frames(observation)
+        if round(duration_s * rate) < need:
+            raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {self.period_s:g} s "
+                             f"(the loop closes, then two updates), got {duration_s:g} s")
         if self.ogtl:
             check_probe(self.ogtl_settings, observation)
 
@@ -307,9 +318,13 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     aux = [OgtlTask(period, request.ogtl_settings)] if request.ogtl else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
     initial = loop.rtc_parameters.gains
-    n_close = closing_frames(obs.frame_rate_hz)
     n_measure = request.frames(request.measure_s)
     n_settle = OGTL_SETTLING_PERIODS * period if request.ogtl else 0
+    # closing is stretched so that *before* ends on an update boundary: the optimiser starts
+    # with OGTL's updates and MGM's windows are whole periods (tasks run when frame % period == 0)
+    n_close = closing_frames(obs.frame_rate_hz)
+    n_close += (-(n_close + n_settle + n_measure)) % period
+    skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
     total = n_close + n_settle + 2 * n_measure + n_opt
     wavelength = band_wavelength(r.band)
     psf_before, psf_after = PsfAccumulator(loop.pupil, wavelength), PsfAccumulator(loop.pupil, wavelength)
@@ -331,12 +346,8 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
             loop.run(n_settle, progress=tick)
             result.phases["settling"] = (n_close, loop.frame)
         start = loop.frame
-        # ends on a period boundary, where OGTL updates: the optimiser starts with it and its
-        # windows are whole periods (auxiliary loops run when frame % period == 0)
-        n_before = n_measure + (-(start + n_measure)) % period
-        total += n_before - n_measure
-        loop.run(n_before, psf=psf_before, skip=min(n_measure // 2, request.frames(0.05)), progress=tick)
-        result.before = _phase_metrics(loop, psf_before, start + n_measure // 2, loop.frame)
+        loop.run(n_measure, psf=psf_before, skip=skip, progress=tick)
+        result.before = _phase_metrics(loop, psf_before, start + skip, loop.frame)
         result.phases["before"] = (start, loop.frame)
         start = loop.frame
         loop.add_aux_loop(optimiser)
@@ -345,8 +356,8 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         result.phases["optimisation"] = (start, loop.frame)
         result.gains = loop.rtc_parameters.gains
         start = loop.frame
-        loop.run(n_measure, psf=psf_after, skip=min(n_measure // 2, request.frames(0.05)), progress=tick)
-        result.after = _phase_metrics(loop, psf_after, start + n_measure // 2, loop.frame)
+        loop.run(n_measure, psf=psf_after, skip=skip, progress=tick)
+        result.after = _phase_metrics(loop, psf_after, start + skip, loop.frame)
         result.phases["after"] = (start, loop.frame)
     except LoopDiverged as e:
         result.diverged_at = e.frame

@@ -215,6 +215,7 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     if aux is not None:
         tasks, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
         loop.set_gains(initial)
+        gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, aux.closing_frames(obs.frame_rate_hz))
         start_aux = tasks
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))

@@ -94,5 +94,8 @@ def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     except (OSError, KeyError) as e:
         raise InputError(f"cannot read telemetry file {path}: {e}") from None
     if "configuration" in attrs:
-        attrs["configuration"] = json.loads(attrs["configuration"])
+        try:
+            attrs["configuration"] = json.loads(attrs["configuration"])
+        except (TypeError, ValueError):
+            raise InputError(f"telemetry file {path}: attribute configuration is not JSON") from None
     return arrays, attrs

@@ -12,7 +12,9 @@ Parameters (defaults as `loop run`): magnitude (R), seeing (arcsec), wind (m/s),
 duration (s), binning (1-4; with it the look-up table's sub-apertures and modes for that
 binning), frame_rate (Hz; the Tip/Tilt IIR of the nearest tabulated rate, an integrator below
 750 Hz), tt_control (iir|int), gain_method (default|mgm|trial), band, seed, noise (bool),
-vibrations (bool), resonance (bool), oversampling (1-4).
+vibrations (bool), resonance (bool), oversampling (1-4).  gain_method = "mgm": MGM with OGTL
+for ``duration`` (an update every half of it, at most 1 s), then the metrics over another
+``duration``; "trial": the three-group scan (0.25 s per gain), then the same.
 """
 
 from __future__ import annotations

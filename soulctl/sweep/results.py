@@ -1,7 +1,8 @@
 """The results table of a sweep: one CSV row per case, the whole file rewritten atomically
 (temporary file, then rename) each time a case finishes, so that an interrupted sweep leaves
 the rows finished so far and never a half-written one.  `--resume` reads it back and skips
-the cases whose row is there (status ok or diverged; failed cases are run again)."""
+the cases whose row is there (status ok or diverged; failed cases are run again); rows of
+other grids in the file are kept as they are."""
 
 from __future__ import annotations
 
@@ -56,17 +57,25 @@ class ResultsTable:
                 reader = csv.DictReader(f)
                 if reader.fieldnames is None or "case_id" not in reader.fieldnames:
                     raise InputError(f"{path} is not a sweep results file (no case_id column)")
-                return {r["case_id"]: {k: _value(k, v) for k, v in r.items() if k in COLUMNS} for r in reader}
+                rows = {}
+                for r in reader:
+                    try:
+                        rows[r["case_id"]] = {k: _value(k, v) for k, v in r.items() if k in COLUMNS}
+                    except (TypeError, ValueError):
+                        raise InputError(f"results file {path}, line {reader.line_num}: not a row of a sweep "
+                                         f"(missing or malformed values)") from None
+                return rows
         except (OSError, UnicodeDecodeError, csv.Error) as e:
             raise InputError(f"cannot read the results file {path}: {e}") from None
 
     def resume(self) -> set[str]:
-        """Load the finished rows of the existing file (those of this grid); their case ids."""
+        """Load the existing file's rows (all kept, other grids' included, after this grid's);
+        the case ids of this grid whose rows are finished (failed ones run again)."""
         if not self.path.exists():
             return set()
-        kept = {cid: r for cid, r in self.read_rows(self.path).items() if cid in self.order and r.get("status") in FINISHED}
-        self.rows.update(kept)
-        return set(kept)
+        rows = self.read_rows(self.path)
+        self.rows.update(rows)
+        return {cid for cid, r in rows.items() if cid in self.order and r.get("status") in FINISHED}
 
     def add(self, row: dict) -> None:
         self.rows[row["case_id"]] = row

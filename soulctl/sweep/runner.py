@@ -43,9 +43,9 @@ def connect(stack: ExitStack, scheduler: str | None, workers: int | None):
     if scheduler:
         try:
             return stack.enter_context(Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s"))
-        except (OSError, TimeoutError) as e:
+        except (OSError, TimeoutError, ValueError) as e:  # ValueError: not an address
             raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({type(e).__name__}); nothing was run") from None
-    n = workers or len(os.sched_getaffinity(0))
+    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                                silence_logs=40))
     return stack.enter_context(Client(cluster))

@@ -121,6 +121,14 @@ def test_loop_run_with_mgm_and_ogtl_records_them_in_the_telemetry(tmp_path, caps
     # OGTL starts from k = 1 once the loop has closed; k changes at its updates only
     assert k.shape == (1221,) and np.all(k[:407] == 1) and len(set(k[407:814])) == 1 and k[407] > 1
     np.testing.assert_array_equal(k[[407, 814]], arrays["aux/ogtl/sensitivity"][:2])
+    # offline on that file: the window since the last change (frame 814), at the gains set
+    # then - not the file's final /gains, which MGM set after the last frame
+    status, out, err = cli(["optimize", "gains", "--telemetry", str(h5), "--json"], capsys, cache_dir)
+    assert status == 0, err
+    offline = json.loads(out)
+    assert offline["window"] == {**offline["window"], "first_frame": 814, "frames": 407} and offline["ogtl"]
+    np.testing.assert_allclose(offline["previous_gains"], arrays["gain_history/gains"][-2])
+    assert offline["sensitivity"] == k[814]
 
 
 def test_offline_mgm_on_a_recorded_loop(recorded, tmp_path, capsys, cache_dir):
@@ -168,7 +176,8 @@ def _short(f):
     (_nan_commands, [], "field command_modes has 1 NaN"),
     (lambda f: None, ["--mag", "15"], "field measured_modes has shape (814, 54), expected (frames, 90)"),
     (lambda f: f.attrs.__delitem__("delay_frames"), [], "lacks delay_frames"),
-    (_short, [], "must span at least"),
+    (lambda f: f.attrs.__setitem__("configuration", "{not json"), [], "attribute configuration is not JSON"),
+    (_short, [], "must be at least"),
 ])
 def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, edit, args, message):
     path = _edited(recorded, tmp_path, edit)
@@ -180,7 +189,7 @@ def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, ed
 @pytest.mark.parametrize("args, message", [
     (["--method", "grid"], "--method must be one of"),
     (["--method", "trial", "--telemetry", "x.h5"], "use it with --method mgm"),
-    (["--period", "0.2"], "--period (less the loop delay) must span at least"),
+    (["--period", "0.2"], "--period must be at least"),
     (["--probe-mode", "60"], "--probe-mode 60 is beyond the 54 controlled modes"),
     (["--duration", "0"], "--duration must be in 0..3600 s"),
     (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
@@ -191,6 +200,8 @@ def test_bad_input_exits_2_with_one_line(args, message, capsys, cache_dir):
     assert status == 2 and message in err and err.count("\n") == 1
 
 
-def test_loop_run_refuses_a_period_too_short_for_mgm(capsys, cache_dir):
+def test_loop_run_refuses_a_period_too_short_for_mgm_and_a_run_too_short_for_it(capsys, cache_dir):
     status, _, err = cli(["loop", "run", *SMALL, "--mgm", "--period", "0.1"], capsys, cache_dir)
-    assert status == 2 and "must span at least" in err
+    assert status == 2 and "--period must be at least" in err
+    status, _, err = cli(["loop", "run", *SMALL, "--mgm", "--duration", "1"], capsys, cache_dir)
+    assert status == 2 and "--duration must be at least 2.12 s" in err

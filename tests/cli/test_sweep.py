@@ -132,6 +132,7 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     ("", [], "is empty"),
     ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9"),
     ("magnitude = 12\n", ["--workers", "0"], "--workers must be in 1..512"),
+    ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "cannot reach the Dask scheduler"),
 ])
 def test_bad_input_exits_2_and_runs_nothing(text, args, message, tmp_path, capsys, cache_dir):
     path = tmp_path / "grid.toml"

@@ -3,6 +3,9 @@ the finished rows of the same grid and runs failed ones again."""
 
 import math
 
+import pytest
+
+from soulctl.errors import InputError
 from soulctl.sweep.case import failed_row
 from soulctl.sweep.grid import case_id, parse_grid
 from soulctl.sweep.results import ResultsTable
@@ -23,7 +26,16 @@ def test_rows_round_trip_and_resume_keeps_finished_rows(tmp_path):
     again = ResultsTable(table.path, ids)
     assert again.resume() == {ids[1]}  # the failed case runs again
     other_grid = ResultsTable(table.path, ids[2:])
-    assert other_grid.resume() == set()  # rows of another grid are not this grid's
+    assert other_grid.resume() == set()  # rows of another grid are not this grid's ...
+    other_grid.add(failed_row(cases[2], "y"))
+    assert set(ResultsTable.read_rows(table.path)) == set(ids)  # ... but they stay in the file
+
+
+def test_a_malformed_results_file_is_an_input_error(tmp_path):
+    path = tmp_path / "results.csv"
+    path.write_text("case_id,magnitude,seed\nabc,15.0\n")
+    with pytest.raises(InputError, match="line 2: not a row of a sweep"):
+        ResultsTable.read_rows(path)
 
 
 def test_writes_leave_no_temporary_file(tmp_path):
