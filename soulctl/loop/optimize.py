@@ -49,7 +49,7 @@ from ..optics.calibration import Calibration
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import RunRequest, calibration_for, check_stability, default_gains, nominal_loop, sampled_structure
+from .run import RunRequest, calibration_for, check_stability, closing_frames, default_gains, nominal_loop, sampled_structure
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
 
 METHODS = ("trial", "mgm")
@@ -58,20 +58,7 @@ MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them set
 TRIAL_VALUES = 8  # gains per group
 TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
-CLOSING_S = 0.1  # the loop closes at k = 1 before the auxiliary loops start ...
-MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
 OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement
-
-
-def closing_frames(rate_hz: float) -> int:
-    """Frames the loop runs at k = 1, without auxiliary loops, before they start."""
-    return max(MIN_CLOSING_FRAMES, round(CLOSING_S * rate_hz))
-
-
-def start_aux_loops(loop: ClosedLoop, tasks) -> None:
-    """Start ``tasks`` from the loop's next frame (after the closing phase)."""
-    for task in tasks:
-        loop.add_aux_loop(task)
 
 
 @dataclass(frozen=True)
@@ -190,11 +177,9 @@ def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettin
                 forgetting: float = DEFAULT_FORGETTING, delay_frames: float | None = None) -> mgm.ModalGainMachine:
     """MGM for the observation's filters (unit gain), plant chi_i z^-d and, on Tip/Tilt, the
     structural resonance when the frame rate samples it."""
-    rate = observation.frame_rate_hz
-    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), len(chi))
-    ba = _structure_ba(sampled_structure(structure, rate), rate)
+    unit, ba = _unit_loops(observation, structure, forgetting, len(chi))
     d = observation.delay_frames if delay_frames is None else delay_frames
-    return mgm.ModalGainMachine(tuple(unit), chi, d, rate, settings, ba)
+    return mgm.ModalGainMachine(tuple(unit), chi, d, observation.frame_rate_hz, settings, ba)
 
 
 def trial_scans(request: OptimizeRequest, chi: np.ndarray) -> list[np.ndarray]:
@@ -239,14 +224,6 @@ class LiveOptimisers:
     def _frames(self, observation) -> int:
         return max(1, round(self.period_s * observation.frame_rate_hz))
 
-    @staticmethod
-    def closing_frames(rate_hz: float) -> int:
-        return closing_frames(rate_hz)
-
-    @staticmethod
-    def start(loop: ClosedLoop, tasks) -> None:
-        start_aux_loops(loop, tasks)
-
     def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, photons_per_frame: float):
         obs = request.observation
         period = self._frames(obs)
@@ -266,14 +243,19 @@ def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, for
     optimisers' plant (chi_i z^-d, the structure on Tip/Tilt): gains chosen for chi = 1 would
     be multiplied by chi_i = gamma_i / gamma_30 once OGTL has converged, several times 1 for
     the low orders of a poorly corrected loop."""
-    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), len(chi))
-    limits = mgm.gain_limits(unit, chi, observation.delay_frames, observation.frame_rate_hz, 0.0,
-                             _structure_ba(sampled_structure(structure, observation.frame_rate_hz), observation.frame_rate_hz))
+    unit, ba = _unit_loops(observation, structure, forgetting, len(chi))
+    limits = mgm.gain_limits(unit, chi, observation.delay_frames, observation.frame_rate_hz, 0.0, ba)
     return np.minimum(gains, fraction * limits)
 
 
-def _structure_ba(structure, rate_hz: float):
-    return None if structure is None else tuple(tuple(map(float, x)) for x in structure.coefficients(rate_hz))
+def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tuple[list, tuple | None]:
+    """The optimisers' unit-gain filters per mode and the (b, a) of the structural resonance
+    on Tip/Tilt when the frame rate samples it (else None)."""
+    rate = observation.frame_rate_hz
+    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), n_modes)
+    sampled = sampled_structure(structure, rate)
+    ba = None if sampled is None else tuple(tuple(map(float, x)) for x in sampled.coefficients(rate))
+    return unit, ba
 
 
 def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> np.ndarray:
@@ -341,7 +323,8 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     try:
         loop.run(n_close, progress=tick)
         result.phases["closing"] = (0, n_close)
-        start_aux_loops(loop, aux)
+        for task in aux:
+            loop.add_aux_loop(task)
         if n_settle:
             loop.run(n_settle, progress=tick)
             result.phases["settling"] = (n_close, loop.frame)

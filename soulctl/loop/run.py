@@ -28,6 +28,8 @@ MAX_DURATION_S = 600.0
 # the 20x20 and 40x40 configurations are barely sampled and their loop hardly converges
 # (R13, 20x20, 250 modes: 812 nm residual against 233 nm at oversampling 2).
 MAX_MODES_AT_OVERSAMPLING_1 = 90
+CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
+MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,11 @@ class RunRequest:
         """Frames left out of the metrics while the loop closes: 20 % of the run, at least
         0.02 s, at most half."""
         return min(self.frames // 2, max(round(0.02 * self.observation.frame_rate_hz), self.frames // 5))
+
+
+def closing_frames(rate_hz: float) -> int:
+    """Frames the loop runs at k = 1, without auxiliary loops, before they start."""
+    return max(MIN_CLOSING_FRAMES, round(CLOSING_S * rate_hz))
 
 
 def sampled_structure(structure: StructuralResonance | None, rate_hz: float) -> StructuralResonance | None:
@@ -189,10 +196,15 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
     return m, spectra
 
 
-def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
+def calibration_setup(request: RunRequest) -> CalibrationSetup:
+    """What the request's calibration depends on (binning, modulation, sampling, modes)."""
     obs = request.observation
     config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=request.oversampling)
-    return calibrate(CalibrationSetup(config, obs.modes, BasisSetup()), cache)
+    return CalibrationSetup(config, obs.modes, BasisSetup())
+
+
+def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
+    return calibrate(calibration_setup(request), cache)
 
 
 def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None,
@@ -216,7 +228,7 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
         tasks, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
         loop.set_gains(initial)
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
-        n_close = min(request.frames, aux.closing_frames(obs.frame_rate_hz))
+        n_close = min(request.frames, closing_frames(obs.frame_rate_hz))
         start_aux = tasks
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
@@ -224,7 +236,8 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     try:
         if start_aux is not None:  # the loop closes at k = 1, then the auxiliary loops start
             loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
-            aux.start(loop, start_aux)
+            for task in start_aux:
+                loop.add_aux_loop(task)
         loop.run(request.frames - n_close, psf=psf, skip=max(0, request.skip - n_close),
                  progress=None if progress is None else (lambda k: progress(n_close + k)))
     except LoopDiverged as e:

@@ -389,8 +389,7 @@ class ClosedLoop:
                 self.telemetry.aux[aux.name].append({"frame": self.frame, **record})
         if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity:
             self._parameters_since = self.frame
-            if not np.array_equal(before[0], params.gains):
-                self.telemetry.gain_history.append((self.frame, params.gains))
+            self._record_gains()
 
     def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into

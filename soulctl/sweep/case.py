@@ -17,10 +17,10 @@ from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..loop.optimize import OptimizeRequest, optimize
 from ..loop.run import RunRequest, run
+from ..loop.run import calibration_setup as run_calibration_setup
 from ..observation import BINNINGS, Observation, observation_for_magnitude, tt_filter_roots
 from ..optics.cache import ArrayCache
-from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
-from ..optics.pwfs import PyramidConfig
+from ..optics.calibration import Calibration, CalibrationSetup, calibrate
 from .grid import case_id
 
 DEFAULTS = {"seeing": 1.0, "wind": 8.0, "L0": 25.0, "duration": 0.2, "gain_method": "default", "band": "H", "seed": 1,
@@ -51,12 +51,17 @@ def observation_for(case: dict) -> Observation:
     return obs
 
 
+def run_request(case: dict) -> RunRequest:
+    """The `loop run` request of a case (its parameters over `loop run`'s defaults)."""
+    p = {**DEFAULTS, **case}
+    return RunRequest(observation_for(case), p["seeing"], p["wind"], p["L0"], p["duration"], None, p["band"], p["seed"], p["noise"],
+                      VibrationSpectrum.lbt_default() if p["vibrations"] else None, p["oversampling"],
+                      StructuralResonance() if p["resonance"] else None)
+
+
 def calibration_setup(case: dict) -> CalibrationSetup:
     """What the case's calibration depends on (cases sharing it share one calibration)."""
-    obs = observation_for(case)
-    p = {**DEFAULTS, **case}
-    config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=p["oversampling"])
-    return CalibrationSetup(config, obs.modes, BasisSetup())
+    return run_calibration_setup(run_request(case))
 
 
 def calibrate_case(setup: CalibrationSetup, cache_dir: str | None) -> Calibration:
@@ -76,10 +81,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
     row = failed_row(case, "")
     t0 = time.perf_counter()
     try:
-        obs = observation_for(case)
-        request = RunRequest(obs, p["seeing"], p["wind"], p["L0"], p["duration"], None, p["band"], p["seed"], p["noise"],
-                             VibrationSpectrum.lbt_default() if p["vibrations"] else None, p["oversampling"],
-                             StructuralResonance() if p["resonance"] else None)
+        request = run_request(case)
         cache = ArrayCache(cache_dir)
         if p["gain_method"] == "default":
             result = run(request, cache, calibration=calibration)
