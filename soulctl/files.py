@@ -1,57 +1,252 @@
-"""Writing files atomically: a temporary file in the target's folder, then a rename, so that a
-reader never sees a half-written file and a failed write leaves nothing behind."""
+"""The files soulctl reads and writes, with one set of rules for all of them.
+
+Inputs (configuration, vibration, grid, gain, roots and telemetry files) are read only when
+they are regular files (a FIFO would block, a device such as /dev/zero never ends), text files
+only up to ``MAX_TEXT_BYTES``; anything else is an InputError naming the file.
+
+Outputs are written atomically: to a temporary file in the target's folder, then renamed onto
+the target, so that a reader never sees a half-written file.  An output path must be a new
+path or an existing regular file that is writable; a symlink is written through to its target.
+Devices, FIFOs, sockets and directories are never replaced, a read-only file is refused and
+an existing file keeps its permission bits.  ``check_output_path`` checks all that before any
+work (and that the folder can be written and the path is not one of the command's inputs).
+
+Inside ``staged_outputs()`` (every command line runs in one) the renames wait for
+``commit()``: a command that fails, or is interrupted, leaves no new or changed output, and
+its temporaries are removed.  Files that must land at once (the calibration cache, a sweep's
+results rows) use ``immediate=True``.
+"""
 
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 from .errors import InputError
 
+MAX_TEXT_BYTES = 16 * 2**20  # TOML and CSV inputs
+NEW_FILE_MODE = 0o644  # results are for everyone to read
+_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"))
 
-def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
-    """Call ``write(tmp_path)`` to produce the file, then rename it onto ``path`` (mode 0644)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp" + path.suffix, dir=path.parent or ".")
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+def _size_text(n: int) -> str:
+    return f"{n / 2**20:.3g} MB" if n < 2**30 else f"{n / 2**30:.3g} GB"
+
+
+# ----------------------------------------------------------------------------------- inputs
+
+def input_file(path: str | Path, what: str, max_bytes: int | None = None) -> Path:
+    """``path`` if it names a readable regular file (of at most ``max_bytes``), else InputError."""
+    p = Path(path)
     try:
-        os.fchmod(fd, 0o644)  # mkstemp makes 0600; results are for everyone to read
-        os.close(fd)
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise InputError(f"{what} not found: {path}") from None
+    except OSError as e:
+        raise InputError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{what} {path} is {_kind(st.st_mode)}: soulctl reads regular files only")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise InputError(f"{what} {path} is {_size_text(st.st_size)}, more than the {_size_text(max_bytes)} accepted")
+    return p
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    def write(tmp: str) -> None:
-        with open(tmp, "w") as f:
-            f.write(text)
+def read_input_bytes(path: str | Path, what: str, max_bytes: int = MAX_TEXT_BYTES) -> bytes:
+    """The bytes of a regular input file of at most ``max_bytes`` (InputError otherwise)."""
+    p = input_file(path, what, max_bytes)
+    try:
+        with open(p, "rb") as f:
+            data = f.read(max_bytes + 1)
+    except OSError as e:
+        raise InputError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if len(data) > max_bytes:  # grew since the check
+        raise InputError(f"{what} {path} is more than the {_size_text(max_bytes)} accepted")
+    return data
 
-    atomic_write(path, write)
 
-
-def check_output_path(path: Path, option: str) -> None:
-    """An output path must name a file in an existing folder (InputError otherwise)."""
-    if path.is_dir():
-        raise InputError(f"{option} must be a file path, got the directory {path}")
-    if not path.parent.exists():
-        raise InputError(f"{option}: the folder {path.parent} does not exist")
+def read_input_text(path: str | Path, what: str, max_bytes: int = MAX_TEXT_BYTES) -> str:
+    """A UTF-8 text input file (a byte-order mark is accepted); InputError if it is not text."""
+    data = read_input_bytes(path, what, max_bytes)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputError(f"{what} {path} is not UTF-8 text") from None
 
 
 def read_toml(path: str | Path, what: str) -> dict:
-    """A TOML file as a dict; a missing, unreadable or invalid file is an InputError naming
-    ``what`` (e.g. "configuration file") and the path."""
+    """A TOML file as a dict; a missing, unreadable, oversized or invalid file is an
+    InputError naming ``what`` (e.g. "configuration file") and the path."""
+    text = read_input_text(path, what)
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise InputError(f"{what} not found: {path}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
         raise InputError(f"{what} {path} is not valid TOML: {e}") from None
+
+
+# ---------------------------------------------------------------------------------- outputs
+
+def output_target(path: str | Path) -> Path:
+    """Where writing ``path`` lands: a symlink's final target, else the path itself."""
+    p = Path(path)
+    return Path(os.path.realpath(p)) if p.is_symlink() else p
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_output_path(path: str | Path, option: str, inputs: Iterable[tuple[str, str | Path | None]] = ()) -> Path:
+    """Check, before any work, that ``path`` can be written as the output of ``option``: not
+    one of ``inputs`` ((option, path) pairs), a new path or a writable regular file, in a
+    folder that can be written.  Returns the target (a symlink's target)."""
+    for in_option, in_path in inputs:
+        if in_path is not None and _same_file(Path(path), Path(in_path)):
+            raise InputError(f"{option} {path} is also the input {in_option}: writing it would destroy the input; choose another path")
+    target = output_target(path)
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        st = None
+    except OSError as e:  # e.g. a path under a file (ENOTDIR)
+        raise InputError(f"{option}: cannot write {path}: {e.strerror or e}") from None
+    if st is not None:
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(f"{option} {path} is {_kind(st.st_mode)}: soulctl writes only regular files (a new path or an existing file)")
+        if not (st.st_mode & 0o222) or not os.access(target, os.W_OK):
+            raise InputError(f"{option} {path} is read-only: soulctl does not overwrite it; choose another path or make it writable")
+    _probe_folder(target.parent, option, path)
+    return target
+
+
+def check_output_folder(path: str | Path, option: str, files: Iterable[str] = ()) -> Path:
+    """An existing folder that can be written, and the ``files`` the command will write in it."""
+    p = Path(path)
+    if not p.is_dir():
+        raise InputError(f"{option} must be an existing folder, got {path}")
+    _probe_folder(p, option, path)
+    for name in files:
+        check_output_path(p / name, option)
+    return p
+
+
+def _probe_folder(folder: Path, option: str, path) -> None:
+    """Create and remove a temporary file in ``folder``: the only test that sees every reason
+    (permissions, a read-only file system, a missing folder, a file where a folder should be)."""
+    folder = folder if str(folder) else Path(".")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".soulctl-probe-", dir=folder)
+    except FileNotFoundError:
+        raise InputError(f"{option}: cannot write {path}: the folder {folder} does not exist") from None
     except OSError as e:
-        raise InputError(f"cannot read {what} {path}: {e.strerror or e}") from None
+        raise InputError(f"{option}: cannot write {path} (folder {folder}: {e.strerror or e})") from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+class OutputStage:
+    """Output files of one command, written under temporary names beside their targets and
+    renamed onto them together by ``commit`` (or removed by ``discard``)."""
+
+    def __init__(self) -> None:
+        self._staged: dict[Path, str] = {}  # target -> temporary
+
+    def add(self, target: Path, tmp: str) -> None:
+        old = self._staged.pop(target, None)
+        if old is not None:
+            _unlink(old)
+        self._staged[target] = tmp
+
+    def commit(self) -> None:
+        while self._staged:
+            target, tmp = next(iter(self._staged.items()))
+            _replace(tmp, target)
+            del self._staged[target]
+
+    def discard(self) -> None:
+        for tmp in self._staged.values():
+            _unlink(tmp)
+        self._staged.clear()
+
+
+_STAGE: ContextVar[OutputStage | None] = ContextVar("soulctl_output_stage", default=None)
+
+
+@contextmanager
+def staged_outputs():
+    """Stage every ``atomic_write`` inside the block (see the module); the caller commits.
+    Whatever is still staged when the block ends (an exception, an interrupt, no commit) is
+    removed."""
+    stage = OutputStage()
+    token = _STAGE.set(stage)
+    try:
+        yield stage
+    finally:
+        _STAGE.reset(token)
+        stage.discard()
+
+
+def _unlink(tmp: str) -> None:
+    try:
+        os.unlink(tmp)
+    except FileNotFoundError:
+        pass
+
+
+def _replace(tmp: str, target: Path) -> None:
+    """Rename ``tmp`` onto ``target`` unless the target became something that must not be
+    replaced since it was checked."""
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        st = None
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        _unlink(tmp)
+        raise InputError(f"{target} is {_kind(st.st_mode)}: soulctl writes only regular files")
+    os.replace(tmp, target)
+
+
+def atomic_write(path: str | Path, write: Callable[[str], None], *, immediate: bool = False) -> None:
+    """Call ``write(tmp_path)`` to produce the file, then rename it onto ``path`` (through a
+    symlink to its target; an existing file keeps its permission bits, a new one gets 0644).
+    Inside ``staged_outputs`` the rename waits for the commit unless ``immediate``."""
+    target = output_target(path)
+    folder = target.parent if str(target.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp" + target.suffix, dir=folder)
+    try:
+        try:
+            mode = stat.S_IMODE(os.stat(target).st_mode)
+        except FileNotFoundError:
+            mode = NEW_FILE_MODE
+        os.fchmod(fd, mode)
+        os.close(fd)
+        write(tmp)
+        stage = None if immediate else _STAGE.get()
+        if stage is None:
+            _replace(tmp, target)
+        else:
+            stage.add(target, tmp)
+    except BaseException:
+        _unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str, *, immediate: bool = False) -> None:
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+
+    atomic_write(path, write, immediate=immediate)

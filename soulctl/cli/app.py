@@ -1,25 +1,34 @@
-"""The ``soulctl`` Typer application and its entry point.
+"""The ``soulctl`` Typer application and its entry point, which keeps the exit-status
+contract of the README for every command:
 
-Exit status: 0 success; 2 bad input (one line on stderr naming the problem and the accepted
-range, nothing written); 3 the loop is unstable (``filter analyze``: figures still printed; ``loop run``: the simulated
-loop diverged, telemetry still written; ``optimize gains``: the loop diverged, no gain file written;
-``sweep`` returns 0 once every case has a row, failed or not);
-1 an unexpected internal error.
+* 0 success;
+* 2 bad input: one line on stderr naming the problem and the accepted range; no output file
+  is written or changed (every command runs inside ``files.staged_outputs``, committed only
+  on 0 and 3);
+* 3 an unstable loop (``filter analyze``: figures still printed; ``loop run``: the simulated
+  loop diverged, its telemetry still written; ``optimize gains``: the loop diverged, no gain
+  file written);
+* 130 / 143 interrupted by SIGINT (Ctrl-C) / SIGTERM: one line, no output written, the
+  temporaries removed;
+* 1 an unexpected internal error (a bug: its traceback is printed).
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import typer
 
 from .. import __version__
 from ..errors import InputError
+from ..files import staged_outputs
 from . import configure
 from . import filter as filter_cli
 from . import loop as loop_cli
 from . import optics as optics_cli
 from . import optimize as optimize_cli
+from .output import ascii_fallback
 from .sweep import sweep
 
 app = typer.Typer(
@@ -72,16 +81,37 @@ def _status_of_cli_exception(e: Exception) -> int | None:
     return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is so that every clean-up runs as for Ctrl-C."""
+
+
+def _terminate(signum, frame) -> None:
+    raise Terminated()
+
+
+def _run(argv: list[str] | None) -> int:
+    """Run the command inside staged outputs: committed on exit status 0 and 3 only."""
+    with staged_outputs() as stage:
+        result = app(args=argv, prog_name="soulctl", standalone_mode=False)
+        status = result if isinstance(result, int) else 0
+        if status in (0, 3):
+            stage.commit()
+        return status
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script.  With argv None (the console script) it exits the
     process; with an explicit argv (tests) it returns the exit status."""
+    ascii_fallback()
+    previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
     try:
-        result = app(args=argv, prog_name="soulctl", standalone_mode=False)
-        status = result if isinstance(result, int) else 0
+        status = _run(argv)
     except InputError as e:
         status = _fail(str(e))
+    except Terminated:
+        status = _fail("interrupted (SIGTERM); nothing written", 143)
     except KeyboardInterrupt:
-        status = _fail("interrupted", 130)
+        status = _fail("interrupted (Ctrl-C); nothing written", 130)
     except BrokenPipeError:
         status = 1  # the reader went away (e.g. `soulctl ... | head`): nothing to say
     except OSError as e:  # e.g. stdout on a full disk: one line, not a traceback
@@ -90,9 +120,18 @@ def main(argv: list[str] | None = None) -> int:
         status = _status_of_cli_exception(e)
         if status is None:
             raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     if argv is None:
         sys.exit(status)
     return status
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,124 @@
+"""One home for the accepted range of every number a user gives soulctl, on the command line,
+in an observation/vibration/grid file or through the Python API.
+
+Each range is a ``Range``: ``check(value, name)`` returns the value or raises an InputError
+that names the input in the user's terms, the accepted range and the value with enough digits
+to show why (``--wind 100.0001`` is reported as 100.0001, not 100).  Command-line options,
+TOML readers and dataclasses all check against the same objects, so that a value accepted by
+one command is accepted by every other.
+
+Numbers are read as Python reads them: Unicode decimal digits (e.g. full-width "１３") are the
+same digits as ASCII ones, and "1_000" is 1000; NaN and infinities are never accepted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .errors import InputError
+
+
+def number_text(value) -> str:
+    """A value as an error message shows it: floats with up to 10 significant digits."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    return format(value, ".10g")
+
+
+@dataclass(frozen=True)
+class Range:
+    """An interval of accepted values, closed unless ``lo_open``/``hi_open``; ``integer`` for
+    counts and seeds (bools are never numbers)."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+    lo_open: bool = False
+    hi_open: bool = False
+    integer: bool = False
+
+    def text(self) -> str:
+        """The range as messages and --help show it, e.g. '0..100 m/s (> 0)'."""
+        lo, hi = number_text(self.lo), number_text(self.hi)
+        if self.integer and self.hi >= 2**62:
+            hi = "2^63-1"
+        bounds = [f"> {lo}"] if self.lo_open else []
+        bounds += [f"< {hi}"] if self.hi_open else []
+        return f"{lo}..{hi}" + (f" {self.unit}" if self.unit else "") + (f" ({', '.join(bounds)})" if bounds else "")
+
+    def contains(self, value) -> bool:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False
+        if self.integer and not (isinstance(value, int) or float(value).is_integer()):
+            return False
+        if not math.isfinite(value):
+            return False
+        above = value > self.lo if self.lo_open else value >= self.lo
+        below = value < self.hi if self.hi_open else value <= self.hi
+        return above and below
+
+    def check(self, value, name: str):
+        """``value`` if it is in the range (ints stay ints), else InputError naming ``name``."""
+        if not self.contains(value):
+            kind = "an integer" if self.integer else "a number"
+            raise InputError(f"{name} must be {kind} in {self.text()}, got {number_text(value)}")
+        return int(value) if self.integer else value + 0.0  # -0.0 -> 0.0
+
+    def parse(self, text: str, name: str):
+        """A command-line string checked against the range (see the module for what is a number)."""
+        try:
+            value = int(text) if self.integer else float(text)
+        except (TypeError, ValueError):
+            kind = "an integer" if self.integer else "a number"
+            raise InputError(f"{name} must be {kind} in {self.text()}, got '{text}'") from None
+        return self.check(value, name)
+
+
+# --- the guide star and the observation (soulctl.observation) -------------------------------
+# The magnitude's range is the look-up table's (tables/magnitude_lut.csv): tables.magnitude_range.
+FRAME_RATE_HZ = Range(10.0, 2000.0, "Hz")
+MODULATION_LAMBDA_OVER_D = Range(0.0, 20.0, "lambda/D")
+# Controlled modes: Tip and Tilt at least (their IIR pair), at most the LBT672's 671 modes
+# (672 actuators less piston; checked against the modal basis in the tests).
+MODES = Range(2, 671, integer=True)
+# WFS zero point: the table's 2.647e8 ph/s per binning-1 sub-aperture, within a factor 1000.
+ZERO_POINT_PH_S = Range(2.647e5, 2.647e11, "ph/s per sub-aperture")
+DELAY_TERM_MS = Range(0.0, 10.0, "ms")  # each term of the delay model (readout, computation, ASM); SOUL: 0.2-1.2 ms
+
+# --- the atmosphere and the run (loop run, optimize gains, sweep) ---------------------------
+SEEING_ARCSEC = Range(0.05, 10.0, "arcsec")
+WIND_M_S = Range(0.0, 100.0, "m/s", lo_open=True)  # the effective (5/3-moment) wind of the profile
+OUTER_SCALE_M = Range(0.5, 1e4, "m")
+DURATION_S = Range(0.0, 600.0, "s", lo_open=True)
+OVERSAMPLING = Range(1, 4, integer=True)
+SEED = Range(0, 2**63 - 1, integer=True)  # numpy's generators take non-negative seeds
+LOOP_GAIN = Range(0.0, 10.0)  # a modal gain of the RTC (the stability check comes after)
+FORGETTING = Range(0.0, 1.0)  # of the leaky integrators
+
+# --- auxiliary loops ------------------------------------------------------------------------
+PERIOD_S = Range(0.0, 600.0, "s", lo_open=True)
+PROBE_AMPLITUDE_NM = Range(0.0, 1000.0, "nm", lo_open=True)
+PROBE_MIN_CYCLES = 4  # the OGTL probe's period fits this many times in an update period
+
+# --- vibrations (tables/lbt_vibrations.toml, --vibrations) ----------------------------------
+VIBRATION_FREQUENCY_HZ = Range(0.1, 1000.0, "Hz")
+VIBRATION_DAMPING = Range(1e-4, 0.9)  # an underdamped oscillator; 1e-4 already rings for hours
+VIBRATION_RMS_MAS = Range(0.0, 1000.0, "mas")  # per axis; on-sky lines are 1-30 mas
+
+# --- control analysis and design (filter analyze | design) ----------------------------------
+ANALYSIS_RATE_HZ = Range(1.0, 1e5, "Hz")
+# Delay in frames: the characteristic polynomial's degree grows with it, and so does the cost
+# of the analysis (~0.3 s at 50 frames); AO loops run with 1-5 frames.
+DELAY_FRAMES = Range(0.0, 50.0, "frames")
+ANALYSIS_GAIN = Range(1e-4, 1e3)  # below 1e-4 the closed-loop poles sit within 1e-9 of z = 1
+OPTICAL_GAIN = Range(1e-3, 1e3)  # chi
+ROOT_MODULUS = 10.0  # |zero| and |pole| of a controller given by its roots
+MAX_CONTROLLERS = 16  # controllers compared side by side by one `filter analyze`
+DESIGN_RATE_HZ = Range(100.0, 4000.0, "Hz")  # 13 Hz well below Nyquist; a design in seconds
+MAX_DESIGN_RATES = 8
+EPSILON = Range(0.0, 1.0, lo_open=True, hi_open=True)
+NOISE_MAS = Range(0.0, 1e4, "mas")
+ROOTS_RATE_TOLERANCE = 0.2  # a roots-table row applies within 20 % of its frame rate
