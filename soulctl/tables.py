@@ -14,6 +14,8 @@ from importlib import resources
 from pathlib import Path
 
 from .errors import InputError
+from .files import read_input_text
+from .ranges import ROOT_MODULUS, ROOTS_RATE_TOLERANCE
 
 
 def tables_dir() -> Path:
@@ -27,16 +29,20 @@ def tables_dir() -> Path:
     raise FileNotFoundError("soulctl tables not found (looked in %s and %s)" % (installed, source))
 
 
-def _read_csv(name: str | Path) -> list[dict[str, str]]:
-    path = tables_dir() / name  # an absolute path stays as it is
-    with open(path, newline="") as f:
-        lines = [line for line in f if line.strip() and not line.lstrip().startswith("#")]
+def _csv_rows(text: str) -> list[dict[str, str]]:
+    """Rows of a CSV text whose blank and '#' lines are comments."""
+    lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
     return list(csv.DictReader(lines))
 
 
+def _read_csv(name: str) -> list[dict[str, str]]:
+    """A built-in table by its file name in the tables folder (never a user's path)."""
+    return _csv_rows((tables_dir() / name).read_text(encoding="utf-8"))
+
+
 def _read_toml(name: str) -> dict:
-    with open(tables_dir() / name, "rb") as f:
-        return tomllib.load(f)
+    """A built-in TOML table by its file name."""
+    return tomllib.loads((tables_dir() / name).read_text(encoding="utf-8"))
 
 
 @dataclass(frozen=True)
@@ -128,6 +134,8 @@ def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]
             raise InputError(f"{where}: row {i + 1}: the frame rate must be > 0 Hz and all roots finite")
         if not all(-1.0 <= p <= 1.0 for p in poles):
             raise InputError(f"{where}: row {i + 1}: poles must be in -1..1, got {list(poles)}")
+        if not all(abs(z) <= ROOT_MODULUS for z in zeros):
+            raise InputError(f"{where}: row {i + 1}: zeros must be in -{ROOT_MODULUS:g}..{ROOT_MODULUS:g}, got {list(zeros)}")
         out.append(IIRRoots(frame_rate_hz=rate, zeros=zeros, poles=poles))
     rates = [r.frame_rate_hz for r in out]
     if len(set(rates)) != len(rates):
@@ -140,20 +148,26 @@ def tt_iir_table() -> tuple[IIRRoots, ...]:
     return _parse_roots(_read_csv("tt_iir_roots.csv"), "tables/tt_iir_roots.csv")
 
 
-def nearest_roots(frame_rate_hz: float, roots: tuple[IIRRoots, ...]) -> IIRRoots:
-    """The roots-table row at the tabulated rate nearest to ``frame_rate_hz`` (ties to the higher)."""
-    return min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
+def nearest_roots(frame_rate_hz: float, roots: tuple[IIRRoots, ...], where: str = "the roots table") -> IIRRoots:
+    """The roots-table row at the tabulated rate nearest to ``frame_rate_hz`` (ties to the
+    higher); InputError if that row is more than ``ranges.ROOTS_RATE_TOLERANCE`` away from
+    it (a filter designed for another rate is another filter)."""
+    row = min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
+    if abs(row.frame_rate_hz - frame_rate_hz) > ROOTS_RATE_TOLERANCE * frame_rate_hz:
+        rates = ", ".join(f"{r.frame_rate_hz:g}" for r in roots)
+        raise InputError(f"{where} has no row within {ROOTS_RATE_TOLERANCE:.0%} of {frame_rate_hz:g} Hz "
+                         f"(rows at {rates} Hz): give a table with a row for this rate")
+    return row
 
 
 def read_roots_table(path: str | Path) -> tuple[IIRRoots, ...]:
     """A user roots table in the format of tables/tt_iir_roots.csv (e.g. from
-    ``soulctl filter design --out``)."""
+    ``soulctl filter design --out``); a relative path is relative to the current folder."""
+    text = read_input_text(path, "roots table")
     try:
-        rows = _read_csv(Path(path))
-    except FileNotFoundError:
-        raise InputError(f"roots table not found: {path}") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise InputError(f"cannot read roots table {path}: {getattr(e, 'strerror', None) or e}") from None
+        rows = _csv_rows(text)
+    except csv.Error as e:
+        raise InputError(f"cannot read roots table {path}: {e}") from None
     return _parse_roots(rows, str(path))
 
 

@@ -94,9 +94,9 @@ def test_edited_toml_is_revalidated_and_derived_values_recomputed(tmp_path):
     with pytest.raises(InputError, match="not valid TOML"):
         Observation.read_toml(path)
     path.write_bytes(b"\xff\xfe\x00binary")
-    with pytest.raises(InputError, match="not valid TOML"):
+    with pytest.raises(InputError, match="not UTF-8 text"):
         Observation.read_toml(path)
-    with pytest.raises(InputError, match="cannot read configuration file"):
+    with pytest.raises(InputError, match="is a directory: soulctl reads regular files only"):
         Observation.read_toml(tmp_path)
     with pytest.raises(InputError, match="not found"):
         Observation.read_toml(tmp_path / "missing.toml")

@@ -81,12 +81,20 @@ def _status_of_cli_exception(e: Exception) -> int | None:
     return None
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the program is so that every clean-up runs as for Ctrl-C."""
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM, raised where the program is so that every clean-up runs.  Not a
+    KeyboardInterrupt: the command-line framework would turn that into its own 'Abort'."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
 
 
-def _terminate(signum, frame) -> None:
-    raise Terminated()
+def _interrupt(signum, frame) -> None:
+    raise Interrupted(signum)
+
+
+INTERRUPT_STATUS = {signal.SIGINT: (130, "Ctrl-C"), signal.SIGTERM: (143, "SIGTERM")}
 
 
 def _run(argv: list[str] | None) -> int:
@@ -103,14 +111,15 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script.  With argv None (the console script) it exits the
     process; with an explicit argv (tests) it returns the exit status."""
     ascii_fallback()
-    previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
+    previous = {n: signal.signal(n, _interrupt) for n in INTERRUPT_STATUS} if _main_thread() else {}
     try:
         status = _run(argv)
     except InputError as e:
         status = _fail(str(e))
-    except Terminated:
-        status = _fail("interrupted (SIGTERM); nothing written", 143)
-    except KeyboardInterrupt:
+    except Interrupted as e:
+        code, name = INTERRUPT_STATUS[e.signum]
+        status = _fail(f"interrupted ({name}); nothing written", code)
+    except KeyboardInterrupt:  # a SIGINT outside the handler (another thread's handler)
         status = _fail("interrupted (Ctrl-C); nothing written", 130)
     except BrokenPipeError:
         status = 1  # the reader went away (e.g. `soulctl ... | head`): nothing to say
@@ -121,8 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         if status is None:
             raise
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     if argv is None:
         sys.exit(status)
     return status

@@ -13,6 +13,7 @@ from .. import tables
 from ..errors import InputError
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
+from .output import console as make_console
 
 
 def parse_magnitude(text: str) -> float:
@@ -24,7 +25,7 @@ def parse_magnitude(text: str) -> float:
         value = math.nan
     if not math.isfinite(value):
         raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
-    return value + 0.0  # -0 -> 0
+    return value + 0.0  # -0 -> 0; the range is checked against the table's rows
 
 
 def render(obs: Observation, console: Console, roots_source: str = "roots") -> None:
@@ -75,18 +76,16 @@ def configure(
     Example: soulctl configure --mag 13 --out obs.toml
     (--roots FILE takes the Tip/Tilt filter from a designed roots table.)
     """
-    roots_table = tables.read_roots_table(roots) if roots is not None else None
-    obs = observation_for_magnitude(parse_magnitude(mag), roots_table)
     if out is not None:
-        check_output_path(out, "--out")
-        try:
-            obs.write_toml(out)
-        except OSError as e:
-            raise InputError(f"--out: cannot write {out}: {e.strerror or e}") from None
+        check_output_path(out, "--out", [("--roots", roots)])
+    roots_table = tables.read_roots_table(roots) if roots is not None else None
+    obs = observation_for_magnitude(parse_magnitude(mag), roots_table, roots_source=str(roots) if roots is not None else None)
+    if out is not None:
+        obs.write_toml(out)
     if json_output:
         typer.echo(obs.to_json())
     else:
-        console = Console()
+        console = make_console()
         render(obs, console, roots_source=f"{roots.name}" if roots is not None else "roots")
         if out is not None:
             console.print(f"written {out}", markup=False, highlight=False)

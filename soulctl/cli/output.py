@@ -12,6 +12,8 @@ the other characters (λ -> lambda, χ -> chi, ″ -> ", Kármán -> Karman, ...
 from __future__ import annotations
 
 import codecs
+import json
+import math
 import sys
 import unicodedata
 
@@ -56,10 +58,30 @@ def ascii_fallback() -> None:
 
 
 def console(stderr: bool = False) -> Console:
-    """A rich console that prints text as given (no markup, no emoji codes)."""
-    return Console(stderr=stderr, markup=False, emoji=False, highlight=False)
+    """A rich console that prints text as given (no markup, no emoji codes, lines not broken:
+    a path stays on one line; tables still fit the terminal)."""
+    return Console(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True)
 
 
 def styled(text: str, style: str) -> Text:
     """``text`` in a rich style (e.g. "bold red"), the way to colour output without markup."""
     return Text(text, style=style)
+
+
+def json_safe(value):
+    """``value`` with every NaN or infinite float replaced by None (not available) and numpy
+    scalars and arrays made plain: JSON that every parser reads (no NaN/Infinity tokens)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):  # numpy arrays and scalars
+        return json_safe(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def print_json(value) -> None:
+    """One JSON object on stdout (``json_safe``; a value JSON cannot hold is a bug, not output)."""
+    print(json.dumps(json_safe(value), allow_nan=False))

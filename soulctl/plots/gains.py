@@ -67,15 +67,21 @@ def time_series_figure(result, title: str) -> Figure:
     return fig
 
 
+def gain_figure_names(methods) -> tuple[str, ...]:
+    """The files ``write_gain_figures`` writes for these methods."""
+    methods = list(methods)
+    return ("gains.png", *("timeseries.png" if len(methods) == 1 else f"timeseries_{m}.png" for m in methods))
+
+
 def write_gain_figures(directory: Path, results: dict) -> list[Path]:
     """gains.png (all methods) and timeseries[_METHOD].png per method, written atomically."""
     first = next(iter(results.values()))
     rr = first.request.run
     obs = rr.observation
     label = f"R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}\""
-    figures = [("gains.png", gain_vector_figure({m: x.gains for m, x in results.items()}, f"Optimised gains, {label}"))]
-    for method, result in results.items():
-        name = "timeseries.png" if len(results) == 1 else f"timeseries_{method}.png"
+    names = gain_figure_names(results)
+    figures = [(names[0], gain_vector_figure({m: x.gains for m, x in results.items()}, f"Optimised gains, {label}"))]
+    for name, (method, result) in zip(names[1:], results.items()):
         figures.append((name, time_series_figure(result, f"{LABELS.get(method, method)}: {label}")))
     out = []
     for name, fig in figures:

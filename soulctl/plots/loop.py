@@ -68,15 +68,20 @@ def modal_variance_figure(variance_nm2: np.ndarray, title: str) -> Figure:
     return fig
 
 
+LOOP_FIGURES = ("psf.png", "jitter.png", "modal_variance.png")
+
+
 def write_loop_figures(directory: Path, result) -> list[Path]:
-    """psf.png, jitter.png, modal_variance.png in ``directory`` (atomically); the paths."""
+    """``LOOP_FIGURES`` in ``directory`` (atomically; the jitter spectra only when the run
+    gives them); the paths."""
     r = result.request
     m = result.metrics
     lod_mas = band_wavelength(r.band) / LBT_DIAMETER_M * 180 / np.pi * 3600e3
     label = f"R = {r.observation.magnitude_r:g}, {r.observation.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\""
     out = []
-    figures = [("psf.png", psf_figure(result.psf, r.band, m.strehl, lod_mas)),
-               ("modal_variance.png", modal_variance_figure(result.spectra["modal_variance_nm2"], f"Modal residual variance, {label}"))]
+    figures = [("modal_variance.png", modal_variance_figure(result.spectra["modal_variance_nm2"], f"Modal residual variance, {label}"))]
+    if m.strehl is not None:
+        figures.append(("psf.png", psf_figure(result.psf, r.band, m.strehl, lod_mas)))
     if "f_hz" in result.spectra:
         s = result.spectra
         figures.append(("jitter.png", jitter_figure(s["f_hz"], s["residual_mas"], s["pseudo_open_loop_mas"], f"Tip/Tilt jitter, {label}")))

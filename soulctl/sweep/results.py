@@ -88,4 +88,4 @@ class ResultsTable:
         for cid in sorted(self.rows, key=lambda c: self.order.get(c, len(self.order))):
             row = {**DEFAULTS, **self.rows[cid]}
             writer.writerow([_text(row.get(c)) for c in COLUMNS])
-        atomic_write_text(self.path, out.getvalue())
+        atomic_write_text(self.path, out.getvalue(), immediate=True)  # the resumable record lands at once

@@ -1,0 +1,251 @@
+"""The files soulctl writes and reads, for every command: never a device, FIFO, socket,
+directory or read-only file replaced; symlinks written through; an output that is an input
+refused before any work; unwritable locations found up front; an error or an interrupt leaves
+no output and no temporary; inputs read only if they are regular files of bounded size."""
+
+import json
+import os
+import shutil
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from soulctl.cli.app import main
+
+# (arguments, output option) for every option that writes a file; each refusal below happens
+# before any work, so the expensive commands are as quick to test as the cheap ones.
+WRITERS = [
+    (["configure", "--mag", "12"], "--out"),
+    (["filter", "analyze", "--rate", "1000", "--gain", "0.3"], "--plot"),
+    (["filter", "design", "--rate", "1700"], "--out"),
+    (["filter", "design", "--rate", "1700"], "--plot"),
+    (["optics", "gains", "--binning", "4", "--oversampling", "1"], "--out"),
+    (["loop", "run", "--mag", "16.5", "--oversampling", "1"], "--telemetry"),
+    (["optimize", "gains", "--mag", "16.5", "--oversampling", "1"], "--out"),
+]
+
+
+def run(args, capsys):
+    status = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def suffix(option: str, args: list) -> str:
+    return {"--telemetry": ".h5", "--plot": ".png", "--out": ".csv" if args[0] in ("filter", "optics") else ".toml"}[option]
+
+
+def special_targets(tmp_path: Path) -> dict[str, Path]:
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    sock = tmp_path / "sock"
+    s = socket.socket(socket.AF_UNIX)
+    s.bind(str(sock))
+    s.close()
+    folder = tmp_path / "folder.out"
+    folder.mkdir()
+    return {"character device": Path("/dev/null"), "FIFO": fifo, "socket": sock, "directory": folder}
+
+
+@pytest.mark.parametrize("args, option", WRITERS)
+def test_outputs_never_replace_special_files(args, option, tmp_path, capsys):
+    for kind, target in special_targets(tmp_path).items():
+        mode = os.stat(target).st_mode
+        status, out, err = run([*args, option, target], capsys)
+        assert status == 2, (kind, err)
+        assert err.count("\n") == 1 and "soulctl writes only regular files" in err
+        assert os.stat(target).st_mode == mode, f"{target} was replaced"
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+@pytest.mark.parametrize("args, option", WRITERS)
+def test_read_only_outputs_are_refused_and_kept(args, option, tmp_path, capsys):
+    target = tmp_path / ("kept" + suffix(option, args))
+    target.write_text("precious")
+    target.chmod(0o444)
+    status, _, err = run([*args, option, target], capsys)
+    assert status == 2 and "read-only" in err and err.count("\n") == 1
+    assert target.read_text() == "precious" and stat.S_IMODE(target.stat().st_mode) == 0o444
+
+
+@pytest.mark.parametrize("args, option", WRITERS)
+def test_unwritable_locations_are_found_up_front(args, option, tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    for target in (a_file / ("under" + suffix(option, args)), Path("/proc/soulctl-cannot" + suffix(option, args)),
+                   tmp_path / "missing" / ("x" + suffix(option, args))):
+        t0 = time.perf_counter()
+        status, _, err = run([*args, option, target], capsys)
+        assert status == 2 and "cannot write" in err and err.count("\n") == 1, err
+        assert time.perf_counter() - t0 < 5, "refused only after the work"
+
+
+def test_symlinks_are_written_through_and_modes_kept(tmp_path, capsys):
+    target = tmp_path / "real.toml"
+    target.write_text("old")
+    target.chmod(0o600)
+    link = tmp_path / "link.toml"
+    link.symlink_to(target)
+    status, _, err = run(["configure", "--mag", "12", "--out", link], capsys)
+    assert status == 0, err
+    assert link.is_symlink() and "[wfs]" in target.read_text()
+    assert stat.S_IMODE(target.stat().st_mode) == 0o600
+
+
+@pytest.mark.parametrize("args", [
+    ["loop", "run", "--config", "{obs}", "--telemetry", "{obs}"],
+    ["optimize", "gains", "--telemetry", "{h5}", "--out", "{h5}"],
+    ["configure", "--mag", "9.7", "--roots", "{roots}", "--out", "{roots}"],
+    ["filter", "design", "--rate", "1700", "--vibrations", "{vib}", "--out", "{vib}"],
+    ["loop", "run", "--config", "{obs}", "--telemetry", "{link}"],
+])
+def test_an_output_that_is_an_input_is_refused_before_any_work(args, tmp_path, capsys):
+    files = {"obs": tmp_path / "obs.toml", "h5": tmp_path / "t.h5", "roots": tmp_path / "roots.csv", "vib": tmp_path / "vib.toml",
+             "link": tmp_path / "link.h5"}
+    assert main(["configure", "--mag", "16.5", "--out", str(files["obs"])]) == 0
+    files["h5"].write_bytes(b"HDF5 stand-in")
+    files["roots"].write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1700,0,0,0,0,0,0,0,1\n")
+    files["vib"].write_text("[[line]]\nfrequency_hz = 13.0\ndamping = 0.02\ntip_mas = 9.0\ntilt_mas = 6.5\n")
+    files["link"].symlink_to(files["obs"])
+    before = {k: p.read_bytes() for k, p in files.items()}
+    capsys.readouterr()
+    status, _, err = run([a.format(**{k: str(p) for k, p in files.items()}) for a in args], capsys)
+    assert status == 2 and "is also the input" in err and err.count("\n") == 1
+    assert {k: p.read_bytes() for k, p in files.items()} == before
+
+
+def no_new_files(folder: Path, before: set) -> list:
+    return sorted(p.name for p in folder.iterdir() if p.name not in before)
+
+
+@pytest.mark.parametrize("failure, status", [(RuntimeError("a late bug"), 1), ("input", 2)])
+def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, monkeypatch):
+    """The telemetry is written, then the figures fail: nothing lands, no temporary stays."""
+    from soulctl.cli import loop as loop_cli
+    from soulctl.errors import InputError
+
+    def fail(*_):
+        raise InputError("the figures could not be made") if failure == "input" else failure
+
+    monkeypatch.setattr(loop_cli, "write_loop_figures", fail)
+    before = set(os.listdir(tmp_path))
+    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", tmp_path / "ok.h5",
+            "--plot", tmp_path, "--cache-dir", tmp_path / "cache"]
+    if status == 1:
+        with pytest.raises(RuntimeError):
+            main([str(a) for a in args])
+    else:
+        assert run(args, capsys)[0] == 2
+    assert no_new_files(tmp_path, before | {"cache"}) == []
+
+
+INTERRUPTED = """
+import sys, time
+from soulctl.cli import app, loop as loop_cli
+def slow(*args):
+    time.sleep(60)
+loop_cli.write_loop_figures = slow
+sys.exit(app.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("signum, status, word", [(signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "Ctrl-C")])
+def test_an_interrupt_removes_the_temporaries_and_says_so(signum, status, word, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", out / "tm.h5",
+            "--plot", out, "--cache-dir", tmp_path / "cache"]
+    # run from tmp_path: `python -c` puts the current folder first on sys.path, and the
+    # installed package (with its compiled core) must be the one imported
+    p = subprocess.Popen([sys.executable, "-c", INTERRUPTED, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, cwd=tmp_path)
+    deadline = time.time() + 120
+    while not any(f.name.startswith(".soulctl-") for f in out.iterdir()):  # the telemetry's temporary, waiting for the figures
+        assert p.poll() is None and time.time() < deadline, p.communicate()
+        time.sleep(0.05)
+    p.send_signal(signum)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == status
+    assert err.strip().count("\n") == 0 and word in err and "Traceback" not in err
+    assert list(out.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------- inputs
+
+INPUTS = [
+    ["loop", "run", "--config", "{}"],
+    ["loop", "run", "--mag", "16.5", "--vibrations", "{}"],
+    ["loop", "run", "--mag", "16.5", "--gains", "{}"],
+    ["configure", "--mag", "12", "--roots", "{}"],
+    ["filter", "design", "--rate", "1700", "--vibrations", "{}"],
+    ["optics", "calibrate", "--config", "{}"],
+    ["optimize", "gains", "--telemetry", "{}"],
+    ["sweep", "{}"],
+]
+
+
+@pytest.mark.parametrize("args", INPUTS)
+def test_inputs_must_be_regular_files(args, tmp_path, capsys):
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)  # opening it would block forever
+    for source in ("/dev/zero", str(fifo), str(tmp_path)):
+        t0 = time.perf_counter()
+        status, out, err = run([a.format(source) for a in args], capsys)
+        assert status == 2 and err.count("\n") == 1, err
+        assert "regular files only" in err or "must be" in err
+        assert time.perf_counter() - t0 < 5
+
+
+@pytest.mark.parametrize("args", [a for a in INPUTS if "--telemetry" not in a])
+def test_text_inputs_are_capped(args, tmp_path, capsys):
+    big = tmp_path / "big.toml"
+    with open(big, "wb") as f:
+        f.truncate(17 * 2**20)
+    status, _, err = run([a.format(big) for a in args], capsys)
+    assert status == 2 and "more than the 16 MB accepted" in err
+
+
+def test_readme_roots_example_and_user_paths_are_relative_to_the_current_folder(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    # the README's example, with one rate to keep it short
+    assert main(["filter", "design", "--rate", "1700", "--out", "roots.csv"]) == 0
+    status, out, err = run(["configure", "--mag", "9.7", "--roots", "roots.csv", "--json"], capsys)
+    assert status == 0, err
+    # a user file named like the built-in table is the user's
+    Path("tt_iir_roots.csv").write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n"
+                                        "1700,0.1,0.2,0.3,0.4,0.0,0.0,0.5,1\n")
+    status, out, err = run(["configure", "--mag", "9.7", "--roots", "tt_iir_roots.csv", "--json"], capsys)
+    assert status == 0, err
+    assert json.loads(out)["control"]["tt_zeros"] == [0.1, 0.2, 0.3, 0.4]
+
+
+# --------------------------------------------------------------------------- what is printed
+
+@pytest.mark.parametrize("text", ["[/]", "[bold]x[/bold]", "[red", ":smile:", "\\[x]"])
+def test_user_text_prints_as_given(text, tmp_path, capsys):
+    plot = tmp_path / f"{text.replace('/', '_')}.png"
+    status, out, err = run(["filter", "analyze", "--rate", "1000", "--gain", "0.3", "--label", text, "--plot", plot], capsys)
+    assert status == 0, err
+    assert text in out and f"written {plot}" in out
+
+
+@pytest.mark.parametrize("args", [
+    ["configure", "--mag", "13"],
+    ["filter", "analyze", "--rate", "1700", "--control", "leaky", "--gain", "0.3"],
+    ["optics", "atmosphere"],
+    ["configure", "--mag", "99"],
+])
+def test_a_terminal_without_utf8_gets_ascii(args, tmp_path):
+    p = subprocess.run([shutil.which("soulctl"), *args], capture_output=True, cwd=tmp_path,
+                       env={**os.environ, "PYTHONIOENCODING": "ascii", "LC_ALL": "C"}, timeout=60)
+    assert p.returncode in (0, 2), p.stderr
+    assert b"Traceback" not in p.stderr
+    p.stdout.decode("ascii")
+    if args[-1] == "13":
+        assert b"lambda/D" in p.stdout
