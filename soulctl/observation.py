@@ -19,9 +19,12 @@ import tomli_w
 
 from . import tables
 from .control.delay import DelayModel
+from .control.filters import Filter
+from .control.transfer import check_stabilisable
 from .errors import InputError
 from .files import atomic_write_text, read_toml
 from .optics.photometry import WfsPhotometry
+from .ranges import DELAY_FRAMES, FRAME_RATE_HZ, MODES, MODULATION_LAMBDA_OVER_D, ROOT_MODULUS, ZERO_POINT_PH_S, number_text
 
 TT_CONTROLS = ("iir", "int")
 BINNINGS = {1: 40, 2: 20, 3: 13, 4: 10}  # binning -> sub-apertures across the pupil (paper, Tab. params)
@@ -37,13 +40,14 @@ def frame_rate(magnitude_r: float, band: tables.MagnitudeBand) -> float:
     return float(round(f_max * (f_min / f_max) ** x))
 
 
-def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...]) -> tables.IIRRoots | None:
+def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...],
+                    where: str = "the roots table") -> tables.IIRRoots | None:
     """The Tip/Tilt IIR of the roots table at the tabulated rate nearest to ``frame_rate_hz``
-    (ties to the higher rate), or None below the table's lowest rate (750 Hz for the paper's)
-    where an integrator is used."""
+    (ties to the higher rate; InputError if it is not within ``ranges.ROOTS_RATE_TOLERANCE``),
+    or None below the table's lowest rate (750 Hz for the paper's) where an integrator is used."""
     if frame_rate_hz < min(r.frame_rate_hz for r in roots):
         return None
-    return tables.nearest_roots(frame_rate_hz, roots)
+    return tables.nearest_roots(frame_rate_hz, roots, where)
 
 
 def _require(cond: bool, message: str) -> None:
@@ -100,28 +104,30 @@ class Observation:
     photometry: WfsPhotometry = field(default_factory=WfsPhotometry.from_table)
 
     def __post_init__(self):
-        _require(math.isfinite(self.magnitude_r), f"magnitude_r must be a number, got {self.magnitude_r}")
-        _require(self.binning in BINNINGS, f"binning must be one of 1, 2, 3, 4, got {self.binning}")
-        _require(1 <= self.modes <= 672, f"modes must be in 1..672, got {self.modes}")
-        _require(
-            math.isfinite(self.frame_rate_hz) and 10.0 <= self.frame_rate_hz <= 2000.0,
-            f"frame_rate_hz must be in 10..2000 Hz, got {self.frame_rate_hz}",
-        )
-        _require(
-            math.isfinite(self.modulation_lambda_over_d) and 0.0 <= self.modulation_lambda_over_d <= 20.0,
-            f"modulation_lambda_over_d must be in 0..20, got {self.modulation_lambda_over_d}",
-        )
+        lo, hi = tables.magnitude_range(tables.magnitude_table())
+        _require(_is_number(self.magnitude_r) and math.isfinite(self.magnitude_r) and lo <= self.magnitude_r <= hi,
+                 f"magnitude_r must be in the look-up table's {lo:g}..{hi:g}, got {number_text(self.magnitude_r)}")
+        _require(self.binning in BINNINGS, f"binning must be one of 1, 2, 3, 4, got {number_text(self.binning)}")
+        MODES.check(self.modes, "modes")
+        FRAME_RATE_HZ.check(self.frame_rate_hz, "frame_rate_hz")
+        MODULATION_LAMBDA_OVER_D.check(self.modulation_lambda_over_d, "modulation_lambda_over_d")
         _require(self.tt_control in TT_CONTROLS, f"tt_control must be 'iir' or 'int', got '{self.tt_control}'")
+        ZERO_POINT_PH_S.check(self.photometry.zero_point_ph_s, "photometry.zero_point_ph_s_per_subaperture")
+        d = self.delay_frames
+        _require(DELAY_FRAMES.contains(d), f"the loop delay ({self.delay_s * 1e3:.4g} ms = {d:.4g} frames at "
+                 f"{self.frame_rate_hz:g} Hz) must be at most {DELAY_FRAMES.hi:g} frames")
         if self.tt_control == "iir":
             _require(
                 len(self.tt_zeros) == 4 and len(self.tt_poles) == 4,
                 "tt_control 'iir' needs 4 tt_zeros and 4 tt_poles",
             )
-            _require(all(math.isfinite(z) for z in self.tt_zeros), f"tt_zeros must be finite, got {list(self.tt_zeros)}")
+            _require(all(math.isfinite(z) and abs(z) <= ROOT_MODULUS for z in self.tt_zeros),
+                     f"tt_zeros must be in -{ROOT_MODULUS:g}..{ROOT_MODULUS:g}, got {list(self.tt_zeros)}")
             _require(
                 all(math.isfinite(p) and abs(p) <= 1.0 for p in self.tt_poles),
                 f"tt_poles must be finite and in -1..1, got {list(self.tt_poles)}",
             )
+            check_stabilisable(Filter.iir(self.tt_zeros, self.tt_poles, 1.0), d, self.frame_rate_hz, "the Tip/Tilt IIR filter")
 
     # Derived quantities: computed, never stored.
     @property
@@ -220,19 +226,26 @@ class Observation:
 
     @classmethod
     def read_toml(cls, path: str | Path) -> "Observation":
-        return cls.from_dict(read_toml(path, "configuration file"))
+        """The observation of a configuration file; InputError naming the file and the field."""
+        data = read_toml(path, "configuration file")
+        try:
+            return cls.from_dict(data)
+        except InputError as e:
+            raise InputError(f"configuration file {path}: {e}") from None
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())
 
 
-def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None) -> Observation:
+def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None,
+                              roots_source: str | None = None) -> Observation:
     """The configuration the look-up table gives for a guide star of R magnitude; the Tip/Tilt
-    filter from ``roots_table`` (default: the paper's, tables/tt_iir_roots.csv)."""
+    filter from ``roots_table`` (default: the paper's, tables/tt_iir_roots.csv; ``roots_source``
+    names a user's table in messages)."""
     bands = tables.magnitude_table()
     band = tables.band_for_magnitude(magnitude_r, bands)
     rate = frame_rate(magnitude_r, band)
-    roots = tt_filter_roots(rate, roots_table or tables.tt_iir_table())
+    roots = tt_filter_roots(rate, roots_table or tables.tt_iir_table(), f"roots table {roots_source}" if roots_source else "the roots table")
     return Observation(
         magnitude_r=float(magnitude_r),
         binning=band.binning,

@@ -63,8 +63,10 @@ class Range:
     def check(self, value, name: str):
         """``value`` if it is in the range (ints stay ints), else InputError naming ``name``."""
         if not self.contains(value):
-            kind = "an integer" if self.integer else "a number"
-            raise InputError(f"{name} must be {kind} in {self.text()}, got {number_text(value)}")
+            is_number = isinstance(value, (int, float)) and not isinstance(value, bool) and (
+                not self.integer or isinstance(value, int) or (math.isfinite(value) and float(value).is_integer()))
+            kind = "" if is_number else ("an integer " if self.integer else "a number ")
+            raise InputError(f"{name} must be {kind}in {self.text()}, got {number_text(value)}")
         return int(value) if self.integer else value + 0.0  # -0.0 -> 0.0
 
     def parse(self, text: str, name: str):
@@ -97,9 +99,16 @@ OVERSAMPLING = Range(1, 4, integer=True)
 SEED = Range(0, 2**63 - 1, integer=True)  # numpy's generators take non-negative seeds
 LOOP_GAIN = Range(0.0, 10.0)  # a modal gain of the RTC (the stability check comes after)
 FORGETTING = Range(0.0, 1.0)  # of the leaky integrators
+FRACTION = Range(0.0, 1.0)  # optics gains --controlled-fraction
+SCREENS = Range(1, 64, integer=True)  # optics gains --screens (~10 s each at 40x40, 500 modes)
 
 # --- auxiliary loops ------------------------------------------------------------------------
 PERIOD_S = Range(0.0, 600.0, "s", lo_open=True)
+OPTIMISATION_S = Range(0.0, 3600.0, "s", lo_open=True)  # optimize gains --duration
+MEASURE_S = Range(0.0, 600.0, "s", lo_open=True)  # optimize gains --measure (before and after)
+MIN_MEASURE_FRAMES = 20  # a measurement shorter than this has no meaningful jitter
+SEQUENCE_S = Range(0.0, 60.0, "s", lo_open=True)  # one trial-and-error sequence
+PROBE_MODE = Range(1, MODES.hi, integer=True)  # 1-based; at most the controlled modes (checked with the observation)
 PROBE_AMPLITUDE_NM = Range(0.0, 1000.0, "nm", lo_open=True)
 PROBE_MIN_CYCLES = 4  # the OGTL probe's period fits this many times in an update period
 

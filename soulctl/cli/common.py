@@ -8,16 +8,17 @@ import os
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from .. import ranges
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..loop.metrics import BANDS
 from ..observation import Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from .configure import parse_magnitude
+from .output import console as make_console
 
 CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
 NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (the cache is otherwise reused).")
@@ -25,22 +26,35 @@ CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder 
 
 
 # Options of a simulated loop, shared by `loop run` and `optimize gains`.
-SEEING = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight (0.05..10).")
-WIND = typer.Option(8.0, "--wind", metavar="M/S", help="Effective wind speed of the LBT profile.")
-OUTER_SCALE = typer.Option(25.0, "--L0", metavar="M", help="Outer scale.")
+SEEING = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).")
+WIND = typer.Option(8.0, "--wind", metavar="M/S", help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).")
+OUTER_SCALE = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).")
 TT_CONTROL = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one).")
 BAND = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
-SEED = typer.Option(1, "--seed", help="Seed of turbulence, vibrations and noise.")
+SEED = typer.Option(1, "--seed", help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).")
 NO_NOISE = typer.Option(False, "--no-noise", help="Noiseless detector.")
 VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml).")
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 OVERSAMPLING = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
 PERIOD = typer.Option(1.0, "--period", metavar="S", help="Update period of MGM and OGTL (the paper: 1 s); MGM needs 4 Welch segments of >= 64 frames.")
-PROBE_MODE = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based).")
-PROBE_AMPLITUDE = typer.Option(20.0, "--probe-amplitude", metavar="NM", help="OGTL probe amplitude, nm peak.")
-PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", metavar="HZ", help="OGTL probe frequency (default: frame rate / 4).")
+PROBE_MODE = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based, at most the controlled modes).")
+PROBE_AMPLITUDE = typer.Option(20.0, "--probe-amplitude", metavar="NM", help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}).")
+PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", metavar="HZ",
+                               help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).")
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+
+
+def check_run_options(seeing: float, wind: float, L0: float, band: str, seed: int, duration: float | None = None) -> None:
+    """InputError naming the option and its accepted range for the options of a simulated loop."""
+    ranges.SEEING_ARCSEC.check(seeing, "--seeing")
+    ranges.WIND_M_S.check(wind, "--wind")
+    ranges.OUTER_SCALE_M.check(L0, "--L0")
+    ranges.SEED.check(seed, "--seed")
+    if duration is not None:
+        ranges.DURATION_S.check(duration, "--duration")
+    if band not in BANDS:
+        raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
 
 
 def vibration_spectrum(no_vibrations: bool, path: Path | None) -> VibrationSpectrum | None:
@@ -53,7 +67,7 @@ def vibration_spectrum(no_vibrations: bool, path: Path | None) -> VibrationSpect
 def frames_progress(label: str) -> Progress:
     """A transient progress bar over frames on stderr."""
     return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                    TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+                    TimeElapsedColumn(), TimeRemainingColumn(), console=make_console(stderr=True), transient=True)
 
 
 def default_cache_dir() -> Path:

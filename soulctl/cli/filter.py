@@ -23,52 +23,46 @@ from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_path
+from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
+                      MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
+from .output import console as make_console, styled
 
 app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).",
                   no_args_is_help=True)
 
 UNSTABLE_EXIT = 3  # an analysed loop is unstable (its figures are still printed)
+N_ROOTS_MAX = 8  # zeros or poles of a controller given by its roots
 CONTROLS = ("iir", "int", "leaky")
 SYSTEMS = ("soul", "flao")
 
 
 # ---------------------------------------------------------------- argument parsing
 
-def _values(text: str, option: str, kind: str) -> list[str]:
+def _values(text: str, option: str, kind: str, limit: int = MAX_CONTROLLERS) -> list[str]:
     items = [t.strip() for t in str(text).split(",")]
     if not items or any(t == "" for t in items):
         raise InputError(f"{option} must be a comma-separated list of {kind}, got '{text}'")
+    if len(items) > limit:
+        raise InputError(f"{option} lists {len(items)} values: accepted at most {limit}")
     return items
 
 
-def _numbers(text: str, option: str, lo: float, hi: float, lo_open: bool = False, what: str = "") -> list[float]:
-    """Comma-separated finite numbers in [lo, hi] (or (lo, hi] with lo_open)."""
-    lo_txt = f"{'>' if lo_open else '>='} {lo:g}"
-    accepted = f"accepted {lo_txt}" + (f" and <= {hi:g}" if math.isfinite(hi) else "") + (f" {what}" if what else "")
-    out = []
-    for t in _values(text, option, "numbers"):
-        try:
-            v = float(t)
-        except ValueError:
-            raise InputError(f"{option} must be numbers, got '{t}': {accepted}") from None
-        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi
-        if not ok:
-            raise InputError(f"{option} {t} is out of range: {accepted}")
-        out.append(v + 0.0)
-    return out
+def _numbers(text: str, option: str, accepted: Range, limit: int = MAX_CONTROLLERS) -> list[float]:
+    """Comma-separated numbers, each in ``accepted``."""
+    return [accepted.parse(t, option) for t in _values(text, option, "numbers", limit)]
 
 
 def _roots(text: str | None, option: str) -> tuple[complex, ...]:
     if text is None or text.strip() == "":
         return ()
     out = []
-    for t in _values(text, option, "roots"):
+    for t in _values(text, option, "roots", limit=N_ROOTS_MAX):
         try:
             v = complex(t.replace(" ", ""))
         except ValueError:
             raise InputError(f"{option} must be numbers such as 0.5 or 0.5+0.2j, got '{t}'") from None
-        if not (math.isfinite(v.real) and math.isfinite(v.imag)):
-            raise InputError(f"{option} must be finite numbers, got '{t}'")
+        if not (math.isfinite(v.real) and math.isfinite(v.imag) and abs(v) <= ROOT_MODULUS):
+            raise InputError(f"{option} must be numbers of modulus at most {ROOT_MODULUS:g}, got '{t}'")
         out.append(v.real if v.imag == 0 else v)
     return tuple(out)
 
@@ -124,7 +118,7 @@ def _controller(control: str, gain: float, rate: float, forgetting: float,
         return Filter.leaky(forgetting, gain), f"leaky (α = {forgetting:g})"
     if poles:
         return Filter.iir(zeros, poles, gain), "IIR (given roots)"
-    row = tables.nearest_roots(rate, tables.tt_iir_table())
+    row = tables.nearest_roots(rate, tables.tt_iir_table(), "the roots table (give --zeros/--poles for another rate)")
     return Filter.iir(row.zeros, row.poles, gain), f"IIR (table {row.frame_rate_hz:g} Hz)"
 
 
@@ -150,7 +144,7 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
     row("gain", lambda a: f"{a.analysis.gain:g}")
     row("delay", lambda a: f"{a.delay_ms:.3g} ms = {a.analysis.delay_frames:.3f} fr")
     row("optical gain χ", lambda a: f"{a.analysis.optical_gain:g}")
-    row("verdict", lambda a: "[green]stable[/green]" if a.analysis.stable else "[bold red]UNSTABLE[/bold red]")
+    row("verdict", lambda a: styled("stable", "green") if a.analysis.stable else styled("UNSTABLE", "bold red"))
     row("gain margin", lambda a: _fmt(a.analysis.gain_margin, ".2f"))
     row("phase margin", lambda a: _fmt(a.analysis.phase_margin_deg, ".1f") + "°" if a.analysis.phase_margin_deg is not None else "—")
     row("modulus margin min|1+L|", lambda a: f"{a.analysis.modulus_margin:.3f} @ {a.analysis.modulus_margin_hz:.0f} Hz")
@@ -163,26 +157,29 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
 
 
 def analyze_command(
-    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help="Frame rate(s) in Hz (> 0)."),
+    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()})."),
     control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s)."),
-    gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help="Loop gain(s) (> 0)."),
+    gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help=f"Loop gain(s) ({ANALYSIS_GAIN.text()})."),
     delay_frames: str | None = typer.Option(None, "--delay-frames", metavar="D[,D…]",
-                                            help="Loop delay in frames (>= 0, fractional allowed)."),
-    delay_ms: str | None = typer.Option(None, "--delay-ms", metavar="T[,T…]", help="Loop delay in ms (>= 0)."),
+                                            help=f"Loop delay in frames ({DELAY_FRAMES.text()}, fractional allowed)."),
+    delay_ms: str | None = typer.Option(None, "--delay-ms", metavar="T[,T…]",
+                                        help=f"Loop delay in ms (>= 0; at most {DELAY_FRAMES.hi:g} frames at the rate)."),
     system: str = typer.Option("soul", "--system", metavar="soul|flao[,…]",
                                help="Delay model when no delay is given (tables/delay_model.toml)."),
-    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help="Optical gain χ of the plant (> 0)."),
+    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()})."),
     forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1)."),
-    zeros: str | None = typer.Option(None, "--zeros", metavar="B1,B2,…", help="IIR zeros (default: the roots table)."),
-    poles: str | None = typer.Option(None, "--poles", metavar="A1,A2,…", help="IIR poles, at least one."),
+    zeros: str | None = typer.Option(None, "--zeros", metavar="B1,B2,…",
+                                     help=f"IIR zeros (default: the roots table; modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."),
+    poles: str | None = typer.Option(None, "--poles", metavar="A1,A2,…",
+                                     help=f"IIR poles, at least one (modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."),
     label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot."),
 ) -> int:
     """Margins, rejection and bandwidth of one or more control loops.
 
-    Lists (comma-separated) compare controllers side by side: each option takes one value or
-    one per controller.  Prints the gain, phase and modulus margins, the maximum stable gain,
+    Lists (comma-separated, at most 16) compare controllers side by side: each option takes one
+    value or one per controller.  Prints the gain, phase and modulus margins, the maximum stable gain,
     |S(13 Hz)|, |T(127 Hz)|, the -3 dB bandwidths and a stable/unstable verdict.  Exit status 3
     if any loop is unstable (its figures are still printed).
 
@@ -198,12 +195,12 @@ def analyze_command(
 
         plot_format(plot)
     lists = {
-        "--rate": _numbers(rate, "--rate", 0, 1e6, lo_open=True, what="Hz"),
+        "--rate": _numbers(rate, "--rate", ANALYSIS_RATE_HZ),
         "--control": _values(control.lower(), "--control", "controls"),
-        "--gain": _numbers(gain, "--gain", 0, 1e3, lo_open=True),
+        "--gain": _numbers(gain, "--gain", ANALYSIS_GAIN),
         "--system": _values(system.lower(), "--system", "delay models"),
-        "--chi": _numbers(chi, "--chi", 0, 1e3, lo_open=True),
-        "--forgetting": _numbers(forgetting, "--forgetting", 0, 1),
+        "--chi": _numbers(chi, "--chi", OPTICAL_GAIN),
+        "--forgetting": _numbers(forgetting, "--forgetting", FORGETTING),
     }
     for c in lists["--control"]:
         if c not in CONTROLS:
@@ -212,9 +209,9 @@ def analyze_command(
         if s not in SYSTEMS:
             raise InputError(f"--system must be soul or flao, got '{s}'")
     if delay_frames is not None:
-        lists["--delay-frames"] = _numbers(delay_frames, "--delay-frames", 0, 1e3, what="frames")
+        lists["--delay-frames"] = _numbers(delay_frames, "--delay-frames", DELAY_FRAMES)
     if delay_ms is not None:
-        lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", 0, 1e4, what="ms")
+        lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", Range(0.0, DELAY_FRAMES.hi * 1e3 / ANALYSIS_RATE_HZ.lo, "ms"))
     if label is not None:
         lists["--label"] = _values(label, "--label", "names")
     z, p = _roots(zeros, "--zeros"), _roots(poles, "--poles")
@@ -223,20 +220,7 @@ def analyze_command(
     if p and "iir" not in lists["--control"]:
         raise InputError("--zeros/--poles apply to --control iir")
     n = _broadcast(lists)
-
-    loops = []
-    for i in range(n):
-        r, c, g = _pick(lists["--rate"], i), _pick(lists["--control"], i), _pick(lists["--gain"], i)
-        if "--delay-frames" in lists:
-            d = _pick(lists["--delay-frames"], i)
-        elif "--delay-ms" in lists:
-            d = _pick(lists["--delay-ms"], i) * 1e-3 * r
-        else:
-            d = DelayModel.from_table(_pick(lists["--system"], i)).frames(r)
-        H, description = _controller(c, g, r, _pick(lists["--forgetting"], i), z, p)
-        loop = Loop(H, Plant(d, _pick(lists["--chi"], i)), r)
-        name = _pick(lists["--label"], i) if "--label" in lists else f"{c.upper()} {r:g} Hz g={g:g}"
-        loops.append(AnalyzedLoop(name, c, description, d / r * 1e3, loop, analyze(loop)))
+    loops = [_analyzed(lists, i, z, p) for i in range(n)]
 
     if plot is not None:
         from ..plots.transfer import Curve, save_figure, transfer_figure
@@ -247,13 +231,37 @@ def analyze_command(
         typer.echo(json.dumps({"controllers": [a.to_dict() for a in loops], "stable": all_stable,
                                "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ}))
     else:
-        console = Console()
+        console = make_console()
         _render_analysis(loops, console)
         if plot is not None:
-            console.print(f"written {plot}", markup=False, highlight=False)
+            console.print(f"written {plot}")
         if not all_stable:
-            console.print("[bold red]at least one loop is unstable[/bold red] (exit status 3)")
+            console.print(styled("at least one loop is unstable (exit status 3)", "bold red"))
     return 0 if all_stable else UNSTABLE_EXIT
+
+
+def _delay(lists: dict, i: int, rate: float) -> float:
+    """The loop delay in frames of controller i (InputError beyond ``DELAY_FRAMES``)."""
+    if "--delay-frames" in lists:
+        return _pick(lists["--delay-frames"], i)
+    if "--delay-ms" in lists:
+        d, what = _pick(lists["--delay-ms"], i) * 1e-3 * rate, f"--delay-ms {_pick(lists['--delay-ms'], i):g}"
+    else:
+        system = _pick(lists["--system"], i)
+        d, what = DelayModel.from_table(system).frames(rate), f"the {system.upper()} delay model"
+    if not DELAY_FRAMES.contains(d):
+        raise InputError(f"{what} at {rate:g} Hz is {d:.4g} frames: accepted {DELAY_FRAMES.text()} "
+                         "(the analysis' cost grows with the delay's polynomial degree)")
+    return d
+
+
+def _analyzed(lists: dict, i: int, zeros: tuple, poles: tuple) -> AnalyzedLoop:
+    r, c, g = _pick(lists["--rate"], i), _pick(lists["--control"], i), _pick(lists["--gain"], i)
+    d = _delay(lists, i, r)
+    H, description = _controller(c, g, r, _pick(lists["--forgetting"], i), zeros, poles)
+    loop = Loop(H, Plant(d, _pick(lists["--chi"], i)), r)
+    name = _pick(lists["--label"], i) if "--label" in lists else f"{c.upper()} {r:g} Hz g={g:g}"
+    return AnalyzedLoop(name, c, description, d / r * 1e3, loop, analyze(loop))
 
 
 # ---------------------------------------------------------------- design
@@ -285,30 +293,30 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
     console.print(perf)
     for r in results:
         console.print(f"{r.rate_hz:g} Hz: the designed filter rejects the 13 Hz line {r.rejection_ratio:.2f}x better than "
-                      f"the integrator; delay {r.delay_frames:.2f} frames; designed in {r.runtime_s:.1f} s",
-                      markup=False, highlight=False)
+                      f"the integrator; delay {r.delay_frames:.2f} frames; designed in {r.runtime_s:.1f} s")
     turb = disturbance.turbulence
     console.print(f"jitter: residual Tip/Tilt RMS per axis (mas). Disturbance: von Kármán Tip/Tilt, seeing "
                   f"{turb.seeing_arcsec:g}\", L0 {turb.outer_scale_m:g} m, wind {turb.wind_speed_m_s:g} m/s; "
                   f"vibrations: {disturbance.vibrations.source}; noise {disturbance.noise_mas:g} mas/frame; "
                   f"{disturbance.resonance_mas:g} mas line at {disturbance.resonance_hz:g} Hz weighted by |T|².",
-                  markup=False, highlight=False, style="dim")
+                  style="dim")
 
 
 def design_command(
     rate: str = typer.Option("1700,1350,1000,750", "--rate", metavar="HZ[,HZ…]",
-                             help="Frame rate(s) in Hz (> 0); default the paper's four."),
+                             help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four."),
     epsilon: float = typer.Option(0.2, "--epsilon", help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing at 500 nm on the line of sight."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Wind speed of the equivalent turbulent layer."),
-    outer_scale: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale of the von Kármán turbulence."),
+    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
+    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."),
+    outer_scale: float = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."),
     vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE",
                                            help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."),
-    noise: float = typer.Option(1.0, "--noise", metavar="MAS", help="White measurement noise, RMS per frame and axis."),
+    noise: float = typer.Option(1.0, "--noise", metavar="MAS", help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()})."),
     resonance_line: float = typer.Option(2.0, "--resonance-line", metavar="MAS",
-                                         help="RMS of the 127 Hz line that keeps |T(127 Hz)| low."),
-    delay_ms: float | None = typer.Option(None, "--delay-ms", help="Loop delay in ms for all rates (default: SOUL's delay model)."),
-    seed: int = typer.Option(1, "--seed", help="Seed of the differential-evolution search."),
+                                         help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()})."),
+    delay_ms: float | None = typer.Option(None, "--delay-ms",
+                                          help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DELAY_FRAMES.hi:g} frames)."),
+    seed: int = typer.Option(1, "--seed", help=f"Seed of the differential-evolution search ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs."),
@@ -320,16 +328,19 @@ def design_command(
 
     Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
     """
-    rates = _numbers(rate, "--rate", 0, 1e6, lo_open=True, what="Hz")
+    rates = _numbers(rate, "--rate", DESIGN_RATE_HZ, limit=MAX_DESIGN_RATES)
     if len(set(rates)) != len(rates):
         raise InputError(f"--rate lists a frame rate twice: {rate}")
-    if not (0 < epsilon < 1):
-        raise InputError(f"--epsilon must be in (0, 1) exclusive, got {epsilon:g}")
-    if delay_ms is not None and not (0 <= delay_ms <= 1e4):
-        raise InputError(f"--delay-ms must be in 0..10000 ms, got {delay_ms:g}")
+    EPSILON.check(epsilon, "--epsilon")
+    for value, name, accepted in ((seeing, "--seeing", SEEING_ARCSEC), (wind, "--wind", WIND_M_S), (outer_scale, "--L0", OUTER_SCALE_M),
+                                  (noise, "--noise", NOISE_MAS), (resonance_line, "--resonance-line", NOISE_MAS), (seed, "--seed", SEED)):
+        accepted.check(value, name)
+    delays = [None if delay_ms is None else _design_delay(delay_ms, r) for r in rates]
     for path, option in ((out, "--out"), (plot, "--plot")):
         if path is not None:
-            check_output_path(path, option)
+            check_output_path(path, option, [("--vibrations", vibrations)])
+    if out is not None and plot is not None and _same_path(out, plot):
+        raise InputError(f"--out and --plot name the same file {out}")
     if plot is not None:
         from ..plots.transfer import plot_format
 
@@ -340,10 +351,9 @@ def design_command(
         noise_mas=noise,
         resonance_mas=resonance_line,
     )
-    err = Console(stderr=True)
+    err = make_console(stderr=True)
     results = []
-    for r in rates:
-        d = None if delay_ms is None else delay_ms * 1e-3 * r
+    for r, d in zip(rates, delays):
         with nullcontext() if json_output else err.status(f"designing the {r:g} Hz filter…"):
             results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
 
@@ -378,11 +388,25 @@ def design_command(
             "seed": seed,
         }))
     else:
-        console = Console()
+        console = make_console()
         _render_design(results, disturbance, console)
         for path in (out, plot):
             if path is not None:
-                console.print(f"written {path}", markup=False, highlight=False)
+                console.print(f"written {path}")
+
+
+def _design_delay(delay_ms: float, rate: float) -> float:
+    """--delay-ms in frames at ``rate``, within ``DELAY_FRAMES``."""
+    if not (math.isfinite(delay_ms) and delay_ms >= 0):
+        raise InputError(f"--delay-ms must be a number >= 0 ms, got {delay_ms:.10g}")
+    d = delay_ms * 1e-3 * rate
+    if not DELAY_FRAMES.contains(d):
+        raise InputError(f"--delay-ms {delay_ms:.10g} at {rate:g} Hz is {d:.4g} frames: accepted {DELAY_FRAMES.text()}")
+    return d
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    return Path(a).resolve() == Path(b).resolve()
 
 
 app.command(name="analyze")(analyze_command)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import sys
 from contextlib import nullcontext
 from pathlib import Path
@@ -14,20 +12,23 @@ from rich.console import Console
 
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
+from ..control.gain_file import SUFFIXES, read_gain_file
 from ..errors import InputError
-from ..files import check_output_path, read_toml
+from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
 from ..loop.run import RunRequest, run
 from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..loop.optimize import LiveOptimisers
 from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..observation import Observation, observation_for_magnitude
-from ..optics.atmosphere import SEEING_RANGE_ARCSEC
-from ..plots.loop import write_loop_figures
+from ..plots.loop import LOOP_FIGURES, write_loop_figures
+from ..ranges import LOOP_GAIN, OVERSAMPLING
 from .configure import parse_magnitude
-from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, OVERSAMPLING,
-                     PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
-                     frames_progress, observation_option, quantity_table, vibration_spectrum)
+from . import common
+from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, PERIOD,
+                     PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
+                     check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
+from .output import console as make_console, print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -47,53 +48,26 @@ def observation_from(config: Path | None, mag: str | None, tt_control: str | Non
 
 
 def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
-    """``TT,MID,HIGH`` (the paper's three groups) or a gain file: TOML with ``gains = [...]``
-    (one per mode), or text/CSV with one gain per line (``mode,gain`` lines accepted)."""
+    """``TT,MID,HIGH`` (the paper's three groups) or a per-mode gain file
+    (``control.gain_file``: TOML ``gains = [...]``, or text/CSV lines)."""
     if text is None:
         return None
     path = Path(text)
-    if path.suffix.lower() in (".toml", ".txt", ".csv", ".dat") or path.exists():
-        if path.suffix.lower() == ".toml":
-            values = read_toml(path, "gain file").get("gains")
-            if not isinstance(values, list):
-                raise InputError(f"gain file {path} needs a list 'gains = [...]' with one gain per mode")
-        else:
-            try:
-                lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
-            except OSError as e:
-                raise InputError(f"cannot read gain file {path}: {e.strerror or e}") from None
-            values = [ln.split(",")[-1] for ln in lines if not ln.lower().startswith("mode")]
-        try:
-            gains = [float(v) for v in values]
-        except (TypeError, ValueError):
-            raise InputError(f"gain file {path}: every gain must be a number") from None
-        if not all(math.isfinite(g) and g >= 0 for g in gains):
-            raise InputError(f"gain file {path}: gains must be numbers >= 0")
-        return LoopGains.from_modes(gains, forgetting)
+    if path.suffix.lower() in SUFFIXES or path.exists():
+        return LoopGains.from_modes(read_gain_file(path), forgetting)
     parts = text.split(",")
     try:
         values = [float(p) for p in parts]
     except ValueError:
         values = []
-    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
-        raise InputError(f"--gains must be TT,MID,HIGH (three numbers >= 0) or a gain file, got '{text}'")
+    if len(values) != 3 or not all(LOOP_GAIN.contains(v) for v in values):
+        raise InputError(f"--gains must be TT,MID,HIGH (three numbers in {LOOP_GAIN.text()}) or a gain file, got '{text}'")
     return LoopGains(*values, forgetting=forgetting)
 
 
-def _check_number(name: str, value: float, lo: float, hi: float, unit: str) -> None:
-    if not (math.isfinite(value) and lo < value <= hi):
-        raise InputError(f"{name} must be in {lo:g}..{hi:g} {unit} (> {lo:g}), got {value:g}")
-
-
-def check_conditions(seeing: float, wind: float, L0: float, band: str) -> None:
-    """InputError naming the option and its range for --seeing, --wind, --L0, --band."""
-    lo, hi = SEEING_RANGE_ARCSEC
-    if not (math.isfinite(seeing) and lo <= seeing <= hi):
-        raise InputError(f"--seeing must be in {lo:g}..{hi:g} arcsec, got {seeing:g}")
-    _check_number("--wind", wind, 0.0, 100.0, "m/s")
-    _check_number("--L0", L0, 0.0, 1e4, "m")
-    if band not in BANDS:
-        raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
+def gain_file_input(text: str | None) -> tuple[str, Path | None]:
+    """--gains as an input file of the command (for the output checks), or None."""
+    return ("--gains", Path(text) if text is not None and (Path(text).suffix.lower() in SUFFIXES or Path(text).exists()) else None)
 
 
 def _result_dict(result) -> dict:
@@ -106,15 +80,19 @@ def _result_dict(result) -> dict:
         "seconds": result.seconds,
         "frames_per_second": len(result.telemetry.residual_rms_nm) / result.seconds if result.seconds > 0 else None,
         "diverged_at_frame": result.diverged_at,
-        "metrics": None,
+        "metrics": None if m is None else m.to_dict(),
+        "notes": list(result.notes),
     }
     if result.telemetry.aux:
         d["auxiliary_loops"] = sorted(result.telemetry.aux)
         d["final_gains"] = result.final_gains.tolist()
         d["final_sensitivity"] = result.final_sensitivity
-    if m is not None:
-        d["metrics"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.to_dict().items()}
     return d
+
+
+def _value(x, spec: str, unit: str = "") -> str:
+    """A metric as the table shows it; 'n/a (run too short)' when it is not available."""
+    return "n/a (run too short)" if x is None else format(x, spec) + unit
 
 
 def _render(result, console: Console) -> None:
@@ -125,11 +103,12 @@ def _render(result, console: Console) -> None:
     g = result.gains
     t.add_row("Tip/Tilt control", f"{'IIR' if obs.tt_control == 'iir' else 'integrator'}, gain {g.tip_tilt:.3g}")
     t.add_row("gains modes 3-120 / 121-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
-    t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", f"{m.strehl:.3f}")
-    t.add_row("Tip/Tilt jitter, residual (per axis)", f"{m.tt_jitter_mas:.2f} mas")
-    t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)", f"{m.tt_jitter_pol_mas:.2f} / {m.tt_jitter_pol_3hz_mas:.2f} mas")
-    t.add_row("residual wavefront error", f"{m.residual_nm:.0f} nm RMS")
-    t.add_row("rejection at 13 Hz (telemetry)", "n/a (run too short)" if not math.isfinite(m.rejection_13hz) else f"{m.rejection_13hz:.3f}")
+    t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", _value(m.strehl, ".3f"))
+    t.add_row("Tip/Tilt jitter, residual (per axis)", _value(m.tt_jitter_mas, ".2f", " mas"))
+    t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
+              f"{_value(m.tt_jitter_pol_mas, '.2f')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f')} mas")
+    t.add_row("residual wavefront error", _value(m.residual_nm, ".0f", " nm RMS"))
+    t.add_row("rejection at 13 Hz (telemetry)", _value(m.rejection_13hz, ".3f"))
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")
     if result.telemetry.aux:
         fg = result.final_gains
@@ -137,8 +116,10 @@ def _render(result, console: Console) -> None:
         t.add_row("final gains Tip / Tilt / 3-120 / 121-last", f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / "
                   + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"))
         t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
-    t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s")
+    t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s" if result.seconds > 0 else "n/a")
     console.print(t)
+    for note in result.notes:
+        console.print(styled(f"note: {note}", "dim"))
 
 
 @app.command("run")
@@ -157,7 +138,7 @@ def run_cmd(
     vibrations: Path | None = VIBRATIONS,
     no_vibrations: bool = NO_VIBRATIONS,
     no_resonance: bool = NO_RESONANCE,
-    oversampling: int = OVERSAMPLING,
+    oversampling: int = common.OVERSAMPLING,
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
@@ -181,12 +162,13 @@ def run_cmd(
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
-    check_conditions(seeing, wind, L0, band)
-    _check_number("--duration", duration, 0.0, 600.0, "s")
+    check_run_options(seeing, wind, L0, band, seed, duration)
+    OVERSAMPLING.check(oversampling, "--oversampling")
+    inputs = [("--config", config), gain_file_input(gains), ("--vibrations", vibrations)]
     if telemetry is not None:
-        check_output_path(telemetry, "--telemetry")
-    if plot is not None and not plot.is_dir():
-        raise InputError(f"--plot must be an existing folder, got {plot}")
+        check_output_path(telemetry, "--telemetry", inputs)
+    if plot is not None:
+        check_output_folder(plot, "--plot", LOOP_FIGURES)
     obs = observation_from(config, mag, tt_control)
     loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
     vib = vibration_spectrum(no_vibrations, vibrations)
@@ -212,15 +194,15 @@ def run_cmd(
     if result.diverged_at is not None:
         message = f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
         if json_output:
-            print(json.dumps(_result_dict(result)))
+            print_json(_result_dict(result))
         print(f"soulctl: {message}" + (f"; telemetry written to {telemetry}" if telemetry else ""), file=sys.stderr)
         return 3
     if plot is not None:
         write_loop_figures(plot, result)
     if json_output:
-        print(json.dumps(_result_dict(result)))
+        print_json(_result_dict(result))
     else:
-        console = Console()
+        console = make_console()
         _render(result, console)
         if telemetry is not None:
             console.print(f"telemetry written to {telemetry}")

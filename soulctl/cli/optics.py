@@ -3,18 +3,17 @@
 
 from __future__ import annotations
 
-import json
 import math
 from contextlib import nullcontext
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from .. import tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
+from ..ranges import MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from ..files import check_output_path
 from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
@@ -23,6 +22,7 @@ from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..optics.pwfs import PyramidConfig
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from .output import console as make_console, print_json
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
 
@@ -43,10 +43,9 @@ def sensing_setup(
         raise InputError(f"--binning must be one of 1, 2, 3, 4, got {b}")
     n = modes if modes is not None else (obs.modes if obs and binning is None else table_modes(b))
     r = modulation if modulation is not None else (obs.modulation_lambda_over_d if obs else 3.0)
-    if not (math.isfinite(r) and 0 <= r <= 20):
-        raise InputError(f"--modulation must be in 0..20 lambda/D, got {r:g}")
-    if n < 1:
-        raise InputError(f"--modes must be in 1..671, got {n}")
+    MODULATION_LAMBDA_OVER_D.check(r, "--modulation")
+    MODES.check(n, "--modes")
+    OVERSAMPLING.check(oversampling, "--oversampling")
     return CalibrationSetup(PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling), n, BasisSetup())
 
 
@@ -60,9 +59,9 @@ _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the
 
 @app.command("atmosphere")
 def atmosphere(
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help="Seeing FWHM at 500 nm on the line of sight (0.05..10)."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help="Effective (5/3-moment) wind speed of the LBT profile."),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
+    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
+    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()})."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale ({OUTER_SCALE_M.text()})."),
     json_output: bool = _JSON,
 ) -> None:
     """Turbulence figures of the default LBT profile: r0 at 500 nm, the WFS and science bands,
@@ -70,12 +69,9 @@ def atmosphere(
 
     Example: soulctl optics atmosphere --seeing 0.8 --wind 10
     """
-    if not (math.isfinite(wind) and wind > 0):
-        raise InputError(f"--wind must be in 0..100 m/s (> 0), got {wind:g}")
-    if not (math.isfinite(L0) and L0 > 0):
-        raise InputError(f"--L0 must be a number > 0 m, got {L0:g}")
-    if not math.isfinite(seeing):
-        raise InputError(f"--seeing must be in 0.05..10 arcsec, got {seeing}")
+    SEEING_ARCSEC.check(seeing, "--seeing")
+    WIND_M_S.check(wind, "--wind")
+    OUTER_SCALE_M.check(L0, "--L0")
     atm = AtmosphereConfig.lbt_default(seeing_arcsec=seeing, L0_m=L0, wind_speed_m_s=wind)
     r0 = atm.r0_m
     tilt = TurbulenceTipTilt(seeing_arcsec=seeing, outer_scale_m=L0, wind_speed_m_s=atm.effective_wind_speed_m_s)
@@ -95,7 +91,7 @@ def atmosphere(
         ],
     }
     if json_output:
-        print(json.dumps(result))
+        print_json(result)
         return
     t = quantity_table(f"Turbulence: seeing {seeing:g}\" at 500 nm, L0 {L0:g} m, LBT profile")
     t.add_row("r0 at 500 / 750 / 1650 nm", f"{r0 * 100:.1f} / {result['r0_750nm_m'] * 100:.1f} / {result['r0_1650nm_m'] * 100:.1f} cm")
@@ -104,7 +100,7 @@ def atmosphere(
     t.add_row("Tip/Tilt per axis (von Kármán)", f"{tilt_mas:.0f} mas RMS")
     for i, layer in enumerate(result["layers"], 1):
         t.add_row(f"layer {i}", f"{layer['altitude_m']:g} m, {layer['weight'] * 100:.0f}% Cn², {layer['wind_m_s']:.1f} m/s at {layer['direction_deg']:g}°")
-    Console().print(t)
+    make_console().print(t)
 
 
 def _calibration_dict(cal, cache: ArrayCache) -> dict:
@@ -150,11 +146,11 @@ def calibrate_cmd(
     """
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
     cache = array_cache(no_cache, cache_dir)
-    with nullcontext() if json_output else Console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
+    with nullcontext() if json_output else make_console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
         cal = calibrate(setup, cache)
     d = _calibration_dict(cal, cache)
     if json_output:
-        print(json.dumps(d))
+        print_json(d)
         return
     t = quantity_table("PWFS calibration")
     t.add_row("binning / sub-apertures across", f"{d['binning']} / {d['subapertures_across']}")
@@ -166,7 +162,7 @@ def calibrate_cmd(
     t.add_row("source", ("cache" if d["from_cache"] else "computed") + f" in {d['seconds']:.1f} s")
     if d["cache_file"]:
         t.add_row("cache file", d["cache_file"])
-    Console().print(t)
+    make_console().print(t)
 
 
 @app.command("gains")
@@ -180,8 +176,8 @@ def gains_cmd(
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
-    screens: int = typer.Option(4, "--screens", help="Residual phase realisations to average (1..1000)."),
-    seed: int = typer.Option(1, "--seed", help="Seed of the residual phase screens."),
+    screens: int = typer.Option(4, "--screens", help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."),
+    seed: int = typer.Option(1, "--seed", help=f"Seed of the residual phase screens ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
@@ -194,11 +190,13 @@ def gains_cmd(
     Example: soulctl optics gains --seeing 0.8 --mag 9.7 --out og_R9.7.csv
     """
     level = CorrectionLevel(seeing_arcsec=seeing, L0_m=L0, controlled_fraction=controlled_fraction)
+    SCREENS.check(screens, "--screens")
+    SEED.check(seed, "--seed")
     if out is not None:
-        check_output_path(out, "--out")
+        check_output_path(out, "--out", [("--config", config)])
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
     cache = array_cache(no_cache, cache_dir)
-    with nullcontext() if json_output else Console(stderr=True).status(
+    with nullcontext() if json_output else make_console(stderr=True).status(
         f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
     ):
         cal = calibrate(setup, cache)
@@ -206,7 +204,7 @@ def gains_cmd(
     if out is not None:
         table.write_csv(out)
     if json_output:
-        print(json.dumps(table.to_dict()))
+        print_json(table.to_dict())
         return
     g = table.gains
     t = Table(
@@ -223,7 +221,7 @@ def gains_cmd(
             break
         b = min(b, len(g))
         t.add_row(f"{a + 1}..{b}", f"{g[a:b].mean():.3f}", f"{g[a:b].min():.3f}..{g[a:b].max():.3f}")
-    Console().print(t)
+    make_console().print(t)
     if out is not None:
-        Console(stderr=True).print(f"wrote {out}")
+        make_console(stderr=True).print(f"wrote {out}")
 

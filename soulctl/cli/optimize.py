@@ -17,17 +17,21 @@ from rich.table import Table
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
 from ..control.trial import gain_groups
+from ..control.gain_file import gains_toml
 from ..errors import InputError
-from ..files import atomic_write_text, check_output_path
+from ..files import atomic_write_text, check_output_folder, check_output_path, input_file
 from ..loop.offline import offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
 from ..loop.run import RunRequest
 from ..loop.simulation import DEFAULT_FORGETTING
-from ..plots.gains import write_gain_figures
-from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, OVERSAMPLING,
+from ..plots.gains import gain_figure_names, write_gain_figures
+from ..ranges import OVERSAMPLING
+from . import common
+from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE,
                      PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
-                     frames_progress, observation_option, quantity_table, vibration_spectrum)
-from .loop import check_conditions, observation_from, parse_gains
+                     check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
+from .loop import gain_file_input, observation_from, parse_gains
+from .output import console as make_console, print_json
 
 app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
 
@@ -37,12 +41,6 @@ METHOD_CHOICES = METHODS + ("both",)
 def probe_settings(mode: int, amplitude: float, frequency: float | None) -> OgtlSettings:
     """The OGTL probe of the --probe-* options (checked by OgtlSettings)."""
     return OgtlSettings(mode=mode, amplitude_nm=amplitude, frequency_hz=frequency)
-
-
-def gains_toml(gains: np.ndarray, comment: str) -> str:
-    """A gain file `loop run --gains` reads: ``gains = [...]``, one per mode."""
-    body = ",\n".join("  " + ", ".join(f"{g:.5f}" for g in gains[i : i + 8]) for i in range(0, len(gains), 8))
-    return f"# {comment}\n# one gain per mode (mode 1 = Tip); use with: soulctl loop run --gains FILE\ngains = [\n{body},\n]\n"
 
 
 def group_summary(gains: np.ndarray) -> list[dict]:
@@ -151,7 +149,7 @@ def gains_cmd(
     vibrations: Path | None = VIBRATIONS,
     no_vibrations: bool = NO_VIBRATIONS,
     no_resonance: bool = NO_RESONANCE,
-    oversampling: int = OVERSAMPLING,
+    oversampling: int = common.OVERSAMPLING,
     out: Path | None = typer.Option(None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."),
     no_cache: bool = NO_CACHE,
@@ -170,26 +168,26 @@ def gains_cmd(
     """
     if method not in METHOD_CHOICES:
         raise InputError(f"--method must be one of {', '.join(METHOD_CHOICES)}, got '{method}'")
-    for path, option in ((out, "--out"),):
-        if path is not None:
-            check_output_path(path, option)
-    if plot is not None and not plot.is_dir():
-        raise InputError(f"--plot must be an existing folder, got {plot}")
+    methods = list(METHODS) if method == "both" else [method]
+    inputs = [("--config", config), ("--telemetry", telemetry), gain_file_input(gains), ("--vibrations", vibrations)]
+    if out is not None:
+        check_output_path(out, "--out", inputs)
+    if plot is not None:
+        check_output_folder(plot, "--plot", gain_figure_names(methods) if telemetry is None else ())
     cache = array_cache(no_cache, cache_dir)
     if telemetry is not None:
         if method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
-        if not telemetry.is_file():
-            raise InputError(f"telemetry file {telemetry} not found")
+        input_file(telemetry, "telemetry file")
         return _offline(telemetry, config, mag, out, json_output, cache)
-    check_conditions(seeing, wind, L0, band)
+    check_run_options(seeing, wind, L0, band, seed)
+    OVERSAMPLING.check(oversampling, "--oversampling")
     obs = observation_from(config, mag, tt_control)
     vib = vibration_spectrum(no_vibrations, vibrations)
     # the run's own duration is not used: --duration and --measure set the phases
     run = RunRequest(obs, seeing, wind, L0, gains=parse_gains(gains, DEFAULT_FORGETTING), band=band, seed=seed, noise=not no_noise,
                      vibrations=vib, oversampling=oversampling, structure=None if no_resonance else StructuralResonance())
     probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
-    methods = list(METHODS) if method == "both" else [method]
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}
     show = not json_output and sys.stderr.isatty()
     results: dict[str, OptimizeResult] = {}
@@ -206,9 +204,9 @@ def gains_cmd(
     if plot is not None:
         write_gain_figures(plot, results)
     if json_output:
-        print(json.dumps({m: _result_dict(x) for m, x in results.items()} if method == "both" else _result_dict(final)))
+        print_json({m: _result_dict(x) for m, x in results.items()} if method == "both" else _result_dict(final))
     else:
-        console = Console()
+        console = make_console()
         _render(results, console)
         if out is not None and not diverged:
             console.print(f"gains written to {out}")

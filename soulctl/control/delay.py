@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from .. import tables
 from ..errors import InputError
+from ..ranges import DELAY_TERM_MS
 
 
 @dataclass(frozen=True)
@@ -26,9 +27,7 @@ class DelayModel:
 
     def __post_init__(self):
         for name in ("t_readout_ms", "t_computation_ms", "t_asm_ms"):
-            value = getattr(self, name)
-            if not (value >= 0 and value < 1e3):
-                raise InputError(f"delay term {name} must be in 0..1000 ms, got {value}")
+            DELAY_TERM_MS.check(getattr(self, name), f"delay term {name}")
 
     @classmethod
     def from_table(cls, system: str = "soul") -> "DelayModel":

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
+from .. import ranges
 
 PROBE_MODE = 30  # 1-based, as the paper numbers modes
 PROBE_AMPLITUDE_NM = 20.0
@@ -44,12 +45,10 @@ class OgtlSettings:
     hold_growth: float = 1.3  # k is not raised while the commands' RMS grows by more than this per update
 
     def __post_init__(self):
-        if self.mode < 1:
-            raise InputError(f"OGTL probe mode must be >= 1, got {self.mode}")
-        if not (math.isfinite(self.amplitude_nm) and 0 < self.amplitude_nm <= 1000):
-            raise InputError(f"OGTL probe amplitude must be in 0..1000 nm (> 0), got {self.amplitude_nm:g}")
+        ranges.PROBE_MODE.check(self.mode, "--probe-mode")
+        ranges.PROBE_AMPLITUDE_NM.check(self.amplitude_nm, "--probe-amplitude")
         if self.frequency_hz is not None and not (math.isfinite(self.frequency_hz) and self.frequency_hz > 0):
-            raise InputError(f"OGTL probe frequency must be > 0 Hz, got {self.frequency_hz:g}")
+            raise InputError(f"--probe-frequency must be > 0 Hz and below Nyquist, got {self.frequency_hz:.10g}")
         if not (0 < self.gain <= 1):
             raise InputError(f"OGTL gain must be in 0..1 (> 0), got {self.gain:g}")
         if not (self.hold_growth >= 1):
@@ -58,7 +57,7 @@ class OgtlSettings:
     def probe_frequency(self, rate_hz: float) -> float:
         f = PROBE_FREQUENCY_PER_RATE * rate_hz if self.frequency_hz is None else self.frequency_hz
         if not f < 0.5 * rate_hz:
-            raise InputError(f"OGTL probe frequency must be below Nyquist ({0.5 * rate_hz:g} Hz), got {f:g} Hz")
+            raise InputError(f"--probe-frequency must be below Nyquist ({0.5 * rate_hz:g} Hz), got {f:.10g} Hz")
         return f
 
 

@@ -182,6 +182,20 @@ def max_stable_gain(loop: Loop, f: np.ndarray | None = None) -> float:
     return math.inf
 
 
+def check_stabilisable(controller: Filter, delay_frames: float, rate_hz: float, what: str) -> float:
+    """The maximum stable gain of ``controller``'s shape on the plant z^-d; InputError naming
+    ``what`` when no gain stabilises it (e.g. all poles at z = 1)."""
+    g_max = max_stable_gain(Loop(controller.with_gain(1.0), Plant(delay_frames), rate_hz))
+    if not g_max > 0:
+        raise InputError(f"{what} (zeros {_roots_text(controller.zeros)}, poles {_roots_text(controller.poles)}) is unstable at every "
+                         f"gain at {rate_hz:g} Hz with a {delay_frames:.3g}-frame delay: no loop can run it")
+    return g_max
+
+
+def _roots_text(roots) -> str:
+    return "[" + ", ".join(f"{complex(r).real:.4g}" if complex(r).imag == 0 else f"{complex(r):.4g}" for r in roots) + "]"
+
+
 @dataclass(frozen=True)
 class LoopAnalysis:
     """Robustness and performance figures of one loop (the rows of ``soulctl filter analyze``)."""

@@ -20,6 +20,7 @@ from scipy.signal import lfilter
 from .. import tables
 from ..errors import InputError
 from ..files import read_toml
+from ..ranges import VIBRATION_DAMPING, VIBRATION_FREQUENCY_HZ, VIBRATION_RMS_MAS
 
 AXES = ("tip", "tilt", "mean")
 
@@ -33,14 +34,10 @@ class VibrationLine:
     note: str = ""
 
     def __post_init__(self):
-        if not (0 < self.frequency_hz < 1e5):
-            raise InputError(f"vibration frequency must be in 0..1e5 Hz (exclusive), got {self.frequency_hz:g}")
-        if not (0 < self.damping < 1):
-            raise InputError(f"vibration damping must be in 0..1 (exclusive), got {self.damping:g}")
+        VIBRATION_FREQUENCY_HZ.check(self.frequency_hz, "vibration frequency_hz")
+        VIBRATION_DAMPING.check(self.damping, "vibration damping")
         for name in ("tip_mas", "tilt_mas"):
-            value = getattr(self, name)
-            if not (0 <= value < 1e6):
-                raise InputError(f"vibration {name} must be in 0..1e6 mas, got {value:g}")
+            VIBRATION_RMS_MAS.check(getattr(self, name), f"vibration {name}")
 
     def rms_mas(self, axis: str) -> float:
         if axis == "mean":
@@ -74,6 +71,13 @@ class VibrationSpectrum:
         f = np.asarray(f_hz, dtype=float)
         return sum((line.psd(f, axis) for line in self.lines), np.zeros(f.shape))
 
+    def below_nyquist(self, rate_hz: float) -> tuple["VibrationSpectrum | None", tuple[VibrationLine, ...]]:
+        """(the lines a loop at ``rate_hz`` samples, or None if none; the lines at or above its
+        Nyquist frequency, which a real system aliases or filters and the loop leaves out)."""
+        kept = tuple(line for line in self.lines if line.frequency_hz < 0.5 * rate_hz)
+        dropped = tuple(line for line in self.lines if line.frequency_hz >= 0.5 * rate_hz)
+        return (VibrationSpectrum(kept, self.source) if kept else None), dropped
+
     def variance_mas2(self, axis: str = "mean") -> float:
         return sum(line.rms_mas(axis) ** 2 for line in self.lines)
 
@@ -98,7 +102,10 @@ class VibrationSpectrum:
             for k, v in values.items():
                 if not isinstance(v, (int, float)) or isinstance(v, bool):
                     raise InputError(f"{where}: line {i + 1} {k} must be a number, got {v!r}")
-            out.append(VibrationLine(**{k: float(v) for k, v in values.items()}, note=str(line.get("note", ""))))
+            try:
+                out.append(VibrationLine(**{k: float(v) for k, v in values.items()}, note=str(line.get("note", ""))))
+            except InputError as e:
+                raise InputError(f"{where}: line {i + 1}: {e}") from None
         return cls(tuple(out), str(data.get("source", where)))
 
     @classmethod

@@ -108,13 +108,18 @@ def rejection_at(residual: np.ndarray, pseudo_open_loop: np.ndarray, rate_hz: fl
 
 @dataclass(frozen=True)
 class LoopMetrics:
+    """What `loop run` reports.  A figure the run is too short to give is None (not available),
+    never NaN or a fake zero: the Strehl ratio and residual need one frame after the skipped
+    ones, the jitters two, the jitter above 3 Hz a spectrum resolving 3 Hz, the 13 Hz rejection
+    one resolving 5 Hz."""
+
     band: str
-    strehl: float
-    tt_jitter_mas: float  # residual, per axis (RMS of the two axes' RMS)
-    tt_jitter_pol_mas: float  # pseudo-open loop, per axis
-    tt_jitter_pol_3hz_mas: float  # pseudo-open loop above 3 Hz (the paper quotes 3-425 Hz)
-    residual_nm: float  # RMS wavefront error, all modes and fitting
-    rejection_13hz: float
+    strehl: float | None
+    tt_jitter_mas: float | None  # residual, per axis (RMS of the two axes' RMS)
+    tt_jitter_pol_mas: float | None  # pseudo-open loop, per axis
+    tt_jitter_pol_3hz_mas: float | None  # pseudo-open loop above 3 Hz (the paper quotes 3-425 Hz)
+    residual_nm: float | None  # RMS wavefront error, all modes and fitting
+    rejection_13hz: float | None
     frames: int
     skipped_frames: int
 

@@ -31,7 +31,6 @@ as long as the table holds.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -47,6 +46,7 @@ from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CorrectionLevel, optical_gains
+from ..ranges import MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
 from .run import RunRequest, calibration_for, check_stability, closing_frames, default_gains, nominal_loop, sampled_structure
@@ -77,12 +77,13 @@ class OptimizeRequest:
     def __post_init__(self):
         if self.method not in METHODS:
             raise InputError(f"--method must be one of {', '.join(METHODS)}, got '{self.method}'")
-        for name, option, lo, hi in (("duration_s", "--duration", 0, 3600), ("period_s", "--period", 0, 600),
-                                     ("measure_s", "--measure", 0, 600), ("trial_sequence_s", "--sequence", 0, 60)):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and lo < v <= hi):
-                raise InputError(f"{option} must be in {lo:g}..{hi:g} s (> 0), got {v:g}")
+        for name, option, accepted in (("duration_s", "--duration", OPTIMISATION_S), ("period_s", "--period", PERIOD_S),
+                                       ("measure_s", "--measure", MEASURE_S), ("trial_sequence_s", "--sequence", SEQUENCE_S)):
+            accepted.check(getattr(self, name), option)
         obs = self.run.observation
+        if self.frames(self.measure_s) < MIN_MEASURE_FRAMES:
+            raise InputError(f"--measure must be at least {MIN_MEASURE_FRAMES / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
+                             f"({MIN_MEASURE_FRAMES} frames), got {self.measure_s:.10g} s")
         if self.method == "mgm":
             self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
             if self.duration_s < self.period_s:
@@ -91,7 +92,7 @@ class OptimizeRequest:
             raise InputError(f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
                              f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s")
         if self.ogtl:
-            check_probe(self.ogtl_settings, obs)
+            check_probe(self.ogtl_settings, obs, self.period_s)
 
     def frames(self, seconds: float) -> int:
         return max(1, round(seconds * self.run.observation.frame_rate_hz))
@@ -101,11 +102,15 @@ class OptimizeRequest:
         return self.mgm_settings or period_settings(self.frames(self.period_s), self.run.observation)
 
 
-def check_probe(settings: OgtlSettings, observation) -> None:
-    """InputError for an OGTL probe beyond the controlled modes or above Nyquist."""
+def check_probe(settings: OgtlSettings, observation, period_s: float) -> None:
+    """InputError for an OGTL probe beyond the controlled modes, above Nyquist, or too slow
+    for the lock-in: its period must fit ``PROBE_MIN_CYCLES`` times in an update period."""
     if settings.mode > observation.modes:
         raise InputError(f"--probe-mode {settings.mode} is beyond the {observation.modes} controlled modes (accepted 1..{observation.modes})")
-    settings.probe_frequency(observation.frame_rate_hz)
+    f = settings.probe_frequency(observation.frame_rate_hz)
+    if f * period_s < PROBE_MIN_CYCLES:
+        raise InputError(f"--probe-frequency {f:.10g} Hz makes {f * period_s:.3g} cycles per --period of {period_s:g} s: the lock-in "
+                         f"needs at least {PROBE_MIN_CYCLES} (a probe frequency of at least {PROBE_MIN_CYCLES / period_s:.4g} Hz)")
 
 
 def period_settings(period_frames: int, observation) -> mgm.MgmSettings:
@@ -209,8 +214,7 @@ class LiveOptimisers:
     def check(self, observation, duration_s: float) -> None:
         """InputError for a period too short for MGM's PSDs, a run too short for one update
         after the loop has closed, or a probe beyond the modes."""
-        if not (math.isfinite(self.period_s) and 0 < self.period_s <= 600):
-            raise InputError(f"--period must be in 0..600 s (> 0), got {self.period_s:g}")
+        PERIOD_S.check(self.period_s, "--period")
         if self.mgm:
             period_settings(self._frames(observation), observation)
         rate = observation.frame_rate_hz
@@ -219,7 +223,7 @@ class LiveOptimisers:
             raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {self.period_s:g} s "
                              f"(the loop closes, then two updates), got {duration_s:g} s")
         if self.ogtl:
-            check_probe(self.ogtl_settings, observation)
+            check_probe(self.ogtl_settings, observation, self.period_s)
 
     def _frames(self, observation) -> int:
         return max(1, round(self.period_s * observation.frame_rate_hz))

@@ -3,7 +3,6 @@ to what SOUL would deliver (Strehl, jitter, residuals, rejection, spectra)."""
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -14,6 +13,7 @@ from ..control.structure import StructuralResonance
 from ..control.transfer import Loop, Plant, max_stable_gain
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
+from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache
@@ -23,7 +23,6 @@ from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_sp
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry
 
 VIBRATION_HZ = 13.0
-MAX_DURATION_S = 600.0
 # At oversampling 1 the pupil has 40 pixels across for ~30 actuators: the high-order modes of
 # the 20x20 and 40x40 configurations are barely sampled and their loop hardly converges
 # (R13, 20x20, 250 modes: 812 nm residual against 233 nm at oversampling 2).
@@ -49,8 +48,12 @@ class RunRequest:
     allow_unstable: bool = False
 
     def __post_init__(self):
-        if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= MAX_DURATION_S):
-            raise InputError(f"duration must be in 0..{MAX_DURATION_S:g} s (> 0), got {self.duration_s:g}")
+        DURATION_S.check(self.duration_s, "duration")
+        SEEING_ARCSEC.check(self.seeing_arcsec, "seeing")
+        WIND_M_S.check(self.wind_m_s, "wind")
+        OUTER_SCALE_M.check(self.L0_m, "L0")
+        SEED.check(self.seed, "seed")
+        OVERSAMPLING.check(self.oversampling, "oversampling")
         band_wavelength(self.band)
         if self.oversampling == 1 and self.observation.modes > MAX_MODES_AT_OVERSAMPLING_1:
             raise InputError(
@@ -140,6 +143,7 @@ class RunResult:
     spectra: dict = field(default_factory=dict)
     final_gains: np.ndarray | None = None  # per mode, at the end (auxiliary loops may change them)
     final_sensitivity: float = 1.0  # the slope sensitivity k at the end
+    notes: tuple[str, ...] = ()  # what the run changed of the request, and why (e.g. vibration lines dropped)
 
     def configuration(self) -> dict:
         r = self.request
@@ -162,6 +166,7 @@ class RunResult:
 
 
 def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: float) -> tuple[LoopMetrics, dict]:
+    """The figures of ``LoopMetrics`` (None where the run is too short for one) and the spectra."""
     obs = request.observation
     skip = request.skip
     res_tt = tm["residual_modes"][skip:, :2] * mas_per_nm
@@ -169,10 +174,12 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
     pol_tt = pol[skip:, :2] * mas_per_nm
     rate = obs.frame_rate_hz
     n = len(res_tt)
-    # Spectra with ~1 Hz resolution where the run allows; no rejection figure if coarser than 5 Hz.
+    # Spectra with ~1 Hz resolution where the run allows.
     nperseg = min(2 ** int(np.log2(max(n, 2))), 2 ** int(np.ceil(np.log2(rate))))
-    resolved = n >= 64 and rate / nperseg <= 5.0
-    rej = float(np.mean([rejection_at(res_tt[:, a], pol_tt[:, a], rate, VIBRATION_HZ, nperseg) for a in (0, 1)])) if resolved else float("nan")
+    df = rate / nperseg
+    rej = None
+    if n >= 64 and df <= 5.0:
+        rej = float(np.mean([rejection_at(res_tt[:, a], pol_tt[:, a], rate, VIBRATION_HZ, nperseg) for a in (0, 1)]))
     spectra = {}
     if n >= 4:
         f, cr = cumulative_spectrum(res_tt[:, 0] - res_tt[:, 0].mean(), rate, nperseg)
@@ -181,14 +188,18 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
         _, cp2 = cumulative_spectrum(pol_tt[:, 1] - pol_tt[:, 1].mean(), rate, nperseg)
         spectra = {"f_hz": f, "residual_mas": np.sqrt((cr**2 + cr2**2) / 2), "pseudo_open_loop_mas": np.sqrt((cp**2 + cp2**2) / 2)}
     spectra["modal_variance_nm2"] = tm["residual_modes"][skip:].var(axis=0)
-    pol_band = float(np.interp(3.0, spectra["f_hz"], spectra["pseudo_open_loop_mas"])) if "f_hz" in spectra else float("nan")
+    pol_band = float(np.interp(3.0, spectra["f_hz"], spectra["pseudo_open_loop_mas"])) if "f_hz" in spectra and df <= 3.0 else None
+
+    def jitter(x):
+        return float(np.sqrt(np.mean(x.var(axis=0)))) if n >= 2 else None
+
     m = LoopMetrics(
         band=request.band,
-        strehl=psf.strehl,
-        tt_jitter_mas=float(np.sqrt(np.mean(res_tt.var(axis=0)))),
-        tt_jitter_pol_mas=float(np.sqrt(np.mean(pol_tt.var(axis=0)))),
+        strehl=psf.strehl if psf.frames else None,
+        tt_jitter_mas=jitter(res_tt),
+        tt_jitter_pol_mas=jitter(pol_tt),
         tt_jitter_pol_3hz_mas=pol_band,
-        residual_nm=float(np.sqrt(np.mean(tm["residual_rms_nm"][skip:] ** 2))),
+        residual_nm=float(np.sqrt(np.mean(tm["residual_rms_nm"][skip:] ** 2))) if n else None,
         rejection_13hz=rej,
         frames=len(tm["residual_rms_nm"]),
         skipped_frames=skip,
@@ -249,6 +260,6 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
         metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
         image = psf.psf
     return RunResult(request, gains, cal, loop.telemetry, metrics, image, diverged_at, diverged_rms, seconds, t_cal,
-                     loop.mas_per_nm_tt, spectra, loop.rtc_parameters.gains, loop.rtc_parameters.sensitivity)
+                     loop.mas_per_nm_tt, spectra, loop.rtc_parameters.gains, loop.rtc_parameters.sensitivity, loop.notes)
 
 

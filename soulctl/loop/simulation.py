@@ -184,7 +184,11 @@ class ClosedLoop:
         self.sensor = WavefrontSensor(pyramid, detector, photons)
         self.pupil = pupil
         self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, int(atm_seed)) if atmosphere else None
-        self.vibrations = vibrations
+        self.vibrations, dropped = vibrations.below_nyquist(self.rate_hz) if vibrations is not None else (None, ())
+        # What the loop changed of what it was given, for the run's report.
+        self.notes: tuple[str, ...] = tuple(
+            f"the {line.frequency_hz:g} Hz vibration line is left out: at or above the {self.rate_hz / 2:g} Hz Nyquist frequency "
+            "of the loop (a real system aliases or filters it)" for line in dropped)
         basis = calibration.basis
         # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
         # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.

@@ -130,6 +130,9 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
     if hit is not None:
         return Calibration(setup, basis, hit["D"], hit["R"], hit["reference"], True, time.perf_counter() - t0)
     sensor = calibration_sensor(setup.pyramid)
+    if setup.n_modes > sensor.n_slopes:
+        raise InputError(f"{setup.n_modes} modes cannot be calibrated from the {sensor.n_slopes} slopes of binning {setup.pyramid.binning} "
+                         f"(an under-determined interaction matrix): accepted at most {sensor.n_slopes} modes")
     maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
     D = push_pull(sensor, maps, setup.push_nm)
     R = np.linalg.pinv(D)

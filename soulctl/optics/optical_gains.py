@@ -20,7 +20,6 @@ a table.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -28,6 +27,7 @@ import numpy as np
 
 from ..disturbance.turbulence import r0_from_seeing
 from ..errors import InputError
+from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
 from ..files import atomic_write_text
 from .atmosphere import fft_phase_screen
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
@@ -41,12 +41,9 @@ class CorrectionLevel:
     controlled_fraction: float = 0.1
 
     def __post_init__(self):
-        if not (math.isfinite(self.seeing_arcsec) and 0.05 <= self.seeing_arcsec <= 10):
-            raise InputError(f"seeing must be in 0.05..10 arcsec, got {self.seeing_arcsec}")
-        if not (self.L0_m > 0):
-            raise InputError(f"outer scale L0 must be > 0 m, got {self.L0_m}")
-        if not (0 <= self.controlled_fraction <= 1):
-            raise InputError(f"controlled fraction must be in 0..1, got {self.controlled_fraction}")
+        SEEING_ARCSEC.check(self.seeing_arcsec, "--seeing")
+        OUTER_SCALE_M.check(self.L0_m, "--L0")
+        FRACTION.check(self.controlled_fraction, "--controlled-fraction")
 
 
 def residual_screens(level: CorrectionLevel, shapes: np.ndarray, pupil: Pupil, n_screens: int, rng: np.random.Generator) -> np.ndarray:

@@ -73,7 +73,7 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--seeing", "0"], "--seeing must be in 0.05..10 arcsec"),
         (["--seeing", "0.01"], "--seeing must be in 0.05..10 arcsec"),
         (["--wind", "-3"], "--wind must be in 0..100"),
-        (["--L0", "0"], "--L0 must be in 0..10000"),
+        (["--L0", "0"], "--L0 must be in 0.5..10000 m"),
         (["--gains", "a,b,c"], "--gains must be TT,MID,HIGH"),
         (["--gains", "0.5,-0.1,0.2"], "--gains must be TT,MID,HIGH"),
         (["--tt-control", "pid"], "--tt-control must be 'iir' or 'int'"),

@@ -77,16 +77,16 @@ def test_gains_table_csv_and_json(tmp_path, cache_dir, capsys):
     [
         (["optics", "atmosphere", "--seeing", "0"], "seeing must be in 0.05..10"),
         (["optics", "atmosphere", "--seeing", "-1"], "seeing must be in 0.05..10"),
-        (["optics", "atmosphere", "--L0", "0"], "--L0 must be a number > 0"),
+        (["optics", "atmosphere", "--L0", "0"], "--L0 must be in 0.5..10000 m, got 0"),
         (["optics", "atmosphere", "--wind", "-2"], "--wind must be in 0..100"),
         (["optics", "calibrate", "--binning", "5"], "--binning must be one of 1, 2, 3, 4"),
         (["optics", "calibrate", "--binning", "4", "--modulation", "-1"], "--modulation must be in 0..20"),
-        (["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1"], "modes must be in 1..671"),
-        (["optics", "calibrate", "--binning", "4", "--oversampling", "9"], "oversampling must be 1..4"),
+        (["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1"], "--modes must be in 2..671, got 700"),
+        (["optics", "calibrate", "--binning", "4", "--oversampling", "9"], "--oversampling must be in 1..4, got 9"),
         (["optics", "calibrate", "--mag", "12", "--config", "x.toml"], "either --config or --mag"),
         (["optics", "gains", "--seeing", "0"], "seeing must be in 0.05..10"),
-        (["optics", "gains", "--L0", "-5"], "L0 must be > 0"),
-        (["optics", "gains", "--screens", "0", *SMALL], "screens must be in 1..1000"),
+        (["optics", "gains", "--L0", "-5"], "--L0 must be in 0.5..10000 m, got -5"),
+        (["optics", "gains", "--screens", "0", *SMALL], "--screens must be in 1..64, got 0"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):

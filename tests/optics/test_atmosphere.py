@@ -427,7 +427,7 @@ def test_config_validation(kwargs, words):
 
 @pytest.mark.parametrize(
     "kwargs, words",
-    [(dict(wind_speed_m_s=-1.0), "0..200 m/s"), (dict(weight=-0.1), ">= 0"), (dict(altitude_m=-5.0), "0..100000 m")],
+    [(dict(wind_speed_m_s=-1.0), "0..300 m/s"), (dict(weight=-0.1), ">= 0"), (dict(altitude_m=-5.0), "0..100000 m")],
 )
 def test_layer_validation(kwargs, words):
     with pytest.raises(InputError, match=words):

@@ -1,0 +1,140 @@
+"""The command-line contract, property-based: every command's numeric options driven with
+arbitrary floats, integers and strings.  Whatever the value:
+
+* the exit status is 0, 2 or 3, never 1 (a bug) and never a traceback;
+* on exit 2, stderr is one line and stdout is empty;
+* with --json, stdout is one valid JSON object without NaN or Infinity tokens;
+* the command returns within a bound (``LIMIT_S``).
+
+Each option is fuzzed alone, the others at a small, fast configuration.  The options that set
+the amount of work (--duration, --measure, --screens, ...) draw their accepted values from the
+small end of their range: every other value is drawn from the whole line.
+
+CI runs a few examples per option (profile "soulctl-ci"); for many, run
+    HYPOTHESIS_PROFILE=soulctl-thorough pytest tests/cli/test_properties.py
+"""
+
+import contextlib
+import io
+import json
+import os
+import signal
+import time
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from soulctl.cli.app import main
+
+settings.register_profile("soulctl-ci", max_examples=6, deadline=None, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+settings.register_profile("soulctl-thorough", max_examples=150, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+PROFILE = settings.get_profile(os.environ.get("HYPOTHESIS_PROFILE", "soulctl-ci")
+                               if os.environ.get("HYPOTHESIS_PROFILE", "").startswith("soulctl-") else "soulctl-ci")
+
+SPECIAL = ["nan", "inf", "-inf", "-0", "0", "1", "0.5", "-1", "1e308", "1e-300", "5e-324", "", " ", "abc", "1,2", "1_0",
+           "0x10", "１２", "١٢", "1e999", "2" * 40, "None", "true", "[]"]
+NUMBERS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(min_value=-(10**30), max_value=10**30).map(str),
+    st.sampled_from(SPECIAL),
+    st.text(max_size=6),
+)
+LISTS = st.lists(NUMBERS, min_size=1, max_size=4).map(",".join)
+
+
+def small(hi: float) -> st.SearchStrategy:
+    """Values of an option that sets the amount of work: anything outside (0, hi], or a small
+    accepted value."""
+    return st.one_of(NUMBERS.filter(lambda t: not _in(t, 0.0, hi)), st.floats(min_value=0.0, max_value=hi).map(repr))
+
+
+def _in(text: str, lo: float, hi: float) -> bool:
+    try:
+        v = float(text)
+    except ValueError:
+        return False
+    return lo < v <= 10 * hi or v != v  # NaN is refused anyway, but keep "nan" in the other branch
+
+
+FAST_LOOP = ["--mag", "16.5", "--oversampling", "1", "--duration", "0.05"]
+OGTL_LOOP = ["--mag", "16.5", "--oversampling", "1", "--duration", "0.8", "--ogtl", "--period", "0.25"]
+OPTIMIZE = ["--mag", "16.5", "--oversampling", "1", "--no-ogtl", "--period", "1.1", "--duration", "1.1", "--measure", "0.1"]
+CHEAP_OPTICS = ["--binning", "4", "--oversampling", "1"]
+
+# (command, base arguments, option, strategy, time limit in s)
+CASES = [
+    ("configure", [], "--mag", NUMBERS, 10),
+    *[("filter analyze", ["--rate", "1700", "--gain", "0.3", "--control", c], o, s, 10) for c, o, s in [
+        ("int", "--rate", LISTS), ("int", "--gain", LISTS), ("int", "--delay-frames", LISTS), ("int", "--delay-ms", LISTS),
+        ("int", "--chi", LISTS), ("leaky", "--forgetting", LISTS), ("iir", "--zeros", LISTS), ("iir", "--poles", LISTS)]],
+    *[("filter design", ["--rate", "1700"], o, NUMBERS, 60) for o in
+      ["--rate", "--epsilon", "--seeing", "--wind", "--L0", "--noise", "--resonance-line", "--delay-ms", "--seed"]],
+    *[("optics atmosphere", [], o, NUMBERS, 10) for o in ["--seeing", "--wind", "--L0"]],
+    *[("optics calibrate", CHEAP_OPTICS, o, NUMBERS, 120) for o in ["--binning", "--modes", "--modulation", "--oversampling"]],
+    *[("optics gains", [*CHEAP_OPTICS, "--screens", "1"], o, s, 120) for o, s in [
+        ("--seeing", NUMBERS), ("--L0", NUMBERS), ("--controlled-fraction", NUMBERS), ("--screens", small(4)), ("--seed", NUMBERS)]],
+    *[("loop run", FAST_LOOP, o, s, 120) for o, s in [
+        ("--mag", NUMBERS), ("--seeing", NUMBERS), ("--wind", NUMBERS), ("--L0", NUMBERS), ("--duration", small(0.1)),
+        ("--seed", NUMBERS), ("--oversampling", NUMBERS), ("--gains", LISTS)]],
+    *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],
+    *[("optimize gains", OPTIMIZE, o, s, 180) for o, s in [
+        ("--period", NUMBERS), ("--duration", small(1.2)), ("--measure", small(0.2)), ("--seeing", NUMBERS), ("--seed", NUMBERS)]],
+]
+
+
+class Timeout(Exception):
+    pass
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    def alarm(signum, frame):
+        raise Timeout(f"no answer within {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def invoke(args: list[str], limit: float) -> tuple[int, str, str, float]:
+    out, err = io.StringIO(), io.StringIO()
+    t0 = time.perf_counter()
+    with time_limit(limit), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main(args)
+    return status, out.getvalue(), err.getvalue(), time.perf_counter() - t0
+
+
+def no_constants(token):
+    raise AssertionError(f"{token} in JSON output")
+
+
+def check_contract(args: list[str], limit: float) -> None:
+    status, out, err, seconds = invoke(args, limit)
+    assert status in (0, 2, 3), (args, status, err)
+    assert "Traceback" not in err
+    if status == 2:
+        assert err.count("\n") == 1 and err.startswith("soulctl: error: "), (args, err)
+        assert out == "", (args, out)
+    else:
+        json.loads(out, parse_constant=no_constants)
+
+
+@pytest.mark.parametrize("command, base, option, values, limit", CASES, ids=[f"{c[0]} {c[2]}" for c in CASES])
+def test_every_numeric_option_keeps_the_contract(command, base, option, values, limit, tmp_path_factory):
+    cache = str(tmp_path_factory.getbasetemp() / "property-cache")
+    uses_cache = command.split()[0] in ("loop", "optimize") or command in ("optics calibrate", "optics gains")
+
+    @PROFILE
+    @given(value=values)
+    def check(value):
+        args = [*command.split(), *base, option, value, "--json", *(["--cache-dir", cache] if uses_cache else [])]
+        check_contract(args, limit)
+
+    check()
