@@ -23,7 +23,7 @@ from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_path
-from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
+from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
                       MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
 from .output import console as make_console, styled
 
@@ -315,7 +315,7 @@ def design_command(
     resonance_line: float = typer.Option(2.0, "--resonance-line", metavar="MAS",
                                          help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()})."),
     delay_ms: float | None = typer.Option(None, "--delay-ms",
-                                          help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DELAY_FRAMES.hi:g} frames)."),
+                                          help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames)."),
     seed: int = typer.Option(1, "--seed", help=f"Seed of the differential-evolution search ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
@@ -400,8 +400,8 @@ def _design_delay(delay_ms: float, rate: float) -> float:
     if not (math.isfinite(delay_ms) and delay_ms >= 0):
         raise InputError(f"--delay-ms must be a number >= 0 ms, got {delay_ms:.10g}")
     d = delay_ms * 1e-3 * rate
-    if not DELAY_FRAMES.contains(d):
-        raise InputError(f"--delay-ms {delay_ms:.10g} at {rate:g} Hz is {d:.4g} frames: accepted {DELAY_FRAMES.text()}")
+    if not DESIGN_DELAY_FRAMES.contains(d):
+        raise InputError(f"--delay-ms {delay_ms:.10g} at {rate:g} Hz is {d:.4g} frames: the design accepts {DESIGN_DELAY_FRAMES.text()}")
     return d
 
 

@@ -49,7 +49,8 @@ from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..ranges import MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import RunRequest, calibration_for, check_stability, closing_frames, default_gains, nominal_loop, sampled_structure
+from .run import (RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop,
+                  sampled_structure)
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
 
 METHODS = ("trial", "mgm")
@@ -312,6 +313,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     n_close += (-(n_close + n_settle + n_measure)) % period
     skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
     total = n_close + n_settle + 2 * n_measure + n_opt
+    check_memory(total, cal, "--duration")
     wavelength = band_wavelength(r.band)
     psf_before, psf_after = PsfAccumulator(loop.pupil, wavelength), PsfAccumulator(loop.pupil, wavelength)
     done = 0

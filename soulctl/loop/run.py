@@ -3,6 +3,7 @@ to what SOUL would deliver (Strehl, jitter, residuals, rejection, spectra)."""
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -20,7 +21,7 @@ from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
 from ..optics.pwfs import PyramidConfig
 from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
-from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry
+from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry, telemetry_bytes
 
 VIBRATION_HZ = 13.0
 # At oversampling 1 the pupil has 40 pixels across for ~30 actuators: the high-order modes of
@@ -207,6 +208,30 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
     return m, spectra
 
 
+def available_memory_bytes() -> int:
+    """Memory the system can give this process now (MemAvailable), else its physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_memory(frames: int, calibration: Calibration, option: str) -> None:
+    """InputError naming ``option`` when the telemetry of ``frames`` frames, kept in memory,
+    would not fit in the memory available (a run must end with its figures, not be killed)."""
+    n_slopes, n_modes = calibration.interaction_matrix.shape
+    need = telemetry_bytes(frames, n_slopes, calibration.basis.M.shape[0], n_modes)
+    have = available_memory_bytes()
+    if need > 0.8 * have:
+        fits = int(frames * 0.8 * have / need)
+        raise InputError(f"{option}: the run's telemetry, kept in memory, would need {need / 2**30:.3g} GB, more than the "
+                         f"{have / 2**30:.3g} GB available; at most {fits} frames fit at this configuration")
+
+
 def calibration_setup(request: RunRequest) -> CalibrationSetup:
     """What the request's calibration depends on (binning, modulation, sampling, modes)."""
     obs = request.observation
@@ -230,6 +255,7 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
         check_stability(obs, gains, structure)
     t0 = time.perf_counter()
     cal = calibration or calibration_for(request, cache)
+    check_memory(request.frames, cal, "--duration")
     t_cal = time.perf_counter() - t0
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
     loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise,

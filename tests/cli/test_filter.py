@@ -90,7 +90,7 @@ def test_analyze_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, m
 @pytest.mark.parametrize("args, message", [
     (["--epsilon", "1.5"], "--epsilon must be in 0..1 (> 0, < 1), got 1.5"),
     (["--epsilon", "0"], "--epsilon must be in 0..1 (> 0, < 1), got 0"),
-    (["--rate", "0"], "--rate must be in 100..4000 Hz, got 0"),
+    (["--rate", "0"], "--rate must be in 100..2000 Hz, got 0"),
     (["--rate", "1700,1700"], "twice"),
     (["--delay-ms", "-1"], "--delay-ms must be a number >= 0 ms, got -1"),
     (["--seeing", "0"], "--seeing must be in 0.05..10 arcsec, got 0"),

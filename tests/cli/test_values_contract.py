@@ -151,9 +151,13 @@ def test_the_costliest_accepted_analysis_takes_seconds(capsys):
     assert time.perf_counter() - t0 < 10
 
 
-@pytest.mark.parametrize("rate", ["1", "20", "99", "4001", "1e6"])
+@pytest.mark.parametrize("rate", ["1", "20", "99", "2001", "1e6"])
 def test_design_rates_outside_the_method_are_refused(rate, capsys):
-    refused(*run(["filter", "design", "--rate", rate], capsys), "--rate must be in 100..4000 Hz")
+    refused(*run(["filter", "design", "--rate", rate], capsys), "--rate must be in 100..2000 Hz")
+
+
+def test_design_delays_beyond_the_method_are_refused(capsys):
+    refused(*run(["filter", "design", "--rate", "1700", "--delay-ms", "29"], capsys), "49.3 frames: the design accepts 0..10 frames")
 
 
 # ---------------------------------------------------------------------------- vibrations
@@ -233,3 +237,56 @@ def test_mode_counts_agree_with_the_mirror(optics_cache):
 def test_under_determined_calibrations_are_refused(capsys, cache_dir):
     refused(*run(["optics", "calibrate", "--binning", "4", "--oversampling", "1", "--modes", "171"], capsys, cache_dir),
             "cannot be calibrated from the", "accepted at most")
+
+
+# ------------------------------------------------------------------------------ gain files
+
+def test_a_binary_gain_file_is_refused(tmp_path, capsys, cache_dir):
+    gains = tmp_path / "gains.csv"
+    gains.write_bytes(bytes(range(256)) * 4)
+    refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), "is not UTF-8 text")
+
+
+def test_gain_files_are_applied_by_their_mode_column(tmp_path, capsys, cache_dir):
+    """A mode,gain file in another order (and with a BOM, as spreadsheets save it) is applied
+    by mode number, not by line."""
+    wanted = [0.3, 0.28] + [round(0.25 - 0.001 * i, 3) for i in range(88)]
+    lines = [f"{m},{g}" for m, g in enumerate(wanted, 1)][::-1]
+    gains = tmp_path / "gains.csv"
+    gains.write_text("\ufeffmode,gain\n" + "\n".join(lines) + "\n")
+    status, out, err = run(["loop", "run", *FAST, "--gains", gains, "--json"], capsys, cache_dir)
+    assert status == 0, err
+    assert json.loads(out)["configuration"]["gains"]["modes"] == wanted
+    gains.write_text("mode,gain\n1,0.3\n1,0.3\n" + "\n".join(f"{m},0.2" for m in range(3, 91)) + "\n")
+    refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), "the modes must be 1..90, each once")
+
+
+# --------------------------------------------------------------------------------- memory
+
+def test_a_run_whose_telemetry_would_not_fit_in_memory_is_refused(capsys, cache_dir, monkeypatch):
+    from soulctl.loop import run as run_module
+
+    monkeypatch.setattr(run_module, "available_memory_bytes", lambda: 50 * 2**20)
+    refused(*run(["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "60"], capsys, cache_dir),
+            "--duration: the run's telemetry, kept in memory, would need", "frames fit")
+
+
+def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
+    import tracemalloc
+
+    from soulctl.loop.run import RunRequest, calibration_for, default_gains
+    from soulctl.loop.simulation import TELEMETRY_PEAK_FACTOR, ClosedLoop, telemetry_bytes
+    from soulctl.optics.atmosphere import AtmosphereConfig
+
+    obs = observation_for_magnitude(16.5)
+    cal = calibration_for(RunRequest(obs, oversampling=1), optics_cache)
+    loop = ClosedLoop(obs, cal, AtmosphereConfig.lbt_default(), default_gains(obs, None), structure=None)
+    loop.run(10)
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    loop.run(100)
+    grown = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    n_slopes, n_modes = cal.interaction_matrix.shape
+    estimate = telemetry_bytes(100, n_slopes, cal.basis.M.shape[0], n_modes) / TELEMETRY_PEAK_FACTOR
+    assert grown <= estimate <= 1.5 * grown
