@@ -165,7 +165,7 @@ def _nan_commands(f):
 
 
 def _short(f):
-    for name in ("measured_modes", "command_modes"):
+    for name in [n for n in f if isinstance(f[n], h5py.Dataset) and f[n].shape[:1] == f["measured_modes"].shape[:1]]:
         data = f[name][:100]
         del f[name]
         f[name] = data
