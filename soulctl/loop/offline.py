@@ -184,6 +184,8 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
         n, _ = fractional_taps(delay)
         window = frames - start
         settings = settings or welch_settings(window, rate, "the telemetry window after the last change of gains or k", dropped=n + 1)
+        if window <= n + 1:  # only with ``settings`` given: welch_settings refuses short windows
+            raise InputError(f"telemetry file {path}: the window after the last change of gains or k holds {window} frames")
         sensitivity = float(k[start - first]) if k is not None else 1.0
         ogtl = tm.has("aux/ogtl") and len(tm.group("aux/ogtl")) > 0
         rows = slice(start, frames)

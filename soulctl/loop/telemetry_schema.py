@@ -255,6 +255,10 @@ class TelemetryReader:
     def node(self, name: str):
         """The group or dataset at ``name`` (None if absent); InputError for a dataset on the
         way, a link to another file, external raw storage or a virtual dataset."""
+        with self._reading(name):
+            return self._node(name)
+
+    def _node(self, name: str):
         obj = self.file
         parts = name.split("/")
         for i, part in enumerate(parts):
