@@ -2,16 +2,34 @@
 the gains MGM would apply after the window the file holds, without running a loop.
 
 The file is what `loop run --telemetry` writes (``telemetry_file``) or any HDF5 file with the
-fields that module documents.  The window is the file's frames since the last change of the
-gains (``/gain_history``) or of the slope sensitivity k (``/sensitivity``), as live: MGM's
-model holds for fixed gains and k.  chi_i comes from the optical-gain table of the
-configuration's calibration at the reference correction level, as live: gamma_i / gamma_30 when
-the file records OGTL (``/aux/ogtl``: k tracked the optical gain of mode 30), gamma_i times the
-file's k otherwise.
+fields that module documents; it is held to ``telemetry_schema`` (types, dtypes, shapes, the
+relations between fields and the range of every value read).  The window is the file's frames
+since the last change of the gains (``/gain_history``) or of the slope sensitivity k
+(``/sensitivity``), as live: MGM's model holds for fixed gains and k; at most the last
+``MAX_WINDOW_S`` (600 s, the longest period of live MGM).  chi_i comes from the optical-gain
+table of the configuration's calibration at the reference correction level, as live:
+gamma_i / gamma_30 when the file records OGTL (``/aux/ogtl``: k tracked the optical gain of
+mode 30), gamma_i times the file's k otherwise.
 
-Refused with exit status 2, naming the field: a missing field, NaN or infinite values, a mode
-count that differs from the configuration's, a loop that diverged, a window shorter than 4
-PSD segments of 64 frames (the minimum duration is given).
+The gains returned are always a vector `loop run --gains` accepts: MGM's update (Eq.
+gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
+nominal maximum stable gain (chi = 1, the check of `loop run`) with the file's structural
+resonance, `loop run`'s default one and none, and at 10 (``ranges.LOOP_GAIN``).  MGM's own
+limit, (1 - margin) g_max / chi_i, lies above the nominal one where chi_i < 1; the modes
+capped are reported.
+
+Memory: only the fields needed are read, and only over the window: /sensitivity and the tail
+of /gain_history/frames (one value per frame at most), one row of /gain_history/gains, /gains,
+and /measured_modes and /command_modes in blocks of modes of at most ``BLOCK_BYTES`` (float64)
+each, plus the PSDs (n_modes x segment / 2).  A window of one block (the usual case) is read
+once; a larger one is read twice, checked before the calibration, used after it.
+
+Refused with exit status 2, naming the field: a file that is not a regular HDF5 file, a
+missing field, a field of the wrong type, shape or range (NaN and infinite values included),
+fields that disagree, a mode count, frame rate or delay that differs from the configuration's,
+a loop that diverged, recorded gains outside 0..10, measured modes without signal (constant
+over the window), a window shorter than 4 PSD segments of 64 frames (the minimum duration is
+given).
 """
 
 from __future__ import annotations
@@ -24,16 +42,19 @@ from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.ogtl import PROBE_MODE
 from ..control.structure import StructuralResonance
+from ..control.transfer import max_stable_gain
 from ..errors import InputError
 from ..observation import Observation
 from ..optics.cache import ArrayCache
+from ..ranges import LOOP_GAIN, PERIOD_S
 from .metrics import pseudo_open_loop
 from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
-from .run import RunRequest, calibration_for
+from .run import RunRequest, calibration_for, nominal_loop, sampled_structure
 from .simulation import DEFAULT_FORGETTING
-from .telemetry_file import read_telemetry
+from .telemetry_schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
 
-PER_FRAME = ("measured_modes", "command_modes")
+MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
+BLOCK_BYTES = 32 * 2**20  # float64 bytes of one block of modes of /measured_modes (and as many of /command_modes)
 
 
 @dataclass
@@ -49,6 +70,7 @@ class OfflineMgmResult:
     first_frame: int
     frames: int  # frames of the window
     segment: int  # Welch segment (frames)
+    capped: tuple[int, ...] = ()  # modes (1-based) whose MGM gain was capped at the nominal limit
 
     def to_dict(self) -> dict:
         return {
@@ -60,118 +82,128 @@ class OfflineMgmResult:
             "previous_gains": self.previous_gains.tolist(),
             "optimum": self.optimum.tolist(),
             "gains": self.gains.tolist(),
+            "capped_modes": list(self.capped),
         }
 
 
-def _finite(arrays: dict, name: str, path) -> np.ndarray:
-    data = np.asarray(arrays[name], dtype=float)
-    if not np.all(np.isfinite(data)):
-        bad = int(np.sum(~np.isfinite(data)))
-        raise InputError(f"telemetry file {path}: field {name} has {bad} NaN or infinite values")
-    return data
+def nominal_limits(observation: Observation, structure: StructuralResonance | None, margin: float) -> np.ndarray:
+    """Per mode, the largest gain offline MGM returns: (1 - margin) of the nominal maximum
+    stable gain (chi = 1, as `loop run` checks it) with ``structure``, `loop run`'s default
+    resonance and none, and at most LOOP_GAIN.hi."""
+    rate = observation.frame_rate_hz
+    resonances = {sampled_structure(s, rate) for s in (structure, StructuralResonance(), None)}
+    g_tt = min(max_stable_gain(nominal_loop(observation, 1.0, True, s)) for s in resonances)
+    g_ho = max_stable_gain(nominal_loop(observation, 1.0, False, None))
+    limits = np.full(observation.modes, min(LOOP_GAIN.hi, (1.0 - margin) * g_ho))
+    limits[:2] = min(LOOP_GAIN.hi, (1.0 - margin) * g_tt)
+    return limits
 
 
-def window_start(arrays: dict, frames: int) -> int:
-    """First frame at the file's last gains and k: after the last entry of
-    /gain_history/frames and after the last change of /sensitivity."""
-    start = 0
-    changes = arrays.get("gain_history/frames")
-    if changes is not None and len(changes):
-        start = max(start, int(np.max(changes[changes < frames], initial=0)))
-    k = arrays.get("sensitivity")
-    if k is not None and len(k) == frames:
-        moved = np.flatnonzero(np.diff(np.asarray(k, dtype=float)) != 0)
+def window_start(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+    """(start, k over frames first.., the gains in force from start or None): the window
+    starts at the file's last gains and k, after the last entry of /gain_history/frames below
+    ``frames`` and after the last change of /sensitivity, and not before ``first``.  Reads
+    /sensitivity from ``first`` and the tail of /gain_history/frames that can matter."""
+    start = first
+    k = None
+    if tm.has("sensitivity"):
+        k = tm.read("sensitivity", slice(first, frames))
+        moved = np.flatnonzero(np.diff(k) != 0)
         if len(moved):
-            start = max(start, int(moved[-1]) + 1)
-    return start
+            start = max(start, first + int(moved[-1]) + 1)
+    if not tm.has("gain_history/frames"):
+        return start, k, None
+    # strictly increasing frames in 0..frames: at most frames - first + 1 entries from first on,
+    # and the one before them may be in force at start
+    changes = tm.dim("changes")
+    lo = max(0, changes - (frames - first + 2))
+    history = tm.read("gain_history/frames", slice(lo, changes))
+    inside = history[history < frames]
+    if len(inside):
+        start = max(start, int(inside.max()))
+    before = np.flatnonzero(history <= start)
+    if not len(before):
+        return start, k, None
+    row = lo + int(before[-1])
+    return start, k, tm.read("gain_history/gains", slice(row, row + 1))[0]
 
 
-def _configuration(attrs: dict, observation: Observation | None, path) -> tuple[Observation, dict]:
-    conf = attrs.get("configuration")
-    if conf is not None and not isinstance(conf, dict):
-        raise InputError(f"telemetry file {path}: attribute configuration must be a JSON object")
-    if observation is None:
-        if not conf or "observation" not in conf:
-            raise InputError(f"telemetry file {path} lacks the configuration attribute (observation); give --config or --mag")
-        try:
-            observation = Observation.from_dict(conf["observation"])
-        except (TypeError, KeyError, AttributeError, ValueError) as e:
-            raise InputError(f"telemetry file {path}: attribute configuration.observation is not an observation ({e})") from None
-    return observation, conf or {}
+def mode_blocks(n_modes: int, frames: int) -> list[slice]:
+    """Blocks of modes of at most BLOCK_BYTES over ``frames`` (at least 2 modes: the first
+    block holds Tip and Tilt, which the structural resonance couples)."""
+    width = max(2, BLOCK_BYTES // (8 * max(1, frames)))
+    return [slice(lo, min(n_modes, lo + width)) for lo in range(0, n_modes, width)]
 
 
-def _structure(conf: dict, path) -> StructuralResonance | None:
-    d = conf.get("structure")
-    if not d:
-        return None
-    try:
-        return StructuralResonance(**d)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"telemetry file {path}: attribute configuration.structure is not a resonance ({e})") from None
-
-
-def _forgetting(conf: dict, path) -> float:
-    gains = conf.get("gains", {})
-    value = gains.get("forgetting", DEFAULT_FORGETTING) if isinstance(gains, dict) else None
-    if not isinstance(value, (int, float)) or not 0 <= value <= 1:
-        raise InputError(f"telemetry file {path}: attribute configuration.gains.forgetting must be a number in 0..1")
-    return float(value)
-
-
-def window_gains(arrays: dict, start: int, final: np.ndarray) -> np.ndarray:
-    """The gains in force from frame ``start`` on: the last /gain_history entry at or before
-    it (the file's /gains are those at the end, possibly set after the last frame)."""
-    frames, gains = arrays.get("gain_history/frames"), arrays.get("gain_history/gains")
-    if frames is None or gains is None or not len(frames):
-        return final
-    before = np.flatnonzero(np.asarray(frames) <= start)
-    return np.asarray(gains[before[-1]], dtype=float) if len(before) else final
+def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bool, path) -> list | None:
+    """Read and check /measured_modes and /command_modes over the window, block by block;
+    the blocks' data if ``keep``.  InputError for modes whose measurement is constant."""
+    kept, flat = [], []
+    for cols in blocks:
+        measured = tm.read("measured_modes", rows, cols)
+        commands = tm.read("command_modes", rows, cols)
+        flat += (np.flatnonzero(np.ptp(measured, axis=0) == 0) + cols.start + 1).tolist()
+        if keep:
+            kept.append((measured, commands))
+    if flat:
+        more = f" and {len(flat) - 1} more" if len(flat) > 1 else ""
+        raise InputError(f"telemetry file {path}: field measured_modes has no signal in mode {flat[0]}{more} (constant over "
+                         f"the window of {rows.stop - rows.start} frames): MGM needs the loop's measurements of every mode")
+    return kept if keep else None
 
 
 def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache = ArrayCache(None),
                 settings: mgm.MgmSettings | None = None, chi_seeing_arcsec: float = 0.8) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
     ``observation``: the configuration to check the file against (default: the file's own)."""
-    arrays, attrs = read_telemetry(path)
-    observation, conf = _configuration(attrs, observation, path)
-    if int(attrs.get("diverged_at", -1)) >= 0:
-        raise InputError(f"telemetry file {path} records a loop that diverged (frame {attrs['diverged_at']}): MGM needs a stable loop's telemetry")
-    data = {name: _finite(arrays, name, path) for name in (*PER_FRAME, "gains")}
-    for name in ("sensitivity",):
-        if name in arrays:
-            data[name] = _finite(arrays, name, path)
-    n_modes = observation.modes
-    for name in PER_FRAME:
-        if data[name].ndim != 2 or data[name].shape[1] != n_modes:
-            raise InputError(f"telemetry file {path}: field {name} has shape {data[name].shape}, expected (frames, {n_modes}) "
-                             f"for the configuration's {n_modes} modes")
-    if data["gains"].shape != (n_modes,):
-        raise InputError(f"telemetry file {path}: field gains has {data['gains'].size} values, the configuration controls {n_modes} modes")
-    frames = data["measured_modes"].shape[0]
-    if data["command_modes"].shape[0] != frames:
-        raise InputError(f"telemetry file {path}: field command_modes has {data['command_modes'].shape[0]} frames, measured_modes {frames}")
-    rate = float(attrs["rate_hz"])
-    if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
-        raise InputError(f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz")
-    start = window_start(arrays, frames)
-    delay = float(attrs["delay_frames"])
-    n, _ = fractional_taps(delay)
-    window = frames - start
-    settings = settings or welch_settings(window, rate, "the telemetry window after the last change of gains or k", dropped=n + 1)
-    k = float(data["sensitivity"][start]) if "sensitivity" in data else 1.0
-    ogtl = any(name.startswith("aux/ogtl/") for name in arrays)
-    run = RunRequest(observation, oversampling=int(conf.get("oversampling", 2)))
-    calibration = calibration_for(run, cache)
-    gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
-    chi = mgm_chi(gamma, ogtl, PROBE_MODE) if ogtl else gamma * k
-    structure = _structure(conf, path)
-    forgetting = _forgetting(conf, path)
-    machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
-    measured = data["measured_modes"][start:]
-    pol = pseudo_open_loop(measured / chi, data["command_modes"][start:], delay, machine.structure)
-    optimum, _ = machine.optimum(pol[n + 1 :])
-    previous = window_gains(arrays, start, data["gains"])
-    if previous.shape != (n_modes,) or not np.all(np.isfinite(previous)):
-        raise InputError(f"telemetry file {path}: field gain_history/gains does not hold {n_modes} finite gains per entry")
+    with TelemetryReader(path) as tm:
+        conf = tm.configuration()
+        observation = observation or configuration_observation(conf, path)
+        diverged = tm.attribute("diverged_at", -1)
+        if diverged >= 0:
+            raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
+        n_modes = observation.modes
+        if tm.dim("n_modes") != n_modes:
+            raise InputError(f"telemetry file {path}: field measured_modes has shape {tm.dataset('measured_modes').shape}, expected "
+                             f"(frames, {n_modes}) for the configuration's {n_modes} modes")
+        rate = tm.attribute("rate_hz")
+        if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
+            raise InputError(f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz")
+        delay = tm.attribute("delay_frames")
+        if abs(delay - observation.delay_frames) > 1e-6:
+            raise InputError(f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
+                             f"{observation.delay_frames:g} frames at {rate:g} Hz")
+        oversampling = configuration_member(conf, "oversampling", 2, path)
+        forgetting = configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)
+        structure = configuration_structure(conf, path)
+        recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
+        frames = tm.dim("frames")
+        first = max(0, frames - round(MAX_WINDOW_S * rate))
+        start, k, previous = window_start(tm, frames, first)
+        previous = recorded if previous is None else previous
+        n, _ = fractional_taps(delay)
+        window = frames - start
+        settings = settings or welch_settings(window, rate, "the telemetry window after the last change of gains or k", dropped=n + 1)
+        if window <= n + 1:  # only with ``settings`` given: welch_settings refuses short windows
+            raise InputError(f"telemetry file {path}: the window after the last change of gains or k holds {window} frames")
+        sensitivity = float(k[start - first]) if k is not None else 1.0
+        ogtl = tm.has("aux/ogtl") and len(tm.group("aux/ogtl")) > 0
+        rows = slice(start, frames)
+        blocks = mode_blocks(n_modes, window)
+        data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
+        run = RunRequest(observation, oversampling=oversampling)
+        calibration = calibration_for(run, cache)
+        gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
+        chi = mgm_chi(gamma, ogtl, PROBE_MODE) if ogtl else gamma * sensitivity
+        machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
+        psd = []
+        for i, cols in enumerate(blocks):
+            measured, commands = data[i] if data else _window_data(tm, rows, [cols], True, path)[0]
+            pol = pseudo_open_loop(measured / chi[cols], commands, delay, machine.structure if cols.start == 0 else None)
+            psd.append(mgm.pol_psd(pol[n + 1 :], rate, settings)[1])
+    optimum = mgm.optimal_gains(np.concatenate(psd), machine.open_loops, machine.upper, settings.grid)
     gains = mgm.update_gains(previous, optimum, settings)
-    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, k, start, window, settings.segment)
+    limits = nominal_limits(observation, structure, settings.margin)
+    capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
+    gains = np.minimum(gains, limits)
+    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped)

@@ -43,7 +43,7 @@ from ..control.transfer import max_stable_gain
 from ..control.trial import gain_groups, scan_gains
 from ..errors import InputError
 from ..optics.atmosphere import AtmosphereConfig
-from ..optics.cache import ArrayCache, cache_key
+from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..ranges import MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
@@ -165,7 +165,7 @@ class OptimizeResult:
 def optical_gain_table(calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = 0.8, screens: int = 4, seed: int = 1) -> np.ndarray:
     """gamma_i of the calibration's modes at the reference correction level, cached."""
     key = cache_key("optical-gains", {"calibration": calibration.setup.key(), "seeing": seeing_arcsec, "screens": screens, "seed": seed})
-    hit = cache.load(key)
+    hit = cache.load(key, EntrySpec({"gains": (calibration.basis.n_modes,)}))
     if hit is not None:
         return hit["gains"]
     gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains

@@ -27,9 +27,13 @@ Layout (rows are frames):
                 configuration (JSON: observation, atmosphere, gains, seed, ...)
 The file is written to a temporary name and renamed (never half-written).
 
+``telemetry_schema.TELEMETRY_SCHEMA`` is this layout as a table - kinds, dtypes, shapes, units
+and the range of every value - with the relations between fields (``RELATIONS``); every reader
+holds a file to it (``telemetry_schema.TelemetryReader``) and a test holds this docstring to it.
+
 Offline MGM (`optimize gains --telemetry`) needs measured_modes, command_modes, gains and the
 rate_hz and delay_frames attributes; it uses sensitivity, gain_history, /aux/ogtl and the
-configuration when present (see ``loop.offline``).
+configuration when present, and reads only the rows of its window (see ``loop.offline``).
 """
 
 from __future__ import annotations
@@ -41,11 +45,8 @@ import h5py
 import numpy as np
 
 from .. import __version__
-from ..errors import InputError
 from ..files import atomic_write
-
-FLOAT32 = ("slopes", "measured_modes", "commands", "command_modes", "mirror_modes", "residual_modes", "disturbance_modes")
-REQUIRED = ("measured_modes", "command_modes", "gains")
+from .telemetry_schema import ATTRIBUTES, DATASETS, FLOAT32, TelemetryReader
 
 
 def telemetry_arrays(telemetry) -> dict[str, np.ndarray]:
@@ -80,22 +81,16 @@ def write_telemetry(path: str | Path, arrays: dict[str, np.ndarray], attributes:
 
 
 def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """(arrays, attributes with the configuration decoded); InputError if the file is not a
-    telemetry file (missing fields named)."""
-    try:
-        with h5py.File(path, "r") as f:
-            missing = [k for k in REQUIRED if k not in f]
-            if missing or "rate_hz" not in f.attrs or "delay_frames" not in f.attrs:
-                need = missing + [a for a in ("rate_hz", "delay_frames") if a not in f.attrs]
-                raise InputError(f"telemetry file {path} lacks {', '.join(need)}")
-            arrays = {}
-            f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-            attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
-    except (OSError, KeyError) as e:
-        raise InputError(f"cannot read telemetry file {path}: {e}") from None
-    if "configuration" in attrs:
-        try:
-            attrs["configuration"] = json.loads(attrs["configuration"])
-        except (TypeError, ValueError):
-            raise InputError(f"telemetry file {path}: attribute configuration is not JSON") from None
+    """(arrays, attributes with the configuration decoded) of every field of the schema the
+    file holds, each checked against it (``TelemetryReader``); InputError naming the field
+    otherwise.  The whole file is read into memory (offline MGM reads only its window)."""
+    with TelemetryReader(path) as tm:
+        names = [f.name for f in DATASETS if tm.has(f.name)]
+        aux = tm.group("aux")
+        for task in aux or ():
+            names += [f"aux/{task}/{key}" for key in tm.group(f"aux/{task}") or ()]
+        arrays = {name: tm.read(name) for name in names}
+        attrs = {f.name: tm.attribute(f.name) for f in ATTRIBUTES if f.name != "configuration" and tm.has(f.name)}
+        if tm.has("configuration"):
+            attrs["configuration"] = tm.configuration()
     return arrays, attrs

@@ -8,7 +8,8 @@
 
 Both the basis and the calibration are cached on disk under a key of everything that
 determines them (:mod:`soulctl.optics.cache`); ``cache=ArrayCache(None)`` forces a fresh
-computation.
+computation.  Each states the arrays and shapes it expects of an entry (``basis_entry``,
+``calibration_entry``); an entry that is not that, or fails its checksum, is recomputed.
 """
 
 from __future__ import annotations
@@ -20,13 +21,14 @@ import numpy as np
 
 from ..errors import InputError
 from .asm import AsmGeometry, ModalBasis, kl_basis
-from .cache import ArrayCache, cache_key
+from .cache import ArrayCache, EntrySpec, cache_key
 from .detector import Detector
 from .pupil import Pupil
-from .pwfs import Pyramid, PyramidConfig
+from .pwfs import SUBAPERTURES_BIN1, Pyramid, PyramidConfig
 from .sensor import WavefrontSensor
 
 BASIS_PIXELS = 80  # pupil sampling on which the KL modes are computed (~3.5 pixels per actuator)
+MAX_SLOPES = 2 * SUBAPERTURES_BIN1**2  # sx and sy of every sub-aperture at binning 1
 
 
 @dataclass(frozen=True)
@@ -39,10 +41,18 @@ class BasisSetup:
         return cache_key("basis", {"asm": asdict(self.asm), "L0_m": self.L0_m, "pixels": self.pixels})
 
 
-def modal_basis(setup: BasisSetup, cache: ArrayCache = ArrayCache(None)) -> ModalBasis:
-    """The ASM's Tip/Tilt + KL basis (all its modes), from the cache when there."""
+def basis_entry(setup: BasisSetup) -> EntrySpec:
+    """A cached basis: M (actuators x modes), M_inv (modes x actuators) and the modes'
+    variance, with 2 .. actuators - 1 modes (Tip/Tilt + KL, piston removed)."""
+    n = setup.asm.n_actuators
+    return EntrySpec({"M": (n, "modes"), "M_inv": ("modes", n), "variance": ("modes",)}, {"modes": (2, n - 1)})
+
+
+def modal_basis(setup: BasisSetup, cache: ArrayCache = ArrayCache(None), refresh: bool = False) -> ModalBasis:
+    """The ASM's Tip/Tilt + KL basis (all its modes), from the cache when there (not with
+    ``refresh``: recomputed and stored)."""
     key = setup.key()
-    hit = cache.load(key)
+    hit = None if refresh else cache.load(key, basis_entry(setup))
     if hit is not None:
         return ModalBasis(hit["M"], hit["M_inv"], hit["variance"], setup.asm, setup.L0_m)
     pupil = Pupil(setup.pixels, setup.asm.diameter_m, setup.asm.obstruction)
@@ -117,16 +127,25 @@ def calibration_sensor(config: PyramidConfig) -> WavefrontSensor:
     return WavefrontSensor(Pyramid(config), Detector(read_noise_e=0.0, excess_noise=False), photons_per_frame=1.0)
 
 
+def calibration_entry(setup: CalibrationSetup) -> EntrySpec:
+    """A cached calibration: D (slopes x modes), R (modes x slopes) and the reference slopes,
+    for the set-up's modes."""
+    n = setup.n_modes
+    return EntrySpec({"D": ("slopes", n), "R": (n, "slopes"), "reference": ("slopes",)}, {"slopes": (2, MAX_SLOPES)})
+
+
 def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> Calibration:
     """The interaction matrix, reconstructor and reference slopes of ``setup``, from the cache
     when there (see the module docstring)."""
     t0 = time.perf_counter()
     full = modal_basis(setup.basis, cache)
+    if setup.n_modes > full.n_modes:  # the mirror's own count, not a cached entry's, decides
+        full = modal_basis(setup.basis, cache, refresh=True)
     if setup.n_modes > full.n_modes:
         raise InputError(f"modes must be in 1..{full.n_modes} for this mirror, got {setup.n_modes}")
     basis = full.truncated(setup.n_modes)
     key = setup.key()
-    hit = cache.load(key)
+    hit = cache.load(key, calibration_entry(setup))
     if hit is not None:
         return Calibration(setup, basis, hit["D"], hit["R"], hit["reference"], True, time.perf_counter() - t0)
     sensor = calibration_sensor(setup.pyramid)
