@@ -24,7 +24,8 @@ def number_text(value) -> str:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return repr(value)
     if isinstance(value, int):
-        return str(value)
+        text = str(value)
+        return text if len(text) <= 24 else f"{text[:12]}...({len(text.lstrip('-'))} digits)"
     return format(value, ".10g")
 
 
@@ -52,9 +53,7 @@ class Range:
     def contains(self, value) -> bool:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return False
-        if self.integer and not (isinstance(value, int) or float(value).is_integer()):
-            return False
-        if not math.isfinite(value):
+        if isinstance(value, float) and not (math.isfinite(value) and (value.is_integer() or not self.integer)):
             return False
         above = value > self.lo if self.lo_open else value >= self.lo
         below = value < self.hi if self.hi_open else value <= self.hi
@@ -63,8 +62,8 @@ class Range:
     def check(self, value, name: str):
         """``value`` if it is in the range (ints stay ints), else InputError naming ``name``."""
         if not self.contains(value):
-            is_number = isinstance(value, (int, float)) and not isinstance(value, bool) and (
-                not self.integer or isinstance(value, int) or (math.isfinite(value) and float(value).is_integer()))
+            is_number = isinstance(value, int) and not isinstance(value, bool) or (
+                isinstance(value, float) and (not self.integer or (math.isfinite(value) and value.is_integer())))
             kind = "" if is_number else ("an integer " if self.integer else "a number ")
             raise InputError(f"{name} must be {kind}in {self.text()}, got {number_text(value)}")
         return int(value) if self.integer else value + 0.0  # -0.0 -> 0.0
@@ -101,6 +100,14 @@ LOOP_GAIN = Range(0.0, 10.0)  # a modal gain of the RTC (the stability check com
 FORGETTING = Range(0.0, 1.0)  # of the leaky integrators
 FRACTION = Range(0.0, 1.0)  # optics gains --controlled-fraction
 SCREENS = Range(1, 64, integer=True)  # optics gains --screens (~10 s each at 40x40, 500 modes)
+
+# --- telemetry files (soulctl/loop/telemetry_schema.py) -----------------------------------
+MODAL_NM = Range(-1e6, 1e6, "nm")  # a mode or actuator, 1 mm: far beyond any mirror's stroke
+RMS_NM = Range(0.0, 1e6, "nm")
+FRAME_TIME_S = Range(0.0, 1e7, "s")
+SENSITIVITY = Range(0.05, 20.0)  # the slope sensitivity k, as OGTL clamps it
+FRAME_INDEX = Range(0, 2**63 - 1, integer=True)
+DIVERGED_AT = Range(-1, 2**63 - 1, integer=True)  # -1: the loop did not diverge
 
 # --- auxiliary loops ------------------------------------------------------------------------
 PERIOD_S = Range(0.0, 600.0, "s", lo_open=True)

@@ -13,7 +13,7 @@ from .. import tables
 from ..errors import InputError
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
-from .output import console as make_console
+from .output import console as make_console, print_json
 
 
 def parse_magnitude(text: str) -> float:
@@ -83,9 +83,9 @@ def configure(
     if out is not None:
         obs.write_toml(out)
     if json_output:
-        typer.echo(obs.to_json())
+        print_json(obs.to_dict())
     else:
         console = make_console()
         render(obs, console, roots_source=f"{roots.name}" if roots is not None else "roots")
         if out is not None:
-            console.print(f"written {out}", markup=False, highlight=False)
+            console.print(f"written {out}")

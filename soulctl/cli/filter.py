@@ -3,7 +3,6 @@ the Tip/Tilt IIR design (paper, Sec. 2.3)."""
 
 from __future__ import annotations
 
-import json
 import math
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -25,7 +24,7 @@ from ..errors import InputError
 from ..files import atomic_write_text, check_output_path
 from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
                       MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
-from .output import console as make_console, styled
+from .output import console as make_console, print_json, styled
 
 app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).",
                   no_args_is_help=True)
@@ -228,8 +227,8 @@ def analyze_command(
         save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), plot)
     all_stable = all(a.analysis.stable for a in loops)
     if json_output:
-        typer.echo(json.dumps({"controllers": [a.to_dict() for a in loops], "stable": all_stable,
-                               "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ}))
+        print_json({"controllers": [a.to_dict() for a in loops], "stable": all_stable,
+                    "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ})
     else:
         console = make_console()
         _render_analysis(loops, console)
@@ -380,13 +379,13 @@ def design_command(
                                     epsilon=epsilon), plot)
     if json_output:
         turb = disturbance.turbulence
-        typer.echo(json.dumps({
+        print_json({
             "designs": [x.to_dict() for x in results],
             "disturbance": {"seeing_arcsec": turb.seeing_arcsec, "wind_m_s": turb.wind_speed_m_s,
                             "outer_scale_m": turb.outer_scale_m, "vibrations": disturbance.vibrations.source,
                             "noise_mas": noise, "resonance_line_mas": resonance_line, "resonance_hz": RESONANCE_HZ},
             "seed": seed,
-        }))
+        })
     else:
         console = make_console()
         _render_design(results, disturbance, console)

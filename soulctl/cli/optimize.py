@@ -3,7 +3,6 @@ loop (with the optical gain tracking loop) or offline on a recorded telemetry fi
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from contextlib import nullcontext
@@ -107,9 +106,9 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
     if out is not None:
         atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
     if json_output:
-        print(json.dumps({**result.to_dict(), "groups": group_summary(result.gains)}))
+        print_json({**result.to_dict(), "groups": group_summary(result.gains)})
         return 0
-    console = Console()
+    console = make_console()
     obs = result.observation
     t = quantity_table(f"MGM on {telemetry.name}: {obs.modes} modes, {obs.frame_rate_hz:g} Hz, window of {result.frames} frames "
                        f"({result.frames / obs.frame_rate_hz:.2f} s, Welch segment {result.segment})")

@@ -33,7 +33,7 @@ from .. import ranges
 PROBE_MODE = 30  # 1-based, as the paper numbers modes
 PROBE_AMPLITUDE_NM = 20.0
 PROBE_FREQUENCY_PER_RATE = 0.25
-SENSITIVITY_RANGE = (0.05, 20.0)
+SENSITIVITY_RANGE = (ranges.SENSITIVITY.lo, ranges.SENSITIVITY.hi)  # k's accepted range, ranges.SENSITIVITY
 
 
 @dataclass(frozen=True)

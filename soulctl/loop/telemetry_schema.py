@@ -31,20 +31,14 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
-from ..control.ogtl import SENSITIVITY_RANGE
 from ..control.structure import StructuralResonance
 from ..errors import InputError
 from ..files import input_file
 from ..observation import Observation
-from ..ranges import DELAY_FRAMES, FORGETTING, FRAME_RATE_HZ, LOOP_GAIN, MODES, OVERSAMPLING, Range, number_text
+from ..ranges import (DELAY_FRAMES, DIVERGED_AT, FORGETTING, FRAME_INDEX, FRAME_RATE_HZ, FRAME_TIME_S, LOOP_GAIN, MODAL_NM, MODES,
+                      OVERSAMPLING, RMS_NM, SENSITIVITY, Range, number_text)
 
 # Ranges of recorded values (not options a user types; candidates for soulctl.ranges).
-MODAL_NM = Range(-1e6, 1e6, "nm")  # a mode or actuator, 1 mm: far beyond any mirror's stroke
-RMS_NM = Range(0.0, 1e6, "nm")
-FRAME_TIME_S = Range(0.0, 1e7, "s")
-SENSITIVITY = Range(*SENSITIVITY_RANGE)  # the slope sensitivity k, as OGTL clamps it
-FRAME_INDEX = Range(0, 2**63 - 1, integer=True)
-DIVERGED_AT = Range(-1, 2**63 - 1, integer=True)  # -1: the loop did not diverge
 
 REAL, INTEGER, TEXT = "real numbers", "integers", "text"
 
