@@ -18,9 +18,9 @@ from .grid import PARAMETERS
 
 COLUMNS = ("case_id", *PARAMETERS, *METRICS, "status", "reason", "run_seconds", "soulctl_version")
 FINISHED = ("ok", "diverged")
-FLOATS = {name for name, (types, _, _) in PARAMETERS.items() if float in types} | set(METRICS) | {"run_seconds"}
-INTS = {name for name, (types, _, _) in PARAMETERS.items() if types == (int,)}
-BOOLS = {name for name, (types, _, _) in PARAMETERS.items() if types == (bool,)}
+FLOATS = {name for name, p in PARAMETERS.items() if p.kind is float} | set(METRICS) | {"run_seconds"}
+INTS = {name for name, p in PARAMETERS.items() if p.kind is int}
+BOOLS = {name for name, p in PARAMETERS.items() if p.kind is bool}
 
 
 def _text(value) -> str:

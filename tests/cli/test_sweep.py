@@ -132,6 +132,10 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     ("", [], "is empty"),
     ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9"),
     ("magnitude = 12\n", ["--workers", "0"], "--workers must be in 1..512"),
+    # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
+    ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be a number in 0..100 m/s (> 0), got 0"),
+    ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be a number in 0.5..10000 m, got 0.1"),
+    ("magnitude = 18.6\n", [], "magnitude must be a number in 0..18.5, got 18.6"),
     ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "cannot reach the Dask scheduler"),
 ])
 def test_bad_input_exits_2_and_runs_nothing(text, args, message, tmp_path, capsys, cache_dir):
