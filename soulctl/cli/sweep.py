@@ -46,7 +46,7 @@ def sweep(
     scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help="An existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)."),
     workers: int | None = typer.Option(None, "--workers", help="Processes of the local cluster (default: one per core)."),
     out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table)."),
-    resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv."),
+    resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."),
     plot: bool = typer.Option(False, "--plot", help="Write DIR/strehl_vs_magnitude.png."),
     derive_table: bool = typer.Option(False, "--derive-table", help="Print (and write DIR/derived_lut.csv) the best binning and rate per magnitude."),
     no_cache: bool = NO_CACHE,
@@ -54,10 +54,12 @@ def sweep(
     json_output: bool = JSON_OUTPUT,
 ) -> int:
     """Run a grid of simulated closed loops as Dask tasks and collect one row per case
-    (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, written
-    case by case.  A failed or diverged case is a row with its reason; --resume completes an
-    interrupted sweep without recomputing its finished rows.  Each distinct calibration is
-    computed once and shared.  Exit status 0 once every case has a row, whatever its status.
+    (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, appended
+    case by case and put in the grid's order once every case has its row.  A failed or
+    diverged case is a row with its reason; --resume completes an interrupted sweep without
+    recomputing its finished rows (every row is checked).  Each distinct calibration is
+    computed once and shared.  One sweep at a time per folder.  Exit status 0 once every case
+    has a row, whatever its status.
 
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
@@ -97,10 +99,12 @@ def sweep(
         strehl_vs_magnitude(rows, out / "strehl_vs_magnitude.png")
     if json_output:
         print(json.dumps({"total": report.total, "skipped": report.skipped, "computed": report.computed, "failed": report.failed,
-                          "diverged": report.diverged, "results": str(report.results), "rows": [_json_row(r) for r in report.rows],
-                          "derived_table": derived}))
+                          "diverged": report.diverged, "results": str(report.results), "notes": report.notes,
+                          "rows": [_json_row(r) for r in report.rows], "derived_table": derived}))
         return 0
     console = Console()
+    for note in report.notes:
+        console.print(f"note: {note}")
     console.print(f"{report.total} cases: {report.computed} run now ({report.failed} failed, {report.diverged} diverged), "
                   f"{report.skipped} kept from an earlier run; results in {report.results}")
     for r in report.rows:

@@ -4,9 +4,11 @@ code either way.
 
 Each distinct calibration (binning, modulation, modes, sampling) is one task, computed once
 and handed by Dask to the cases that need it (no shared file system needed).  Rows are
-written by this process as the cases finish (``results.ResultsTable``): a worker that dies
-loses no row (Dask runs its task again elsewhere) and duplicates none (one row per case id).
-A case that fails or diverges is a row with its status and reason; the sweep goes on."""
+appended by this process as the cases finish (``results.ResultsTable``), under the folder's
+lock (``results.results_lock``: one sweep per folder): a worker that dies loses no row (Dask
+runs its task again elsewhere) and duplicates none (one row per case id).  A case that fails
+or diverges is a row with its status and reason; the sweep goes on.  Once every case has its
+row, the file is rewritten in the grid's order."""
 
 from __future__ import annotations
 
@@ -18,8 +20,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from .case import calibrate_case, calibration_setup, failed_row, run_case
-from .grid import case_id
-from .results import ResultsTable
+from .results import ResultsTable, results_lock
 
 CONNECT_TIMEOUT_S = 5
 
@@ -33,6 +34,7 @@ class SweepReport:
     diverged: int = 0
     rows: list[dict] = field(default_factory=list)  # this run's rows, in finishing order
     results: Path | None = None
+    notes: list[str] = field(default_factory=list)  # what --resume found (an incomplete last line, other columns)
 
 
 def connect(stack: ExitStack, scheduler: str | None, workers: int | None):
@@ -55,32 +57,29 @@ def run_sweep(cases: list[dict], out_dir: Path, scheduler: str | None = None, wo
               resume: bool = False, cache_dir: str | None = None, on_row: Callable[[dict, "SweepReport"], None] | None = None,
               on_start: Callable[[int], None] | None = None) -> SweepReport:
     """Run ``cases`` (from ``grid.parse_grid``), writing ``out_dir/results.csv``."""
-    from dask.distributed import as_completed
-
-    ids = [case_id(c) for c in cases]
-    table = ResultsTable(Path(out_dir) / "results.csv", ids)
+    table = ResultsTable(Path(out_dir) / "results.csv", cases)
     if table.path.exists() and not resume:
         raise InputError(f"{table.path} exists: --resume to complete it, or choose another --out")
-    done = table.resume() if resume else set()
-    todo = list({cid: c for cid, c in zip(ids, cases) if cid not in done}.items())  # a case listed twice runs once
-    report = SweepReport(total=len(set(ids)), skipped=len(done), results=table.path)
-    if on_start:
-        on_start(len(todo))
-    if not todo:
-        table.write()
-        return report
-
-    def record(row: dict) -> None:
-        table.add(row)
-        report.rows.append(row)
-        report.computed += 1
-        report.failed += row["status"] == "failed"
-        report.diverged += row["status"] == "diverged"
-        if on_row:
-            on_row(row, report)
-
     with ExitStack() as stack:
-        client = connect(stack, scheduler, workers)
+        stack.enter_context(results_lock(out_dir))
+        done = table.resume() if resume else set()
+        todo = [(cid, c) for cid, c in table.cases.items() if cid not in done]  # a case listed twice runs once
+        report = SweepReport(total=len(table.cases), skipped=len(done), results=table.path, notes=list(table.notes))
+        client = connect(stack, scheduler, workers) if todo else None  # before the file is created
+        table.open()
+        stack.callback(table.close)
+        if on_start:
+            on_start(len(todo))
+
+        def record(row: dict) -> None:
+            table.add(row)
+            report.rows.append(row)
+            report.computed += 1
+            report.failed += row["status"] == "failed"
+            report.diverged += row["status"] == "diverged"
+            if on_row:
+                on_row(row, report)
+
         calibrations, futures = {}, {}
         for cid, case in todo:
             try:
@@ -92,11 +91,15 @@ def run_sweep(cases: list[dict], out_dir: Path, scheduler: str | None = None, wo
             if key not in calibrations:
                 calibrations[key] = client.submit(calibrate_case, setup, cache_dir, key=f"calibration-{key}", pure=False)
             futures[client.submit(run_case, case, calibrations[key], cache_dir, key=f"case-{cid}", pure=False)] = case
-        for future in as_completed(futures):
-            case = futures[future]
-            try:
-                row = future.result()
-            except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
-                row = failed_row(case, f"{type(e).__name__}: {e}")
-            record(row)
+        if futures:
+            from dask.distributed import as_completed
+
+            for future in as_completed(futures):
+                case = futures[future]
+                try:
+                    row = future.result()
+                except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
+                    row = failed_row(case, f"{type(e).__name__}: {e}")
+                record(row)
+        table.write_ordered()  # every case has its row: the grid's order
     return report

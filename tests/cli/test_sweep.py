@@ -1,24 +1,31 @@
 """`soulctl sweep` on Dask: a small grid on a local 2-worker cluster equals the same cases run one
 by one with `loop run`; --resume completes a sweep without recomputing its rows; a worker
-killed mid-sweep loses and duplicates no row; an external scheduler; one-line errors."""
+killed mid-sweep loses and duplicates no row; an external scheduler; one-line errors; a results
+file that cannot be resumed or a folder another sweep is writing refused; rows appended one
+line at a time."""
 
 import json
+import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+import tomllib
 
 import psutil
 import pytest
 
 from soulctl.cli.app import main
+from soulctl.sweep.case import failed_row
 from soulctl.sweep.grid import case_id, parse_grid
-from soulctl.sweep.results import ResultsTable
+from soulctl.sweep.results import COLUMNS, ResultsTable, csv_line
 from soulctl.sweep.runner import run_sweep
 
 # 2 magnitudes x 2 seeings at 10x10 and 13x13 sub-apertures, 40-px pupil, 0.3 s each.
 GRID = "magnitude = [16.0, 17.0]\nseeing = [0.8, 1.2]\noversampling = 1\nduration = 0.3\nseed = 2\n"
+# The smallest cases: 10x10 sub-apertures, 40-px pupil, 0.05 s.
+TINY = "magnitude = [16.6, 17.0, 17.5]\nbinning = 4\noversampling = 1\nduration = 0.05\n"
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +157,120 @@ def test_bad_input_exits_2_and_runs_nothing(text, args, message, tmp_path, capsy
 def test_missing_grid_file(tmp_path, capsys, cache_dir):
     status, _, err = cli(["sweep", str(tmp_path / "none.toml")], capsys, cache_dir)
     assert status == 2 and "grid file not found" in err
+
+
+# ------------------------------------------------------------------- --resume checks the rows
+
+def _finished_results(path, text, edit=lambda lines: lines, bom=False, newline="\n"):
+    """A results file in which every case of the grid ``text`` is finished (no case to run)."""
+    cases = parse_grid(tomllib.loads(text))
+    lines = [",".join(COLUMNS)]
+    for c in cases:
+        row = {**failed_row(c, ""), "status": "ok", "strehl": 0.25, "tt_jitter_mas": 4.0, "residual_nm": 150.0, "run_seconds": 1.0}
+        lines.append(csv_line(row, COLUMNS).rstrip("\n"))
+    lines = edit(lines)
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + (newline.join(lines) + newline).encode())
+    return cases
+
+
+def test_resume_refuses_an_ok_row_without_metrics_naming_its_line(tmp_path, capsys, cache_dir):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    results = tmp_path / "out" / "results.csv"
+
+    def empty_strehl(lines):
+        lines[2] = lines[2].replace("0.25,4.0,150.0,ok", ",4.0,150.0,ok")
+        return lines
+
+    _finished_results(results, TINY, empty_strehl)
+    before = results.read_bytes()
+    status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume"], capsys, cache_dir)
+    assert status == 2 and err.count("\n") == 1
+    assert f"results file {results}, line 3: status ok with an empty strehl" in err and "set its status to failed" in err
+    assert results.read_bytes() == before and sorted(p.name for p in results.parent.iterdir()) == ["results.csv"]
+
+
+def test_resume_refuses_a_parameter_out_of_range_naming_its_line(tmp_path, capsys, cache_dir):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    results = tmp_path / "out" / "results.csv"
+    _finished_results(results, TINY, lambda lines: [*lines, lines[1].replace(",1.0,8.0,", ",11.0,8.0,").replace(lines[1][:16], "0123456789abcdef")])
+    status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume"], capsys, cache_dir)
+    assert status == 2 and "line 5: seeing must be a number in 0.05..10 arcsec, got 11" in err
+
+
+def test_resume_accepts_a_spreadsheets_file_and_keeps_its_columns(tmp_path, capsys, cache_dir):
+    """A byte-order mark, CRLF line ends and a column of the user's own: resumed, the column kept."""
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    results = tmp_path / "out" / "results.csv"
+    cases = _finished_results(results, TINY, lambda lines: [lines[0] + ",notes"] + [ln + f",note {i}" for i, ln in enumerate(lines[1:])],
+                              bom=True, newline="\r\n")
+    status, out, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    report = json.loads(out)
+    assert (report["skipped"], report["computed"]) == (3, 0) and any("notes" in n for n in report["notes"])
+    lines = results.read_text().splitlines()
+    assert lines[0].endswith(",notes") and [ln.rsplit(",", 1)[1] for ln in lines[1:]] == ["note 0", "note 1", "note 2"]
+    assert [ln.split(",")[0] for ln in lines[1:]] == [case_id(c) for c in cases]
+
+
+# ------------------------------------------------------------------- rows appended, one line each
+
+def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path, capsys, cache_dir, monkeypatch):
+    """Each finished case appends one complete line to the same file (no rewrite per case); the
+    file is put in the grid's order at the end; an incomplete last line (a crash during a
+    write) is ignored by --resume, removed, and its case run again."""
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    out = tmp_path / "out"
+    results = out / "results.csv"
+    seen = []
+    add = ResultsTable.add
+
+    def spy(self, row):
+        add(self, row)
+        st = os.stat(results)
+        seen.append((st.st_ino, results.read_bytes()))
+
+    monkeypatch.setattr(ResultsTable, "add", spy)
+    status, _, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(out), "--json"], capsys, cache_dir)
+    assert status == 0, err
+    assert len(seen) == 3 and len({ino for ino, _ in seen}) == 1  # one file, appended to
+    for (_, a), (_, b) in zip(seen, seen[1:]):
+        assert b.startswith(a) and b[len(a):].count(b"\n") == 1 and b.endswith(b"\n")
+    final = results.read_text().splitlines()
+    assert [ln.split(",")[0] for ln in final[1:]] == [case_id(c) for c in parse_grid({"magnitude": [16.6, 17.0, 17.5], "binning": 4,
+                                                                                     "oversampling": 1, "duration": 0.05})]
+    # a crash in the middle of the last write: the file ends with part of a line
+    results.write_text("\n".join(final[:-1]) + "\n" + final[-1][:50])
+    status, out_text, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(out), "--resume", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    report = json.loads(out_text)
+    assert (report["skipped"], report["computed"]) == (2, 1)
+    assert any("line 4: an incomplete last row (an interrupted write) is ignored" in n for n in report["notes"])
+    again = results.read_text().splitlines()
+    assert [ln.split(",")[:20] for ln in again] == [ln.split(",")[:20] for ln in final]
+
+
+# ------------------------------------------------------------------- one sweep per folder
+
+def test_a_second_sweep_into_the_same_folder_is_refused(tmp_path, capsys, cache_dir):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom soulctl.sweep.results import results_lock\n"
+                               "with results_lock(sys.argv[1]):\n    print('locked', flush=True)\n    time.sleep(60)\n", str(out)],
+                              stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        for extra in ([], ["--resume"]):
+            status, _, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(out), *extra], capsys, cache_dir)
+            assert status == 2 and err.count("\n") == 1
+            assert f"another soulctl sweep (process {holder.pid}) is writing {out / 'results.csv'}" in err
+        assert sorted(p.name for p in out.iterdir()) == [".results.csv.lock"]
+    finally:
+        holder.kill()
+        holder.wait()
