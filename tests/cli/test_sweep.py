@@ -1,15 +1,19 @@
 """`soulctl sweep` on Dask: a small grid on a local 2-worker cluster equals the same cases run one
 by one with `loop run`; --resume completes a sweep without recomputing its rows; a worker
-killed mid-sweep loses and duplicates no row; an external scheduler; one-line errors; a results
-file that cannot be resumed or a folder another sweep is writing refused; rows appended one
-line at a time."""
+killed mid-sweep loses and duplicates no row; an external scheduler; one-line errors, nothing
+created, for a bad grid, a bad or silent scheduler, a results file that cannot be resumed or a
+folder another sweep is writing; rows appended one line at a time."""
 
+import http.server
 import json
 import os
+import random
 import signal
 import socket
+import socketserver
 import subprocess
 import sys
+import threading
 import time
 import tomllib
 
@@ -17,6 +21,7 @@ import psutil
 import pytest
 
 from soulctl.cli.app import main
+from soulctl.sweep import scheduler as dask_scheduler
 from soulctl.sweep.case import failed_row
 from soulctl.sweep.grid import case_id, parse_grid
 from soulctl.sweep.results import COLUMNS, ResultsTable, csv_line
@@ -115,11 +120,12 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", ":0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+                               "--dashboard-address", ":0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)]
     try:
         time.sleep(2)
         procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1",
-                                       "--nthreads", "1", "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                                       "--nthreads", "1", "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      cwd=tmp_path))
         status, out, err = cli(["sweep", str(grid), "--scheduler", address, "--out", str(tmp_path / "ext"), "--json"], capsys, cache_dir)
         assert status == 0, err
         assert json.loads(out)["computed"] == 4
@@ -133,30 +139,165 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
                 p.kill()
 
 
+
+# ------------------------------------------------------------------- bad input: exit 2, nothing created
+
 @pytest.mark.parametrize("text, args, message", [
     ("magnitude = [", [], "is not valid TOML"),
     ("magnitude = 12\ncolour = 1\n", [], "unknown parameter colour"),
     ("", [], "is empty"),
-    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9"),
+    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9: connection refused"),
     ("magnitude = 12\n", ["--workers", "0"], "--workers must be in 1..512"),
     # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
     ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be a number in 0..100 m/s (> 0), got 0"),
     ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be a number in 0.5..10000 m, got 0.1"),
     ("magnitude = 18.6\n", [], "magnitude must be a number in 0..18.5, got 18.6"),
-    ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "cannot reach the Dask scheduler"),
+    # schemes other than tcp:// are refused (they gave TypeError tracebacks), and malformed addresses
+    ("magnitude = 12\n", ["--scheduler", "ucx://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'ucx://127.0.0.1:8786' (ucx://"),
+    ("magnitude = 12\n", ["--scheduler", "tls://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'tls://127.0.0.1:8786' (tls://: TLS"),
+    ("magnitude = 12\n", ["--scheduler", "inproc://127.0.0.1/1/2"], "(inproc://: inproc:// only exists inside one Python process)"),
+    ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "--scheduler must be tcp://HOST:PORT"),
+    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
+    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:99999"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
+    ("magnitude = 12\n", ["--scheduler", "tcp://[::1:8786"], "--scheduler must be tcp://HOST:PORT"),
+    ("magnitude = 12\n", ["--scheduler", "tcp:// 127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT"),
 ])
-def test_bad_input_exits_2_and_runs_nothing(text, args, message, tmp_path, capsys, cache_dir):
+def test_bad_input_exits_2_runs_nothing_and_creates_no_folder(text, args, message, tmp_path, capsys, cache_dir):
     path = tmp_path / "grid.toml"
     path.write_text(text)
     out_dir = tmp_path / "out"
-    status, _, err = cli(["sweep", str(path), "--out", str(out_dir), *args], capsys, cache_dir)
-    assert status == 2 and message in err and err.count("\n") == 1
-    assert not (out_dir / "results.csv").exists()
+    status, out, err = cli(["sweep", str(path), "--out", str(out_dir), *args], capsys, cache_dir)
+    assert status == 2 and message in err and err.count("\n") == 1, err
+    assert not out_dir.exists()
 
 
 def test_missing_grid_file(tmp_path, capsys, cache_dir):
     status, _, err = cli(["sweep", str(tmp_path / "none.toml")], capsys, cache_dir)
     assert status == 2 and "grid file not found" in err
+
+
+def test_an_out_folder_that_cannot_be_made_is_refused_first(tmp_path, capsys, cache_dir):
+    grid = tmp_path / "grid.toml"
+    grid.write_text("magnitude = 12\n")
+    (tmp_path / "file").write_text("x")
+    status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "file" / "out")], capsys, cache_dir)
+    assert status == 2 and "--out" in err and err.count("\n") == 1
+    status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "none" / "out")], capsys, cache_dir)
+    assert status == 2 and "does not exist" in err and not (tmp_path / "none").exists()
+    out = tmp_path / "out"
+    (out / "strehl_vs_magnitude.png").mkdir(parents=True)
+    status, _, err = cli(["sweep", str(grid), "--out", str(out), "--plot"], capsys, cache_dir)
+    assert status == 2 and "strehl_vs_magnitude.png is a directory" in err
+    assert sorted(p.name for p in out.iterdir()) == ["strehl_vs_magnitude.png"]
+
+
+# ------------------------------------------------------------------- schedulers that do not answer
+
+class _Listener:
+    """A TCP listener on 127.0.0.1 that accepts connections and then stays silent, or sends
+    ``answer`` (bytes) to each."""
+
+    def __init__(self, answer: bytes | None = None):
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(16)
+        self.port = self.sock.getsockname()[1]
+        self.answer, self.conns, self.accepted = answer, [], []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self):
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            self.conns.append(conn)
+            self.accepted.append(time.monotonic())
+            if self.answer:
+                conn.sendall(self.answer)
+
+    def close(self):
+        for c in self.conns:
+            c.close()
+        self.sock.close()
+
+
+def test_a_silent_listener_is_refused_within_the_bound_and_the_process_exits(tmp_path):
+    """The connect bound (10 s) holds for a listener that never speaks, and nothing lingers:
+    the command line, in its own process, ends within the bound of the connection (and within
+    ~15 s of its start, Python's start-up and imports included: 20 s allowed on a busy machine)."""
+    listener = _Listener()
+    grid = tmp_path / "grid.toml"
+    grid.write_text("magnitude = 12\n")
+    address = f"tcp://127.0.0.1:{listener.port}"
+    try:
+        t0 = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "soulctl.cli.app", "sweep", str(grid), "--scheduler", address,
+                               "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=60,
+                              cwd=tmp_path)  # the installed package, not the source folder
+        t1 = time.monotonic()
+    finally:
+        listener.close()
+    assert proc.returncode == 2, proc.stderr
+    assert len(listener.accepted) == 1 and t1 - listener.accepted[0] < dask_scheduler.CONNECT_TIMEOUT_S + 1.5
+    assert proc.stderr == (f"soulctl: error: cannot reach the Dask scheduler at {address}: no answer from a Dask scheduler "
+                           f"within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; nothing was run\n")
+    assert dask_scheduler.CONNECT_TIMEOUT_S <= 10 and t1 - t0 < 20
+    assert not (tmp_path / "out").exists()
+
+
+class _Http(http.server.BaseHTTPRequestHandler):
+    def do_GET(self):
+        self.send_response(200)
+        self.end_headers()
+        self.wfile.write(b"<html>dashboard</html>")
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.mark.parametrize("server, message", [
+    ("http", "no answer from a Dask scheduler within 2 s"),  # e.g. the dashboard's port: waits for a request
+    ("random", "the listener there is not a Dask scheduler (it announced a first message of"),  # once: exabytes
+    ("http-greeting", "the listener there is not a Dask scheduler (it announced a first message of"),
+    ("closes", "the listener there is not a Dask scheduler (it closed the connection without a handshake)"),
+])
+def test_a_listener_that_is_not_a_scheduler_is_refused(server, message, tmp_path, capsys, cache_dir, monkeypatch):
+    monkeypatch.setattr(dask_scheduler, "CONNECT_TIMEOUT_S", 2.0)
+    if server == "http":
+        httpd = socketserver.ThreadingTCPServer(("127.0.0.1", 0), _Http)
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        port, close = httpd.server_address[1], lambda: (httpd.shutdown(), httpd.server_close())
+    elif server == "closes":
+        sock = socket.socket()
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(4)
+
+        def serve():
+            try:
+                while True:
+                    sock.accept()[0].close()
+            except OSError:
+                pass
+
+        threading.Thread(target=serve, daemon=True).start()
+        port, close = sock.getsockname()[1], sock.close
+    else:
+        answer = random.Random(1).randbytes(4096) if server == "random" else b"HTTP/1.1 400 Bad Request\r\n\r\n"
+        listener = _Listener(answer)
+        port, close = listener.port, listener.close
+    grid = tmp_path / "grid.toml"
+    grid.write_text("magnitude = 12\n")
+    try:
+        t0 = time.monotonic()
+        status, _, err = cli(["sweep", str(grid), "--scheduler", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "out")],
+                             capsys, cache_dir)
+        elapsed = time.monotonic() - t0
+    finally:
+        close()
+    assert status == 2 and f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}: {message}" in err, err
+    assert err.count("\n") == 1 and elapsed < 5
+    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------- --resume checks the rows
