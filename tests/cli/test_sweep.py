@@ -2,7 +2,8 @@
 by one with `loop run`; --resume completes a sweep without recomputing its rows; a worker
 killed mid-sweep loses and duplicates no row; an external scheduler; one-line errors, nothing
 created, for a bad grid, a bad or silent scheduler, a results file that cannot be resumed or a
-folder another sweep is writing; rows appended one line at a time."""
+folder another sweep is writing; rows appended one line at a time; the estimate and the
+question before a long sweep."""
 
 import http.server
 import json
@@ -415,3 +416,67 @@ def test_a_second_sweep_into_the_same_folder_is_refused(tmp_path, capsys, cache_
     finally:
         holder.kill()
         holder.wait()
+
+
+# ------------------------------------------------------------------- the estimate, and the question
+
+BIG = "magnitude = [16.6, 17.0, 17.5]\nseeing = [0.6, 0.8, 1.0, 1.2, 1.4]\nseed = {seeds}\nduration = 0.5\n"
+
+
+def test_the_estimate_is_printed_and_in_the_json(tmp_path, capsys, cache_dir):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY)
+    status, out, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(tmp_path / "a")], capsys, cache_dir)
+    assert status == 0, err
+    first = out.splitlines()[0]
+    assert first.startswith("estimate: 3 cases, ") and " frames, 1 calibration: " in first and "on 1 worker" in first
+    status, out, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(tmp_path / "b"), "--json"], capsys, cache_dir)
+    est = json.loads(out)["estimate"]
+    assert est["cases"] == 3 and est["calibrations"] == 1 and est["workers"] == 1 and est["cpu_seconds"] > 0
+    assert est["frames"] > 0 and est["source"].startswith("bench/results/frame_cost.json")
+
+
+class _Terminal:
+    def __init__(self, answer):
+        self.answer, self.asked = answer, 0
+
+    def isatty(self):
+        return True
+
+    def readline(self):
+        self.asked += 1
+        return self.answer
+
+
+@pytest.mark.parametrize("answer, args, terminal, asked, status, message", [
+    ("n\n", [], True, 1, 2, "sweep not started (not confirmed; --yes starts a long sweep without asking)"),
+    ("", [], True, 1, 2, "sweep not started"),  # end of input
+    ("y\n", [], True, 1, 2, "reached the run"),
+    ("n\n", ["--yes"], True, 0, 2, "reached the run"),
+    ("n\n", [], False, 0, 2, "reached the run"),  # not a terminal: no question
+    ("n\n", ["--json"], True, 1, 2, "sweep not started"),  # the estimate in the question, stdout left to the JSON
+])
+def test_a_long_sweep_asks_on_a_terminal(answer, args, terminal, asked, status, message, tmp_path, capsys, cache_dir, monkeypatch):
+    import soulctl.cli.sweep as sweep_cli
+    from soulctl.errors import InputError
+
+    def stub(*a, **k):
+        raise InputError("reached the run")
+
+    monkeypatch.setattr(sweep_cli, "execute", stub)
+    stdin = _Terminal(answer)
+    if not terminal:
+        stdin.isatty = lambda: False
+    monkeypatch.setattr(sys, "stdin", stdin)
+    grid = tmp_path / "grid.toml"
+    grid.write_text(BIG.format(seeds=list(range(1, 2001))))  # 30 000 cases of 0.5 s
+    t0 = time.monotonic()
+    code, out, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--workers", "2", *args], capsys, cache_dir)
+    assert time.monotonic() - t0 < 20
+    assert code == status and message in err and stdin.asked == asked
+    if "--json" in args:
+        assert out == "" and "estimate: 30000 cases, " in err
+    else:
+        assert out.startswith("estimate: 30000 cases, ") and "estimate" not in err
+    assert ("This sweep takes more than 1 h of CPU. Start it? [y/N]" in err) == bool(asked)
+    assert not (tmp_path / "out").exists()
