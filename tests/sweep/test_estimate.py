@@ -33,6 +33,6 @@ def test_a_large_grid_is_estimated_at_once():
     t0 = time.perf_counter()
     e = estimate(cases, 2)
     assert time.perf_counter() - t0 < 5
-    assert e.cases == 90_000 and e.calibrations == 1 and e.wall_seconds == e.cpu_seconds / 2
+    assert e.cases == 90_000 and e.calibrations == 1 and e.wall_seconds == pytest.approx(e.cpu_seconds / 2 / 0.82)
     assert e.text().startswith("estimate: 90000 cases, ") and "on 2 workers" in e.text()
     assert estimate(cases[:3], None).as_json()["wall_seconds"] is None
