@@ -17,11 +17,19 @@ from ..errors import InputError
 from ..files import atomic_write_text
 from ..plots.sweep import strehl_vs_magnitude
 from ..observation import BINNINGS, observation_for_magnitude
+from ..sweep import scheduler as dask_scheduler
 from ..sweep.derive import best_per_magnitude, derived_table, lut_csv
+from ..sweep.estimate import CONFIRM_ABOVE_S, estimate, needs_confirmation
 from ..sweep.grid import read_grid
 from ..sweep.results import ResultsTable
-from ..sweep.runner import run_sweep
+from ..sweep.runner import execute, local_workers, plan_sweep
+from . import output
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
+
+MAX_WORKERS = 512
+DERIVED = "derived_lut.csv"
+FIGURE = "strehl_vs_magnitude.png"
+CONFIRM_TEXT = f"{CONFIRM_ABOVE_S / 3600:g} h"
 
 
 def _json_row(row: dict) -> dict:
@@ -41,40 +49,67 @@ def _render_derived(rows: list[dict], derived: list[dict], console: Console) -> 
     print(lut_csv(derived), end="")
 
 
+def _confirm(estimate_text: str | None) -> None:
+    """Ask on the terminal before a long sweep (with the estimate unless it was printed);
+    InputError unless the answer is yes."""
+    err = output.console(stderr=True)
+    err.print(f"{estimate_text + '. ' if estimate_text else ''}This sweep takes more than {CONFIRM_TEXT} of CPU. Start it? [y/N] ",
+              end="", soft_wrap=True)
+    try:
+        answer = sys.stdin.readline()
+    except (OSError, ValueError):
+        answer = ""
+    if not answer.endswith("\n"):  # end of input: the terminal echoed no line end
+        err.print()
+    if answer.strip().lower() not in ("y", "yes"):
+        raise InputError("sweep not started (not confirmed; --yes starts a long sweep without asking); nothing was run")
+
+
 def sweep(
     grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis."),
-    scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help="An existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster)."),
-    workers: int | None = typer.Option(None, "--workers", help="Processes of the local cluster (default: one per core)."),
-    out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table)."),
-    resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv."),
-    plot: bool = typer.Option(False, "--plot", help="Write DIR/strehl_vs_magnitude.png."),
-    derive_table: bool = typer.Option(False, "--derive-table", help="Print (and write DIR/derived_lut.csv) the best binning and rate per magnitude."),
+    scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster)."),
+    workers: int | None = typer.Option(None, "--workers", help=f"Processes of the local cluster (1..{MAX_WORKERS}; default: one per core)."),
+    out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table); created once everything else is checked."),
+    resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."),
+    plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}."),
+    derive_table: bool = typer.Option(False, "--derive-table", help=f"Print (and write DIR/{DERIVED}) the best binning and rate per magnitude."),
+    yes: bool = typer.Option(False, "--yes", "-y", help=f"Start without asking when the estimate exceeds {CONFIRM_TEXT} of CPU (asked on a terminal only)."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = JSON_OUTPUT,
 ) -> int:
     """Run a grid of simulated closed loops as Dask tasks and collect one row per case
-    (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, written
-    case by case.  A failed or diverged case is a row with its reason; --resume completes an
-    interrupted sweep without recomputing its finished rows.  Each distinct calibration is
-    computed once and shared.  Exit status 0 once every case has a row, whatever its status.
+    (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, appended
+    case by case and put in the grid's order once every case has its row.  A failed or
+    diverged case is a row with its reason; --resume completes an interrupted sweep without
+    recomputing its finished rows.  Each distinct calibration is computed once and shared.
+    The estimated cost is printed first; above an hour of CPU a terminal is asked to confirm
+    (--yes skips the question).  One sweep at a time per folder.  Exit status 0 once every
+    case has a row, whatever its status; 2 (nothing run, nothing created) for a bad grid, an
+    option, an unreachable scheduler or a results file that cannot be resumed.
 
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
     cases = read_grid(grid)
-    if workers is not None and not (1 <= workers <= 512):
-        raise InputError(f"--workers must be in 1..512, got {workers}")
+    if workers is not None and not (1 <= workers <= MAX_WORKERS):
+        raise InputError(f"--workers must be in 1..{MAX_WORKERS}, got {workers}")
     if scheduler is not None and workers is not None:
         raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out must be a folder, got the file {out}")
-    if not out.parent.exists():
-        raise InputError(f"--out: the folder {out.parent} does not exist")
-    out.mkdir(exist_ok=True)
+    if scheduler is not None:
+        dask_scheduler.parse_address(scheduler)
+    outputs = [name for name, wanted in ((DERIVED, derive_table), (FIGURE, plot)) if wanted]
+    plan = plan_sweep(cases, out, resume, outputs)
+    if scheduler is not None and plan.todo:
+        dask_scheduler.probe(scheduler)
+    cost = estimate([c for _, c in plan.todo], None if scheduler else workers or local_workers())
+    if not json_output:
+        output.console().print(cost.text(), soft_wrap=True)
+    if needs_confirmation(cost) and not yes and sys.stdin.isatty():
+        _confirm(cost.text() if json_output else None)
     cache = None if no_cache else str(cache_dir or default_cache_dir())
     show = not json_output and sys.stderr.isatty()
     progress = Progress(TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("cases"), TextColumn("{task.fields[state]}"),
-                        TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+                        TimeElapsedColumn(), TimeRemainingColumn(), console=output.console(stderr=True), transient=True)
     with progress if show else nullcontext():
         task = progress.add_task("sweep", total=None, state="") if show else None
 
@@ -88,19 +123,21 @@ def sweep(
                 progress.update(task, completed=report.computed,
                                 state=f"failed {report.failed}, diverged {report.diverged}, running {left}")
 
-        report = run_sweep(cases, out, scheduler, workers, resume, cache, on_row=finished, on_start=started)
+        report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started)
     rows = list(ResultsTable.read_rows(report.results).values())
     derived = derived_table(rows) if derive_table else None
     if derived is not None:
-        atomic_write_text(out / "derived_lut.csv", lut_csv(derived))
+        atomic_write_text(out / DERIVED, lut_csv(derived))
     if plot:
-        strehl_vs_magnitude(rows, out / "strehl_vs_magnitude.png")
+        strehl_vs_magnitude(rows, out / FIGURE)
     if json_output:
         print(json.dumps({"total": report.total, "skipped": report.skipped, "computed": report.computed, "failed": report.failed,
-                          "diverged": report.diverged, "results": str(report.results), "rows": [_json_row(r) for r in report.rows],
-                          "derived_table": derived}))
+                          "diverged": report.diverged, "results": str(report.results), "estimate": cost.as_json(),
+                          "notes": report.notes, "rows": [_json_row(r) for r in report.rows], "derived_table": derived}))
         return 0
-    console = Console()
+    console = output.console()
+    for note in report.notes:
+        console.print(f"note: {note}")
     console.print(f"{report.total} cases: {report.computed} run now ({report.failed} failed, {report.diverged} diverged), "
                   f"{report.skipped} kept from an earlier run; results in {report.results}")
     for r in report.rows:

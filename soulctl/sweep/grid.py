@@ -8,7 +8,8 @@ axis of the grid).  The cases are the Cartesian product of the lists, in the fil
     duration = 0.5
     seed = 1
 
-Parameters (defaults as `loop run`): magnitude (R), seeing (arcsec), wind (m/s), L0 (m),
+Parameters (defaults as `loop run`; the ranges are soulctl.ranges', the ones `loop run`
+accepts): magnitude (R, the look-up table's range), seeing (arcsec), wind (m/s, > 0), L0 (m),
 duration (s), binning (1-4; with it the look-up table's sub-apertures and modes for that
 binning), frame_rate (Hz; the Tip/Tilt IIR of the nearest tabulated rate, an integrator below
 750 Hz), tt_control (iir|int), gain_method (default|mgm|trial), band, seed, noise (bool),
@@ -23,41 +24,75 @@ import hashlib
 import itertools
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
+from .. import ranges, tables
 from ..errors import InputError
 from ..files import read_toml
 from ..loop.metrics import BANDS
+from ..observation import BINNINGS
+from ..ranges import Range
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A grid parameter: its type (float, int, bool or str) and either its range (the one of
+    ``soulctl.ranges``, shared with `loop run`) or its accepted values."""
+
+    kind: type
+    range: Range | None = None
+    choices: tuple = ()
+
+    def text(self) -> str:
+        """The accepted values as messages show them."""
+        if self.range is not None:
+            return self.range.text()
+        if self.kind is bool:
+            return "true or false"
+        words = [str(c) for c in self.choices]
+        return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " or " + words[-1]
+
+    def check(self, value, name: str):
+        """``value`` as the case holds it (ints of float parameters become floats), else an
+        InputError naming ``name`` and the accepted values."""
+        if self.range is not None:
+            return self.range.check(value, name)  # refuses bools, NaN, infinities and non-numbers
+        if self.kind is bool:
+            ok = isinstance(value, bool)
+        else:
+            ok = type(value) is self.kind and value in self.choices
+        if not ok:
+            raise InputError(f"{name} must be {self.text()}, got {value!r}")
+        return value
+
 
 PARAMETERS = {
-    # name: (accepted types, check, accepted range text)
-    "magnitude": ((int, float), lambda v: 0 <= v <= 18.5, "0..18.5"),
-    "seeing": ((int, float), lambda v: 0.05 <= v <= 10, "0.05..10 arcsec"),
-    "wind": ((int, float), lambda v: 0 <= v <= 100, "0..100 m/s"),
-    "L0": ((int, float), lambda v: 0 < v <= 1e4, "0..10000 m (> 0)"),
-    "duration": ((int, float), lambda v: 0 < v <= 600, "0..600 s (> 0)"),
-    "binning": ((int,), lambda v: v in (1, 2, 3, 4), "1, 2, 3 or 4"),
-    "frame_rate": ((int, float), lambda v: 10 <= v <= 2000, "10..2000 Hz"),
-    "tt_control": ((str,), lambda v: v in ("iir", "int"), "iir or int"),
-    "gain_method": ((str,), lambda v: v in ("default", "mgm", "trial"), "default, mgm or trial"),
-    "band": ((str,), lambda v: v in BANDS, ", ".join(BANDS)),
-    "seed": ((int,), lambda v: 0 <= v < 2**63, "0..2^63-1"),
-    "noise": ((bool,), lambda v: True, "true or false"),
-    "vibrations": ((bool,), lambda v: True, "true or false"),
-    "resonance": ((bool,), lambda v: True, "true or false"),
-    "oversampling": ((int,), lambda v: v in (1, 2, 3, 4), "1..4"),
+    "magnitude": Parameter(float, Range(*tables.magnitude_range(tables.magnitude_table()))),  # the look-up table's
+    "seeing": Parameter(float, ranges.SEEING_ARCSEC),
+    "wind": Parameter(float, ranges.WIND_M_S),
+    "L0": Parameter(float, ranges.OUTER_SCALE_M),
+    "duration": Parameter(float, ranges.DURATION_S),
+    "binning": Parameter(int, choices=tuple(BINNINGS)),
+    "frame_rate": Parameter(float, ranges.FRAME_RATE_HZ),
+    "tt_control": Parameter(str, choices=("iir", "int")),
+    "gain_method": Parameter(str, choices=("default", "mgm", "trial")),
+    "band": Parameter(str, choices=tuple(BANDS)),
+    "seed": Parameter(int, ranges.SEED),
+    "noise": Parameter(bool),
+    "vibrations": Parameter(bool),
+    "resonance": Parameter(bool),
+    "oversampling": Parameter(int, ranges.OVERSAMPLING),
 }
 REQUIRED = ("magnitude",)
 MAX_CASES = 100_000
 
 
 def _check(name: str, value, where: str):
-    types, ok, accepted = PARAMETERS[name]
-    if isinstance(value, bool) and bool not in types:
-        raise InputError(f"{where}: {name} must be {accepted}, got {value!r}")
-    if not isinstance(value, types) or (isinstance(value, float) and not math.isfinite(value)) or not ok(value):
-        raise InputError(f"{where}: {name} must be {accepted}, got {value!r}")
-    return float(value) if float in types and not isinstance(value, bool) else value
+    try:
+        return PARAMETERS[name].check(value, name)
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
 
 
 def parse_grid(data: dict, where: str = "grid") -> list[dict]:

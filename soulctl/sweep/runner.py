@@ -2,26 +2,33 @@
 one per core by default) or on an existing Dask scheduler (``tcp://host:8786``), the same
 code either way.
 
+In two steps, so that a sweep that cannot run creates nothing: ``plan_sweep`` checks the
+output folder and the results file (with ``--resume``, its rows) and finds the cases to run;
+``execute`` connects to the scheduler (or starts the local cluster), then creates the folder,
+takes its lock (``results.results_lock``: one sweep per folder) and runs the cases.
+
 Each distinct calibration (binning, modulation, modes, sampling) is one task, computed once
 and handed by Dask to the cases that need it (no shared file system needed).  Rows are
-written by this process as the cases finish (``results.ResultsTable``): a worker that dies
+appended by this process as the cases finish (``results.ResultsTable``): a worker that dies
 loses no row (Dask runs its task again elsewhere) and duplicates none (one row per case id).
-A case that fails or diverges is a row with its status and reason; the sweep goes on."""
+A case that fails or diverges is a row with its status and reason; the sweep goes on.  Once
+every case has its row, the file is rewritten in the grid's order."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
+from ..files import check_output_folder, check_output_path
 from .case import calibrate_case, calibration_setup, failed_row, run_case
-from .grid import case_id
-from .results import ResultsTable
+from .results import ResultsTable, check_unlocked, results_lock
+from .scheduler import CONNECT_TIMEOUT_S, probe
 
-CONNECT_TIMEOUT_S = 5
+RESULTS = "results.csv"
 
 
 @dataclass
@@ -33,54 +40,112 @@ class SweepReport:
     diverged: int = 0
     rows: list[dict] = field(default_factory=list)  # this run's rows, in finishing order
     results: Path | None = None
+    notes: list[str] = field(default_factory=list)  # what --resume found (an incomplete last line, other columns)
+
+
+@dataclass
+class SweepPlan:
+    """What a sweep will do, found without creating or changing anything."""
+
+    cases: list[dict]
+    out_dir: Path
+    resume: bool
+    table: ResultsTable
+    todo: list[tuple[str, dict]]  # (case id, case) to run, in the grid's order
+    skipped: int  # this grid's finished rows found by --resume
+
+    @property
+    def total(self) -> int:
+        return len(self.table.cases)
+
+
+def plan_sweep(cases: list[dict], out_dir: str | Path, resume: bool = False, outputs: Iterable[str] = ()) -> SweepPlan:
+    """Check, before anything is created, that the sweep can write ``out_dir``/results.csv
+    (and the other ``outputs`` there) and, with ``resume``, read the rows already there;
+    InputError otherwise.  A folder that does not exist yet must have a writable parent."""
+    out = Path(out_dir)
+    results = out / RESULTS
+    if out.is_dir():
+        check_output_folder(out, "--out", [RESULTS, *outputs])
+        check_unlocked(out)
+    elif os.path.lexists(out):
+        raise InputError(f"--out must be a folder, got the file {out}" if out.is_file() else f"--out {out} is not a folder")
+    else:
+        check_output_path(out, "--out")  # the parent exists and can be written
+    if os.path.lexists(results) and not resume:
+        raise InputError(f"{results} exists: --resume to complete it, or choose another --out")
+    table = ResultsTable(results, cases)
+    done = table.resume() if resume else set()
+    todo = [(cid, c) for cid, c in table.cases.items() if cid not in done]  # a case listed twice runs once
+    return SweepPlan(cases, out, resume, table, todo, len(done))
 
 
 def connect(stack: ExitStack, scheduler: str | None, workers: int | None):
-    """A Dask client: on ``scheduler`` (InputError naming it when unreachable), else on a
-    local cluster of ``workers`` processes (default: one per core), one thread each."""
+    """A Dask client: on ``scheduler`` (checked by ``scheduler.probe`` first; InputError naming
+    it when unreachable), else on a local cluster of ``workers`` processes (default: one per
+    core), one thread each."""
     from dask.distributed import Client, LocalCluster  # here: importing Dask costs every other command ~1 s
 
     if scheduler:
+        address = probe(scheduler)
         try:
-            return stack.enter_context(Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s"))
-        except (OSError, TimeoutError, ValueError) as e:  # ValueError: not an address
-            raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({type(e).__name__}); nothing was run") from None
-    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+            return stack.enter_context(Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s"))
+        except Exception as e:  # noqa: BLE001 - what answers at the address is the user's: e.g. a worker (TypeError)
+            raise InputError(f"cannot connect to the Dask scheduler at {scheduler} ({type(e).__name__}: {e}; is it the "
+                             f"scheduler's address?); nothing was run") from None
+    n = workers or local_workers()
     cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                                silence_logs=40))
     return stack.enter_context(Client(cluster))
 
 
-def run_sweep(cases: list[dict], out_dir: Path, scheduler: str | None = None, workers: int | None = None,
-              resume: bool = False, cache_dir: str | None = None, on_row: Callable[[dict, "SweepReport"], None] | None = None,
-              on_start: Callable[[int], None] | None = None) -> SweepReport:
-    """Run ``cases`` (from ``grid.parse_grid``), writing ``out_dir/results.csv``."""
-    from dask.distributed import as_completed
+def local_workers() -> int:
+    """The local cluster's default size: one worker per core this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
-    ids = [case_id(c) for c in cases]
-    table = ResultsTable(Path(out_dir) / "results.csv", ids)
-    if table.path.exists() and not resume:
-        raise InputError(f"{table.path} exists: --resume to complete it, or choose another --out")
-    done = table.resume() if resume else set()
-    todo = list({cid: c for cid, c in zip(ids, cases) if cid not in done}.items())  # a case listed twice runs once
-    report = SweepReport(total=len(set(ids)), skipped=len(done), results=table.path)
-    if on_start:
-        on_start(len(todo))
-    if not todo:
-        table.write()
-        return report
 
-    def record(row: dict) -> None:
-        table.add(row)
-        report.rows.append(row)
-        report.computed += 1
-        report.failed += row["status"] == "failed"
-        report.diverged += row["status"] == "diverged"
-        if on_row:
-            on_row(row, report)
-
+def execute(plan: SweepPlan, scheduler: str | None = None, workers: int | None = None, cache_dir: str | None = None,
+            on_row: Callable[[dict, SweepReport], None] | None = None, on_start: Callable[[int], None] | None = None) -> SweepReport:
+    """Run a plan (see the module): its folder is created only once the scheduler answered."""
+    table = plan.table
+    report = SweepReport(total=plan.total, skipped=plan.skipped, results=table.path)
     with ExitStack() as stack:
-        client = connect(stack, scheduler, workers)
+        client = connect(stack, scheduler, workers) if plan.todo else None
+        created = not plan.out_dir.exists()
+        try:
+            plan.out_dir.mkdir(exist_ok=True)
+        except OSError as e:
+            raise InputError(f"--out: cannot create the folder {plan.out_dir}: {e.strerror or e}") from None
+        try:
+            stack.enter_context(results_lock(plan.out_dir))
+            # under the lock, the file as it is now (another sweep may have written it since the plan)
+            if os.path.lexists(table.path) and not plan.resume:
+                raise InputError(f"{table.path} exists: --resume to complete it, or choose another --out")
+            done = table.resume() if plan.resume else set()
+        except BaseException:
+            if created:  # as it was: no folder (the lock released first)
+                stack.close()
+                _remove_empty(plan.out_dir)
+            raise
+        todo = [(cid, c) for cid, c in table.cases.items() if cid not in done]
+        report.skipped = len(done)
+        report.notes = list(table.notes)
+        table.open()
+        stack.callback(table.close)
+        if on_start:
+            on_start(len(todo))
+
+        def record(row: dict) -> None:
+            table.add(row)
+            report.rows.append(row)
+            report.computed += 1
+            report.failed += row["status"] == "failed"
+            report.diverged += row["status"] == "diverged"
+            if on_row:
+                on_row(row, report)
+
+        if todo and client is None:  # rows removed since the plan (an edited file): start the cluster now
+            client = connect(stack, scheduler, workers)
         calibrations, futures = {}, {}
         for cid, case in todo:
             try:
@@ -92,11 +157,29 @@ def run_sweep(cases: list[dict], out_dir: Path, scheduler: str | None = None, wo
             if key not in calibrations:
                 calibrations[key] = client.submit(calibrate_case, setup, cache_dir, key=f"calibration-{key}", pure=False)
             futures[client.submit(run_case, case, calibrations[key], cache_dir, key=f"case-{cid}", pure=False)] = case
-        for future in as_completed(futures):
-            case = futures[future]
-            try:
-                row = future.result()
-            except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
-                row = failed_row(case, f"{type(e).__name__}: {e}")
-            record(row)
+        if futures:
+            from dask.distributed import as_completed
+
+            for future in as_completed(futures):
+                case = futures[future]
+                try:
+                    row = future.result()
+                except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
+                    row = failed_row(case, f"{type(e).__name__}: {e}")
+                record(row)
+        table.write_ordered()  # every case has its row: the grid's order
     return report
+
+
+def _remove_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
+
+
+def run_sweep(cases: list[dict], out_dir: str | Path, scheduler: str | None = None, workers: int | None = None,
+              resume: bool = False, cache_dir: str | None = None, on_row: Callable[[dict, SweepReport], None] | None = None,
+              on_start: Callable[[int], None] | None = None) -> SweepReport:
+    """Run ``cases`` (from ``grid.parse_grid``), writing ``out_dir/results.csv``."""
+    return execute(plan_sweep(cases, out_dir, resume), scheduler, workers, cache_dir, on_row, on_start)

@@ -14,6 +14,18 @@ def test_lists_are_axes_in_the_files_order():
     assert isinstance(cases[0]["magnitude"], float) and isinstance(cases[0]["binning"], int)
 
 
+def test_ranges_are_those_of_soulctl_ranges():
+    from soulctl import ranges, tables
+    from soulctl.sweep.grid import PARAMETERS
+
+    assert PARAMETERS["seeing"].range is ranges.SEEING_ARCSEC and PARAMETERS["wind"].range is ranges.WIND_M_S
+    assert PARAMETERS["L0"].range is ranges.OUTER_SCALE_M and PARAMETERS["duration"].range is ranges.DURATION_S
+    assert PARAMETERS["frame_rate"].range is ranges.FRAME_RATE_HZ and PARAMETERS["seed"].range is ranges.SEED
+    assert PARAMETERS["oversampling"].range is ranges.OVERSAMPLING
+    m = PARAMETERS["magnitude"].range
+    assert (m.lo, m.hi) == tables.magnitude_range(tables.magnitude_table())
+
+
 def test_case_ids_depend_on_the_parameters_only():
     a = parse_grid({"magnitude": [12, 13], "seeing": 1.0})
     b = parse_grid({"seeing": 1.0, "magnitude": [13, 12]})
@@ -25,7 +37,12 @@ def test_case_ids_depend_on_the_parameters_only():
     ({"seeing": 1.0}, "needs magnitude"),
     ({"magnitude": 12, "colour": "red"}, "unknown parameter colour"),
     ({"magnitude": []}, "magnitude is an empty list"),
-    ({"magnitude": 12, "seeing": [1.0, -1.0]}, "seeing must be 0.05..10 arcsec, got -1.0"),
+    ({"magnitude": 12, "seeing": [1.0, -1.0]}, "seeing must be a number in 0.05..10 arcsec, got -1"),
+    ({"magnitude": 18.6}, "magnitude must be a number in 0..18.5, got 18.6"),
+    ({"magnitude": 12, "wind": 0}, "wind must be a number in 0..100 m/s (> 0), got 0"),
+    ({"magnitude": 12, "L0": 0.1}, "L0 must be a number in 0.5..10000 m, got 0.1"),
+    ({"magnitude": 12, "seeing": float("nan")}, "seeing must be a number in 0.05..10 arcsec, got nan"),
+    ({"magnitude": 12, "oversampling": 5}, "oversampling must be an integer in 1..4, got 5"),
     ({"magnitude": 12, "binning": 2.5}, "binning must be 1, 2, 3 or 4"),
     ({"magnitude": 12, "noise": "yes"}, "noise must be true or false"),
     ({"magnitude": 12, "seed": True}, "seed must be"),

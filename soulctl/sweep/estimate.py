@@ -1,0 +1,128 @@
+"""The estimated cost of a sweep, printed before it starts (and asked about above
+``CONFIRM_ABOVE_S``).
+
+A case costs ``CASE_FIXED_S`` (set-up, metrics) plus its frames times ``FRAME_MS`` of its
+binning and oversampling; each distinct calibration costs ``CALIBRATION_S`` once (less when
+the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
+``gain_method = mgm`` the closing, OGTL's settling (4 update periods) and three times
+``duration`` (before, optimisation, after); for ``trial`` the closing, the settling, twice
+``duration`` and the scan (8 gains per group, 0.25 s each); the auxiliary loops' own cost
+(MGM, OGTL) is not counted.
+
+FRAME_MS, CASE_FIXED_S and CALIBRATION_S are CPU times measured by
+``bench/bench_frame_cost.py`` (bench/results/frame_cost.json: one thread of the 2-core
+development machine, default conditions); a faster machine takes less, a busy one more.
+The wall time divides the CPU time by the workers and by ``PARALLEL_EFFICIENCY`` for more than
+one (the local cluster measured 1.64x on 2 workers: bench/results/sweep.json).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+from ..control.trial import gain_groups
+from ..errors import InputError
+from ..loop.optimize import OGTL_SETTLING_PERIODS, TRIAL_VALUES, OptimizeRequest
+from ..loop.run import closing_frames
+from .case import DEFAULTS, observation_for
+
+SOURCE = "bench/results/frame_cost.json (bench/bench_frame_cost.py)"
+# (binning, oversampling): (CPU ms per frame, CPU s per case, CPU s per calibration, cold), measured
+# by bench/bench_frame_cost.py (bench/results/frame_cost.json); oversampling 1 only up to 90 modes.
+_MEASURED = {
+    (3, 1): (1.8, 0.11, 3.2), (4, 1): (1.8, 0.09, 3.2),
+    (1, 2): (8.8, 0.36, 8.4), (2, 2): (5.9, 0.36, 5.3), (3, 2): (6.3, 0.30, 4.3), (4, 2): (6.7, 0.34, 3.2),
+    (1, 3): (16.0, 2.7, 18.0), (2, 3): (16.0, 1.5, 10.0), (3, 3): (15.0, 2.0, 4.8), (4, 3): (16.0, 1.3, 3.8),
+    (1, 4): (32.0, 1.2, 31.0), (2, 4): (27.0, 2.4, 16.0), (3, 4): (25.0, 2.2, 9.1), (4, 4): (28.0, 2.2, 7.4),
+}
+FRAME_MS = {k: v[0] for k, v in _MEASURED.items()}
+CASE_FIXED_S = {k: v[1] for k, v in _MEASURED.items()}
+CALIBRATION_S = {k: v[2] for k, v in _MEASURED.items()}
+PARALLEL_EFFICIENCY = 0.82  # bench/results/sweep.json: speed-up 1.64 on 2 workers
+CONFIRM_ABOVE_S = 3600.0  # estimated CPU time above which a terminal is asked before the sweep starts
+TRIAL_SEQUENCE_S = next(f.default for f in dataclasses.fields(OptimizeRequest) if f.name == "trial_sequence_s")
+
+
+@dataclass(frozen=True)
+class Estimate:
+    cases: int  # to run
+    frames: int
+    calibrations: int  # distinct set-ups
+    cpu_seconds: float  # cases and calibrations, one thread
+    workers: int | None  # None: the scheduler's
+
+    @property
+    def wall_seconds(self) -> float | None:
+        if self.workers is None:
+            return None
+        return self.cpu_seconds / self.workers / (PARALLEL_EFFICIENCY if self.workers > 1 else 1.0)
+
+    def text(self) -> str:
+        where = (f"about {duration_text(self.wall_seconds)} on {self.workers} worker{'s' if self.workers != 1 else ''}"
+                 if self.workers is not None else "divided by the scheduler's workers")
+        return (f"estimate: {self.cases} case{'s' if self.cases != 1 else ''}, {self.frames:,} frames, {self.calibrations} "
+                f"calibration{'s' if self.calibrations != 1 else ''}: {duration_text(self.cpu_seconds)} of CPU, {where}")
+
+    def as_json(self) -> dict:
+        return {"cases": self.cases, "frames": self.frames, "calibrations": self.calibrations, "cpu_seconds": self.cpu_seconds,
+                "workers": self.workers, "wall_seconds": self.wall_seconds, "source": SOURCE}
+
+
+def duration_text(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+@lru_cache(maxsize=4096)
+def _observation(magnitude, binning, frame_rate, tt_control):
+    case = {k: v for k, v in (("magnitude", magnitude), ("binning", binning), ("frame_rate", frame_rate),
+                              ("tt_control", tt_control)) if v is not None}
+    try:
+        return observation_for(case)
+    except InputError:
+        return None  # the case fails at once: no cost
+
+
+def case_cost(case: dict) -> tuple[int, float, tuple | None]:
+    """(frames, CPU seconds, calibration key) of one case."""
+    p = {**DEFAULTS, **case}
+    obs = _observation(case["magnitude"], case.get("binning"), case.get("frame_rate"), case.get("tt_control"))
+    key = (obs.binning, p["oversampling"]) if obs is not None else None
+    if obs is None or key not in FRAME_MS:
+        return 0, 0.0, None
+    rate = obs.frame_rate_hz
+    n = max(1, round(p["duration"] * rate))
+    if p["gain_method"] != "default":
+        period = max(1, round(min(1.0, p["duration"] / 2) * rate))  # as case.run_case asks
+        n_close = closing_frames(rate) + period // 2  # stretched to an update boundary: half a period on average
+        if p["gain_method"] == "mgm":
+            n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n
+        else:
+            scan = len(gain_groups(obs.modes)) * TRIAL_VALUES * max(1, round(TRIAL_SEQUENCE_S * rate))
+            n = n_close + OGTL_SETTLING_PERIODS * period + 2 * n + scan
+    return n, CASE_FIXED_S[key] + n * FRAME_MS[key] / 1e3, (obs.binning, obs.modes, obs.modulation_lambda_over_d, p["oversampling"])
+
+
+def estimate(cases, workers: int | None) -> Estimate:
+    """The estimate of running ``cases`` on ``workers`` (None: a scheduler's)."""
+    frames, cpu, setups = 0, 0.0, set()
+    for case in cases:
+        n, seconds, setup = case_cost(case)
+        frames += n
+        cpu += seconds
+        if setup is not None and setup not in setups:
+            setups.add(setup)
+            cpu += CALIBRATION_S[(setup[0], setup[3])]
+    return Estimate(len(cases), frames, len(setups), cpu, workers)
+
+
+def needs_confirmation(e: Estimate) -> bool:
+    return math.isfinite(e.cpu_seconds) and e.cpu_seconds > CONFIRM_ABOVE_S
