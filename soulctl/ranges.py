@@ -119,6 +119,9 @@ PROBE_MODE = Range(1, MODES.hi, integer=True)  # 1-based; at most the controlled
 PROBE_AMPLITUDE_NM = Range(0.0, 1000.0, "nm", lo_open=True)
 PROBE_MIN_CYCLES = 4  # the OGTL probe's period fits this many times in an update period
 
+# --- sweeps -------------------------------------------------------------------------------
+LOCAL_WORKERS_PER_CORE = 2  # sweep --workers: more processes than this per core only cost memory (~0.3 GB each)
+
 # --- vibrations (tables/lbt_vibrations.toml, --vibrations) ----------------------------------
 VIBRATION_FREQUENCY_HZ = Range(0.1, 1000.0, "Hz")
 VIBRATION_DAMPING = Range(1e-4, 0.9)  # an underdamped oscillator; 1e-4 already rings for hours

@@ -95,6 +95,7 @@ def _interrupt(signum, frame) -> None:
 
 
 INTERRUPT_STATUS = {signal.SIGINT: (130, "Ctrl-C"), signal.SIGTERM: (143, "SIGTERM")}
+DISCARDED = "outputs discarded (a sweep keeps its finished rows for --resume)"
 
 
 def _run(argv: list[str] | None) -> int:
@@ -118,9 +119,9 @@ def main(argv: list[str] | None = None) -> int:
         status = _fail(str(e))
     except Interrupted as e:
         code, name = INTERRUPT_STATUS[e.signum]
-        status = _fail(f"interrupted ({name}); nothing written", code)
+        status = _fail(f"interrupted ({name}); {DISCARDED}", code)
     except KeyboardInterrupt:  # a SIGINT outside the handler (another thread's handler)
-        status = _fail("interrupted (Ctrl-C); nothing written", 130)
+        status = _fail(f"interrupted (Ctrl-C); {DISCARDED}", 130)
     except BrokenPipeError:
         status = 1  # the reader went away (e.g. `soulctl ... | head`): nothing to say
     except OSError as e:  # e.g. stdout on a full disk: one line, not a traceback

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from contextlib import nullcontext
@@ -16,6 +15,7 @@ from rich.table import Table
 from ..errors import InputError
 from ..files import atomic_write_text
 from ..plots.sweep import strehl_vs_magnitude
+from ..ranges import LOCAL_WORKERS_PER_CORE, Range
 from ..observation import BINNINGS, observation_for_magnitude
 from ..sweep import scheduler as dask_scheduler
 from ..sweep.derive import best_per_magnitude, derived_table, lut_csv
@@ -26,7 +26,6 @@ from ..sweep.runner import execute, local_workers, plan_sweep
 from . import output
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
 
-MAX_WORKERS = 512
 DERIVED = "derived_lut.csv"
 FIGURE = "strehl_vs_magnitude.png"
 CONFIRM_TEXT = f"{CONFIRM_ABOVE_S / 3600:g} h"
@@ -68,7 +67,8 @@ def _confirm(estimate_text: str | None) -> None:
 def sweep(
     grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis."),
     scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster)."),
-    workers: int | None = typer.Option(None, "--workers", help=f"Processes of the local cluster (1..{MAX_WORKERS}; default: one per core)."),
+    workers: int | None = typer.Option(None, "--workers",
+                                       help=f"Processes of the local cluster (1..{LOCAL_WORKERS_PER_CORE} per core; default: one per core)."),
     out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table); created once everything else is checked."),
     resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."),
     plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}."),
@@ -91,8 +91,8 @@ def sweep(
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
     cases = read_grid(grid)
-    if workers is not None and not (1 <= workers <= MAX_WORKERS):
-        raise InputError(f"--workers must be in 1..{MAX_WORKERS}, got {workers}")
+    if workers is not None:
+        Range(1, LOCAL_WORKERS_PER_CORE * local_workers(), integer=True).check(workers, f"--workers ({LOCAL_WORKERS_PER_CORE} per core at most)")
     if scheduler is not None and workers is not None:
         raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
     if scheduler is not None:
@@ -131,9 +131,9 @@ def sweep(
     if plot:
         strehl_vs_magnitude(rows, out / FIGURE)
     if json_output:
-        print(json.dumps({"total": report.total, "skipped": report.skipped, "computed": report.computed, "failed": report.failed,
-                          "diverged": report.diverged, "results": str(report.results), "estimate": cost.as_json(),
-                          "notes": report.notes, "rows": [_json_row(r) for r in report.rows], "derived_table": derived}))
+        output.print_json({"total": report.total, "skipped": report.skipped, "computed": report.computed, "failed": report.failed,
+                           "diverged": report.diverged, "results": str(report.results), "estimate": cost.as_json(),
+                           "notes": report.notes, "rows": [_json_row(r) for r in report.rows], "derived_table": derived})
         return 0
     console = output.console()
     for note in report.notes:

@@ -75,6 +75,15 @@ def failed_row(case: dict, reason: str) -> dict:
             "reason": reason, "run_seconds": 0.0, "soulctl_version": __version__}
 
 
+def _finished(**metrics) -> dict:
+    """The status and metrics of a case that ran: 'ok' with every metric, else 'failed' (a run
+    too short for a metric has none, and an ok row always has all of them)."""
+    missing = [k for k, v in metrics.items() if v is None]
+    if missing:
+        return {"status": "failed", "reason": f"the run is too short for {', '.join(missing)} (lengthen duration)"}
+    return {"status": "ok", **metrics}
+
+
 def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str | None = None) -> dict:
     """Run one case; never raises for a case's own failure (status 'failed' and the reason)."""
     p = {**DEFAULTS, **case}
@@ -89,7 +98,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at}")
             else:
                 m = result.metrics
-                row.update(status="ok", strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm)
+                row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
             # MGM updates every half of the duration (at most the paper's 1 s): two updates
             period = min(1.0, p["duration"] / 2)
@@ -100,7 +109,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at} ({p['gain_method']})")
             else:
                 a = result.after
-                row.update(status="ok", strehl=a.strehl, tt_jitter_mas=a.tt_jitter_mas, residual_nm=a.residual_nm)
+                row.update(_finished(strehl=a.strehl, tt_jitter_mas=a.tt_jitter_mas, residual_nm=a.residual_nm))
     except InputError as e:
         row["reason"] = str(e)
     except Exception as e:  # recorded, never stops the sweep

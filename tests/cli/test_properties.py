@@ -82,7 +82,9 @@ CASES = [
     *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],
     *[("optimize gains", OPTIMIZE, o, s, 180) for o, s in [
         ("--period", NUMBERS), ("--duration", small(1.2)), ("--measure", small(0.2)), ("--seeing", NUMBERS), ("--seed", NUMBERS)]],
+    ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
+GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
 
 
 class Timeout(Exception):
@@ -129,12 +131,18 @@ def check_contract(args: list[str], limit: float) -> None:
 @pytest.mark.parametrize("command, base, option, values, limit", CASES, ids=[f"{c[0]} {c[2]}" for c in CASES])
 def test_every_numeric_option_keeps_the_contract(command, base, option, values, limit, tmp_path_factory):
     cache = str(tmp_path_factory.getbasetemp() / "property-cache")
-    uses_cache = command.split()[0] in ("loop", "optimize") or command in ("optics calibrate", "optics gains")
+    uses_cache = command.split()[0] in ("loop", "optimize", "sweep") or command in ("optics calibrate", "optics gains")
+
+    grid = tmp_path_factory.mktemp("grid") / "grid.toml"
+    grid.write_text(GRID)
+    outs = iter(range(10**6))
 
     @PROFILE
     @given(value=values)
     def check(value):
-        args = [*command.split(), *base, option, value, "--json", *(["--cache-dir", cache] if uses_cache else [])]
+        fill = {"grid": str(grid), "out": str(grid.parent / f"out{next(outs)}")}  # a new folder per sweep
+        args = [*command.split(), *(a.format(**fill) for a in base), option, value, "--json",
+                *(["--cache-dir", cache] if uses_cache else [])]
         check_contract(args, limit)
 
     check()

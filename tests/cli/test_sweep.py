@@ -148,7 +148,8 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     ("magnitude = 12\ncolour = 1\n", [], "unknown parameter colour"),
     ("", [], "is empty"),
     ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9: connection refused"),
-    ("magnitude = 12\n", ["--workers", "0"], "--workers must be in 1..512"),
+    ("magnitude = 12\n", ["--workers", "0"], "--workers (2 per core at most) must be in 1.."),
+    ("magnitude = 12\n", ["--workers", "512"], "--workers (2 per core at most) must be in 1.."),
     # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
     ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be a number in 0..100 m/s (> 0), got 0"),
     ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be a number in 0.5..10000 m, got 0.1"),
