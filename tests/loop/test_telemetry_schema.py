@@ -1,7 +1,6 @@
 """The telemetry schema and its reader, on small synthetic files: the documented layout is the
 schema's, and every way a field can be wrong is an InputError naming it."""
 
-import json
 import os
 import re
 
