@@ -151,9 +151,9 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     ("magnitude = 12\n", ["--workers", "0"], "--workers (2 per core at most) must be in 1.."),
     ("magnitude = 12\n", ["--workers", "512"], "--workers (2 per core at most) must be in 1.."),
     # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
-    ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be a number in 0..100 m/s (> 0), got 0"),
-    ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be a number in 0.5..10000 m, got 0.1"),
-    ("magnitude = 18.6\n", [], "magnitude must be a number in 0..18.5, got 18.6"),
+    ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be in 0..100 m/s (> 0), got 0"),
+    ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be in 0.5..10000 m, got 0.1"),
+    ("magnitude = 18.6\n", [], "magnitude must be in 0..18.5, got 18.6"),
     # schemes other than tcp:// are refused (they gave TypeError tracebacks), and malformed addresses
     ("magnitude = 12\n", ["--scheduler", "ucx://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'ucx://127.0.0.1:8786' (ucx://"),
     ("magnitude = 12\n", ["--scheduler", "tls://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'tls://127.0.0.1:8786' (tls://: TLS"),
@@ -340,7 +340,7 @@ def test_resume_refuses_a_parameter_out_of_range_naming_its_line(tmp_path, capsy
     results = tmp_path / "out" / "results.csv"
     _finished_results(results, TINY, lambda lines: [*lines, lines[1].replace(",1.0,8.0,", ",11.0,8.0,").replace(lines[1][:16], "0123456789abcdef")])
     status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume"], capsys, cache_dir)
-    assert status == 2 and "line 5: seeing must be a number in 0.05..10 arcsec, got 11" in err
+    assert status == 2 and "line 5: seeing must be in 0.05..10 arcsec, got 11" in err
 
 
 def test_resume_accepts_a_spreadsheets_file_and_keeps_its_columns(tmp_path, capsys, cache_dir):

@@ -82,7 +82,7 @@ def _line(row):
     (lambda f: f.replace("0.5,3.5,120.0,ok", ",3.5,120.0,ok"), "line 2: status ok with an empty strehl"),
     (lambda f: f.replace("0.5,3.5,120.0,ok", "nan,3.5,120.0,ok"), "line 2: status ok with a non-finite strehl"),
     (lambda f: f.replace(",ok,", ",done,"), "line 2: status must be ok, diverged or failed, got 'done'"),
-    (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,0.0,25.0,"), "line 2: wind must be a number in 0..100 m/s (> 0), got 0"),
+    (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,0.0,25.0,"), "line 2: wind must be in 0..100 m/s (> 0), got 0"),
     (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,9.0,25.0,"), "line 2: the row of case"),
     (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 24 fields where the header has 23"),
     (lambda f: f.replace("case_id,", "case_id,band,", 1), "the column band appears more than once"),
