@@ -40,30 +40,30 @@ for step() (0 = automatic, at most 4).
         .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg("n_threads") = 0)
         .def(
             "set_gains",
-            [](RealTimeController& r, const py::array& delta) {
+            method([](RealTimeController& r, const py::array& delta) {
                 auto d = float32_input(delta, {r.n_states()}, "gains");
                 require_finite(d.data(), r.n_states(), "gains");
                 r.set_gains(d.data());
-            },
+            }),
             py::arg("delta"), "Set the diagonal of Delta (float32, n_states); used from the next step on.")
-        .def_property_readonly("gains", [](const RealTimeController& r) { return vec(r.gains()); },
+        .def_property_readonly("gains", method([](const RealTimeController& r) { return vec(r.gains()); }),
                                "The diagonal of Delta (a copy).")
-        .def_property_readonly("state", [](const RealTimeController& r) { return vec(r.state()); },
+        .def_property_readonly("state", method([](const RealTimeController& r) { return vec(r.state()); }),
                                "The state zeta after the last step (a copy).")
-        .def("reset", &RealTimeController::reset, "Set the state zeta to zero.")
+        .def("reset", method(&RealTimeController::reset), "Set the state zeta to zero.")
         .def(
             "step",
-            [](RealTimeController& r, const py::array& slopes, py::object out) {
+            method([](RealTimeController& r, const py::array& slopes, py::object out) {
                 auto s = float32_input(slopes, {r.n_slopes()}, "slopes");
                 auto c = output_or_new(out, {r.n_commands()}, "out");
                 r.step(s.data(), c.mutable_data());
                 return c;
-            },
+            }),
             py::arg("slopes"), py::arg("out") = py::none(),
             "One frame: slopes (float32, n_slopes) -> commands (float32, n_commands).")
         .def(
             "run",
-            [](RealTimeController& r, const py::array& slopes, py::object gains) {
+            method([](RealTimeController& r, const py::array& slopes, py::object gains) {
                 auto s = float32_input(slopes, {-1, r.n_slopes()}, "slopes");
                 const py::ssize_t n = s.shape(0);
                 if (n > INT32_MAX) throw py::value_error("slopes: at most 2147483647 steps per run, got " + std::to_string(n));
@@ -78,15 +78,15 @@ for step() (0 = automatic, at most 4).
                 }
                 r.run(s.data(), static_cast<int>(n), c.mutable_data(), g);
                 return c;
-            },
+            }),
             py::arg("slopes"), py::arg("gains") = py::none(),
             "A block of frames for offline replays: slopes (n_steps, n_slopes) -> commands (n_steps, n_commands).\n"
             "gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.")
-        .def_property_readonly("n_states", &RealTimeController::n_states)
-        .def_property_readonly("n_slopes", &RealTimeController::n_slopes)
-        .def_property_readonly("n_commands", &RealTimeController::n_commands)
-        .def_property_readonly("n_threads", &RealTimeController::n_threads)
-        .def_property_readonly("structure", [](const RealTimeController& r) {
+        .def_property_readonly("n_states", method(&RealTimeController::n_states))
+        .def_property_readonly("n_slopes", method(&RealTimeController::n_slopes))
+        .def_property_readonly("n_commands", method(&RealTimeController::n_commands))
+        .def_property_readonly("n_threads", method(&RealTimeController::n_threads))
+        .def_property_readonly("structure", method([](const RealTimeController& r) {
             py::list sizes;
             for (const auto& b : r.blocks()) sizes.append(b.size);
             py::dict d;
@@ -95,5 +95,5 @@ for step() (0 = automatic, at most 4).
             d["input_rows"] = r.n_input_rows();
             d["output_states"] = r.n_output_states();
             return d;
-        }, "The structure found at construction: diagonal states, dense block sizes, non-zero Xi rows, non-zero Sigma columns.");
+        }), "The structure found at construction: diagonal states, dense block sizes, non-zero Xi rows, non-zero Sigma columns.");
 }

@@ -70,41 +70,41 @@ Zero, negative or non-finite flux gives zero slopes and sets flux_ok False / n_d
 )doc")
         .def(py::init(&make_slope_computer), py::arg("pixels"), py::arg("frame_shape"),
              py::arg("normalization") = "global")
-        .def("compute", &compute, py::arg("frame"), py::arg("out") = py::none(),
+        .def("compute", method(&compute), py::arg("frame"), py::arg("out") = py::none(),
              "Slopes of a frame (float32 or uint16, shape frame_shape) as float32 (2*n_subapertures,).")
         .def(
             "set_background",
-            [](SlopeComputer& sc, const py::array& frame) {
+            method([](SlopeComputer& sc, const py::array& frame) {
                 auto f = float32_input(frame, {sc.frame_rows(), sc.frame_cols()}, "background");
                 sc.set_background(f.data());
-            },
+            }),
             py::arg("frame"), "Background frame (float32, shape frame_shape) subtracted before the slopes.")
-        .def("clear_background", &SlopeComputer::clear_background)
+        .def("clear_background", method(&SlopeComputer::clear_background))
         .def(
             "set_reference",
-            [](SlopeComputer& sc, const py::array& slopes) {
+            method([](SlopeComputer& sc, const py::array& slopes) {
                 auto s = float32_input(slopes, {2 * static_cast<py::ssize_t>(sc.n_subapertures())}, "reference");
                 sc.set_reference(s.data());
-            },
+            }),
             py::arg("slopes"), "Reference slopes (float32, 2*n_subapertures) subtracted after normalisation.")
-        .def("clear_reference", &SlopeComputer::clear_reference)
-        .def_property_readonly("n_subapertures", &SlopeComputer::n_subapertures)
-        .def_property_readonly("frame_shape", [](const SlopeComputer& sc) {
+        .def("clear_reference", method(&SlopeComputer::clear_reference))
+        .def_property_readonly("n_subapertures", method(&SlopeComputer::n_subapertures))
+        .def_property_readonly("frame_shape", method([](const SlopeComputer& sc) {
             return py::make_tuple(sc.frame_rows(), sc.frame_cols());
-        })
-        .def_property_readonly("normalization", [](const SlopeComputer& sc) {
+        }))
+        .def_property_readonly("normalization", method([](const SlopeComputer& sc) {
             return sc.normalization() == Normalization::Global ? "global" : "subaperture";
-        })
-        .def_property_readonly("has_background", &SlopeComputer::has_background)
-        .def_property_readonly("has_reference", &SlopeComputer::has_reference)
-        .def_property_readonly("total_flux", [](const SlopeComputer& sc) { return sc.last_status().total_flux; },
+        }))
+        .def_property_readonly("has_background", method(&SlopeComputer::has_background))
+        .def_property_readonly("has_reference", method(&SlopeComputer::has_reference))
+        .def_property_readonly("total_flux", method([](const SlopeComputer& sc) { return sc.last_status().total_flux; }),
                                "Background-subtracted flux over the valid sub-apertures in the last frame.")
-        .def_property_readonly("flux_ok", [](const SlopeComputer& sc) { return sc.last_status().flux_ok; },
+        .def_property_readonly("flux_ok", method([](const SlopeComputer& sc) { return sc.last_status().flux_ok; }),
                                "False if the last frame's normalising flux was zero, negative or not finite.")
-        .def_property_readonly("n_dark", [](const SlopeComputer& sc) { return sc.last_status().n_dark; },
+        .def_property_readonly("n_dark", method([](const SlopeComputer& sc) { return sc.last_status().n_dark; }),
                                "Sub-apertures whose slopes were zeroed in the last frame.")
-        .def_property_readonly("subaperture_flux", [](const SlopeComputer& sc) {
+        .def_property_readonly("subaperture_flux", method([](const SlopeComputer& sc) {
             const auto& f = sc.subaperture_flux();
             return py::array_t<float>(f.size(), f.data());
-        }, "Flux of each valid sub-aperture in the last frame (a copy).");
+        }), "Flux of each valid sub-aperture in the last frame (a copy).");
 }
