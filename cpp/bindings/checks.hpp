@@ -116,9 +116,11 @@ struct type_caster<soulctl::bind::Self<C>> {
     operator soulctl::bind::Self<C>() const { return {ptr_}; }
 
     bool load(handle src, bool) {
-        if (!isinstance<C>(src)) return false;  // not a C at all: pybind11's usual TypeError
+        static type_info* const tinfo = get_type_info(typeid(C));  // registered once, by class_<C>
+        if (tinfo == nullptr || !PyObject_TypeCheck(src.ptr(), tinfo->type))
+            return false;  // not a C at all: pybind11's usual TypeError
         auto* inst = reinterpret_cast<instance*>(src.ptr());
-        value_and_holder vh = inst->get_value_and_holder(get_type_info(typeid(C)));
+        value_and_holder vh = inst->get_value_and_holder(tinfo);
         if (!vh.holder_constructed() || vh.value_ptr() == nullptr)
             throw type_error(str(type::handle_of(src).attr("__name__")).cast<std::string>() +
                              " object is not initialised (its __init__ was not called)");
