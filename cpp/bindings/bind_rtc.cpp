@@ -36,13 +36,20 @@ Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n
 fixed at construction (float32 or float64, stored as float32).  Delta is diagonal: set its
 diagonal with set_gains(); it may change between any two steps.  n_threads: OpenMP threads
 for step() (0 = automatic, at most 4).
+
+Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_gains()
+and run(gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
+the argument and the first bad position (e.g. "slopes: values must be finite, got nan at
+index 17"), and changes nothing: the state, the gains and out= are as before the call (run()
+checks the whole block first).  A wrong dtype or shape is a ValueError naming what was
+expected and what was given.  Calling a method of an object whose __init__ never ran
+(RealTimeController.__new__) raises TypeError.
 )doc")
         .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg("n_threads") = 0)
         .def(
             "set_gains",
             method([](RealTimeController& r, const py::array& delta) {
                 auto d = float32_input(delta, {r.n_states()}, "gains");
-                require_finite(d.data(), r.n_states(), "gains");
                 r.set_gains(d.data());
             }),
             py::arg("delta"), "Set the diagonal of Delta (float32, n_states); used from the next step on.")
@@ -73,7 +80,6 @@ for step() (0 = automatic, at most 4).
                 if (!gains.is_none()) {
                     if (!py::isinstance<py::array>(gains)) throw py::value_error("gains: expected a numpy array");
                     gk = float32_input(py::reinterpret_borrow<py::array>(gains), {n, r.n_states()}, "gains");
-                    require_finite(gk.data(), n * r.n_states(), "gains");
                     g = gk.data();
                 }
                 r.run(s.data(), static_cast<int>(n), c.mutable_data(), g);

@@ -67,6 +67,18 @@ valid sub-aperture, at the frame's binning.  Pupil images: 1 = (+x, +y), 2 = (+x
 normalization: 'global' (N = mean flux per valid sub-aperture, default) or 'subaperture'
 (N = the sub-aperture's own flux).  Slopes come out as [sx_0..sx_{n-1}, sy_0..sy_{n-1}].
 Zero, negative or non-finite flux gives zero slopes and sets flux_ok False / n_dark.
+
+Inputs: settings must be finite -- the background (set_background: every pixel of the frame)
+and the reference slopes (set_reference).  A NaN or infinity raises ValueError naming the
+argument and the first bad position (e.g. "reference: values must be finite, got nan at
+index 3"), and the background or reference in use is unchanged.  Frames are data: a
+non-finite pixel in a valid sub-aperture is unusable light, never an error.  With
+'subaperture' normalisation that sub-aperture is dark (zero slopes, counted in n_dark); with
+'global' normalisation the mean flux is not finite, so the whole frame is dark (all slopes
+zero, n_dark = n_subapertures).  Either way flux_ok is False and the slopes are finite; pixels
+outside the valid sub-apertures are never read.  A wrong dtype or shape is a ValueError naming
+what was expected and what was given.  Calling a method of an object whose __init__ never ran
+(SlopeComputer.__new__) raises TypeError.
 )doc")
         .def(py::init(&make_slope_computer), py::arg("pixels"), py::arg("frame_shape"),
              py::arg("normalization") = "global")

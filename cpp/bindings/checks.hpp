@@ -1,12 +1,13 @@
 // Argument checks shared by the bindings: every wrong shape or dtype becomes a ValueError
-// that names what was expected and what was given; a method called on an object whose
-// __init__ never ran (Class.__new__(Class)) is a TypeError (see method() below).
+// that names what was expected and what was given (non-finite values are refused by the core
+// itself, soulctl/finite.hpp: its std::invalid_argument is a ValueError in Python); a method
+// called on an object whose __init__ never ran (Class.__new__(Class)) is a TypeError (see
+// method() below).
 #pragma once
 
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
-#include <cmath>
 #include <string>
 #include <type_traits>
 #include <utility>
@@ -63,12 +64,6 @@ inline void check_output(const py::array& a, const std::vector<py::ssize_t>& sha
     require_shape(a, shape, name);
     if (!(a.flags() & py::array::c_style)) throw py::value_error(std::string(name) + ": must be C-contiguous");
     if (!a.writeable()) throw py::value_error(std::string(name) + ": must be writeable");
-}
-
-// Values that must be finite (gains: a NaN would stay in the integrators for good).
-inline void require_finite(const float* data, py::ssize_t n, const char* name) {
-    for (py::ssize_t i = 0; i < n; ++i)
-        if (!std::isfinite(data[i])) throw py::value_error(std::string(name) + ": values must be finite");
 }
 
 // The `out=` argument of a computing method: a new float32 array when None, else the given
