@@ -12,7 +12,24 @@ namespace {
 
 using MapR = Eigen::Map<const RowMatrixXf>;
 
-RealTimeController make_rtc(const py::array& lambda, const py::array& xi, const py::array& sigma, int n_threads) {
+// n_threads as Python gives it: any integer (not a bool, as everywhere in soulctl).  One
+// outside 0..kMaxThreads is a ValueError naming the range, even when it does not fit a C int.
+int threads_argument(const py::object& n) {
+    if (PyBool_Check(n.ptr()) || !PyIndex_Check(n.ptr()))
+        throw py::type_error("n_threads: expected an integer, got " +
+                             py::str(py::type::handle_of(n).attr("__name__")).cast<std::string>());
+    auto i = py::reinterpret_steal<py::int_>(PyNumber_Index(n.ptr()));
+    if (!i) throw py::error_already_set();
+    int overflow = 0;
+    const long long v = PyLong_AsLongLongAndOverflow(i.ptr(), &overflow);
+    if (overflow != 0 || v < 0 || v > RealTimeController::kMaxThreads)
+        throw py::value_error(n_threads_error(py::str(i).cast<std::string>()));
+    return static_cast<int>(v);
+}
+
+RealTimeController make_rtc(const py::array& lambda, const py::array& xi, const py::array& sigma,
+                            const py::object& n_threads_arg) {
+    const int n_threads = threads_argument(n_threads_arg);
     auto l = matrix_input(lambda, "Lambda");
     auto x = matrix_input(xi, "Xi");
     auto s = matrix_input(sigma, "Sigma");
@@ -34,8 +51,12 @@ The SOUL RTC equation:  zeta(k) = Lambda zeta(k-1) + Delta Xi s(k),  c(k) = Sigm
 
 Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are
 fixed at construction (float32 or float64, stored as float32).  Delta is diagonal: set its
-diagonal with set_gains(); it may change between any two steps.  n_threads: OpenMP threads
-for step() (0 = automatic, at most 4).
+diagonal with set_gains(); it may change between any two steps.
+
+n_threads: OpenMP threads for step(), an integer in 0..64; 0 = automatic (OpenMP's maximum,
+at most 4).  Outside 0..64 is a ValueError naming the range (a bool or a float is a
+TypeError).  The controller may use fewer threads than asked (no more than the state's blocks
+can be split into; one without OpenMP): the n_threads property tells how many it uses.
 
 Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_gains()
 and run(gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
@@ -45,7 +66,7 @@ checks the whole block first).  A wrong dtype or shape is a ValueError naming wh
 expected and what was given.  Calling a method of an object whose __init__ never ran
 (RealTimeController.__new__) raises TypeError.
 )doc")
-        .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg("n_threads") = 0)
+        .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg_v("n_threads", py::int_(0), "0"))
         .def(
             "set_gains",
             method([](RealTimeController& r, const py::array& delta) {
@@ -91,7 +112,8 @@ expected and what was given.  Calling a method of an object whose __init__ never
         .def_property_readonly("n_states", method(&RealTimeController::n_states))
         .def_property_readonly("n_slopes", method(&RealTimeController::n_slopes))
         .def_property_readonly("n_commands", method(&RealTimeController::n_commands))
-        .def_property_readonly("n_threads", method(&RealTimeController::n_threads))
+        .def_property_readonly("n_threads", method(&RealTimeController::n_threads),
+                               "Threads step() uses: at most the n_threads asked for (0 asked: automatic).")
         .def_property_readonly("structure", method([](const RealTimeController& r) {
             py::list sizes;
             for (const auto& b : r.blocks()) sizes.append(b.size);

@@ -58,11 +58,13 @@ RealTimeController::RealTimeController(const RowMatrixXf& lambda, const RowMatri
     require_finite(lambda.data(), lambda.size(), "Lambda", lambda.cols());
     require_finite(xi.data(), xi.size(), "Xi", xi.cols());
     require_finite(sigma.data(), sigma.size(), "Sigma", sigma.cols());
+    // Refused, not clamped: -5 or 1000 threads is a mistake in the caller's configuration.
+    if (n_threads < 0 || n_threads > kMaxThreads) throw std::invalid_argument(n_threads_error(std::to_string(n_threads)));
     n_slopes_ = static_cast<int>(xi.cols());
     n_commands_ = static_cast<int>(sigma.rows());
 
 #ifdef SOULCTL_HAVE_OPENMP
-    if (n_threads <= 0) n_threads = std::min(omp_get_max_threads(), 4);
+    if (n_threads == 0) n_threads = std::min(omp_get_max_threads(), 4);
 #else
     n_threads = 1;
 #endif

@@ -22,6 +22,7 @@
 #pragma once
 
 #include <Eigen/Dense>
+#include <string>
 #include <vector>
 
 namespace soulctl {
@@ -36,6 +37,11 @@ struct LambdaBlock {
 
 class RealTimeController {
 public:
+    // n_threads: OpenMP threads for step(), 0 = automatic (OpenMP's maximum, at most 4), else
+    // 1..kMaxThreads; anything else throws std::invalid_argument (n_threads_error).  Fewer may
+    // be used (no more ranges than the state's blocks allow; one without OpenMP): n_threads().
+    static constexpr int kMaxThreads = 64;
+
     RealTimeController(const RowMatrixXf& lambda, const RowMatrixXf& xi, const RowMatrixXf& sigma,
                        int n_threads);
 
@@ -96,5 +102,11 @@ private:
     Eigen::VectorXf u_;       // n_input_rows: Xi s
     Eigen::VectorXf zout_;    // n_output_states: zeta at the output states
 };
+
+// The message for an n_threads outside 0..kMaxThreads (`given` as the caller wrote it).
+inline std::string n_threads_error(const std::string& given) {
+    return "n_threads: expected an integer in 0.." + std::to_string(RealTimeController::kMaxThreads) +
+           " (0 = automatic), got " + given;
+}
 
 }  // namespace soulctl
