@@ -50,8 +50,9 @@ void bind_rtc(py::module_& m) {
 The SOUL RTC equation:  zeta(k) = Lambda zeta(k-1) + Delta Xi s(k),  c(k) = Sigma zeta(k).
 
 Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are
-fixed at construction (float32 or float64, stored as float32).  Delta is diagonal: set its
-diagonal with set_gains(); it may change between any two steps.
+fixed at construction (float32 or float64, stored as float32: a float64 value beyond float32's
+range becomes inf and is refused, see Inputs).  Delta is diagonal: set its diagonal with
+set_gains(); it may change between any two steps.
 
 n_threads: OpenMP threads for step(), an integer in 0..64; 0 = automatic (OpenMP's maximum,
 at most 4).  Outside 0..64 is a ValueError naming the range (a bool or a float is a

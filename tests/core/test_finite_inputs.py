@@ -195,3 +195,12 @@ def test_non_finite_pixel_outside_the_subapertures_is_never_read():
     frame[3, 3] = np.nan
     np.testing.assert_array_equal(sc.compute(frame), expected)
     assert sc.flux_ok and sc.n_dark == 0
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")
+def test_float64_matrix_beyond_float32_range_is_refused():
+    """Construction matrices are stored as float32: 1e39 becomes inf there, and is refused."""
+    L = np.eye(2)
+    L[0, 1] = 1e39
+    with pytest.raises(ValueError, match=message("Lambda", np.inf, "[0, 1]")):
+        RealTimeController(L, np.eye(2), np.eye(2))
