@@ -67,44 +67,56 @@ valid sub-aperture, at the frame's binning.  Pupil images: 1 = (+x, +y), 2 = (+x
 normalization: 'global' (N = mean flux per valid sub-aperture, default) or 'subaperture'
 (N = the sub-aperture's own flux).  Slopes come out as [sx_0..sx_{n-1}, sy_0..sy_{n-1}].
 Zero, negative or non-finite flux gives zero slopes and sets flux_ok False / n_dark.
+
+Inputs: settings must be finite -- the background (set_background: every pixel of the frame)
+and the reference slopes (set_reference).  A NaN or infinity raises ValueError naming the
+argument and the first bad position (e.g. "reference: values must be finite, got nan at
+index 3"), and the background or reference in use is unchanged.  Frames are data: a
+non-finite pixel in a valid sub-aperture is unusable light, never an error.  With
+'subaperture' normalisation that sub-aperture is dark (zero slopes, counted in n_dark); with
+'global' normalisation the mean flux is not finite, so the whole frame is dark (all slopes
+zero, n_dark = n_subapertures).  Either way flux_ok is False and the slopes are finite; pixels
+outside the valid sub-apertures are never read.  A wrong dtype or shape is a ValueError naming
+what was expected and what was given.  Calling a method of an object whose __init__ never ran
+(SlopeComputer.__new__) raises TypeError.
 )doc")
         .def(py::init(&make_slope_computer), py::arg("pixels"), py::arg("frame_shape"),
              py::arg("normalization") = "global")
-        .def("compute", &compute, py::arg("frame"), py::arg("out") = py::none(),
+        .def("compute", method(&compute), py::arg("frame"), py::arg("out") = py::none(),
              "Slopes of a frame (float32 or uint16, shape frame_shape) as float32 (2*n_subapertures,).")
         .def(
             "set_background",
-            [](SlopeComputer& sc, const py::array& frame) {
+            method([](SlopeComputer& sc, const py::array& frame) {
                 auto f = float32_input(frame, {sc.frame_rows(), sc.frame_cols()}, "background");
                 sc.set_background(f.data());
-            },
+            }),
             py::arg("frame"), "Background frame (float32, shape frame_shape) subtracted before the slopes.")
-        .def("clear_background", &SlopeComputer::clear_background)
+        .def("clear_background", method(&SlopeComputer::clear_background))
         .def(
             "set_reference",
-            [](SlopeComputer& sc, const py::array& slopes) {
+            method([](SlopeComputer& sc, const py::array& slopes) {
                 auto s = float32_input(slopes, {2 * static_cast<py::ssize_t>(sc.n_subapertures())}, "reference");
                 sc.set_reference(s.data());
-            },
+            }),
             py::arg("slopes"), "Reference slopes (float32, 2*n_subapertures) subtracted after normalisation.")
-        .def("clear_reference", &SlopeComputer::clear_reference)
-        .def_property_readonly("n_subapertures", &SlopeComputer::n_subapertures)
-        .def_property_readonly("frame_shape", [](const SlopeComputer& sc) {
+        .def("clear_reference", method(&SlopeComputer::clear_reference))
+        .def_property_readonly("n_subapertures", method(&SlopeComputer::n_subapertures))
+        .def_property_readonly("frame_shape", method([](const SlopeComputer& sc) {
             return py::make_tuple(sc.frame_rows(), sc.frame_cols());
-        })
-        .def_property_readonly("normalization", [](const SlopeComputer& sc) {
+        }))
+        .def_property_readonly("normalization", method([](const SlopeComputer& sc) {
             return sc.normalization() == Normalization::Global ? "global" : "subaperture";
-        })
-        .def_property_readonly("has_background", &SlopeComputer::has_background)
-        .def_property_readonly("has_reference", &SlopeComputer::has_reference)
-        .def_property_readonly("total_flux", [](const SlopeComputer& sc) { return sc.last_status().total_flux; },
+        }))
+        .def_property_readonly("has_background", method(&SlopeComputer::has_background))
+        .def_property_readonly("has_reference", method(&SlopeComputer::has_reference))
+        .def_property_readonly("total_flux", method([](const SlopeComputer& sc) { return sc.last_status().total_flux; }),
                                "Background-subtracted flux over the valid sub-apertures in the last frame.")
-        .def_property_readonly("flux_ok", [](const SlopeComputer& sc) { return sc.last_status().flux_ok; },
+        .def_property_readonly("flux_ok", method([](const SlopeComputer& sc) { return sc.last_status().flux_ok; }),
                                "False if the last frame's normalising flux was zero, negative or not finite.")
-        .def_property_readonly("n_dark", [](const SlopeComputer& sc) { return sc.last_status().n_dark; },
+        .def_property_readonly("n_dark", method([](const SlopeComputer& sc) { return sc.last_status().n_dark; }),
                                "Sub-apertures whose slopes were zeroed in the last frame.")
-        .def_property_readonly("subaperture_flux", [](const SlopeComputer& sc) {
+        .def_property_readonly("subaperture_flux", method([](const SlopeComputer& sc) {
             const auto& f = sc.subaperture_flux();
             return py::array_t<float>(f.size(), f.data());
-        }, "Flux of each valid sub-aperture in the last frame (a copy).");
+        }), "Flux of each valid sub-aperture in the last frame (a copy).");
 }

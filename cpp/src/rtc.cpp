@@ -1,5 +1,7 @@
 #include "soulctl/rtc.hpp"
 
+#include "soulctl/finite.hpp"
+
 #include <algorithm>
 #include <numeric>
 #include <stdexcept>
@@ -53,13 +55,16 @@ RealTimeController::RealTimeController(const RowMatrixXf& lambda, const RowMatri
     if (sigma.cols() != n_states_ || sigma.rows() == 0)
         throw std::invalid_argument("Sigma must have shape (n_commands, " + std::to_string(n_states_) + "), got " +
                                     shape(sigma.rows(), sigma.cols()));
-    if (!lambda.allFinite() || !xi.allFinite() || !sigma.allFinite())
-        throw std::invalid_argument("Lambda, Xi and Sigma must be finite");
+    require_finite(lambda.data(), lambda.size(), "Lambda", lambda.cols());
+    require_finite(xi.data(), xi.size(), "Xi", xi.cols());
+    require_finite(sigma.data(), sigma.size(), "Sigma", sigma.cols());
+    // Refused, not clamped: -5 or 1000 threads is a mistake in the caller's configuration.
+    if (n_threads < 0 || n_threads > kMaxThreads) throw std::invalid_argument(n_threads_error(std::to_string(n_threads)));
     n_slopes_ = static_cast<int>(xi.cols());
     n_commands_ = static_cast<int>(sigma.rows());
 
 #ifdef SOULCTL_HAVE_OPENMP
-    if (n_threads <= 0) n_threads = std::min(omp_get_max_threads(), 4);
+    if (n_threads == 0) n_threads = std::min(omp_get_max_threads(), 4);
 #else
     n_threads = 1;
 #endif
@@ -142,6 +147,7 @@ RealTimeController::RealTimeController(const RowMatrixXf& lambda, const RowMatri
 }
 
 void RealTimeController::set_gains(const float* delta) {
+    require_finite(delta, n_states_, "gains");
     delta_ = Eigen::Map<const Eigen::VectorXf>(delta, n_states_);
 }
 
@@ -193,6 +199,7 @@ void RealTimeController::advance(int r, const float* s) {
 }
 
 void RealTimeController::step(const float* s, float* c) {
+    require_finite(s, n_slopes_, "slopes");  // before the state is touched
 #ifdef SOULCTL_HAVE_OPENMP
     if (n_threads_ > 1) {
         // If the runtime grants fewer threads than asked, each thread takes several ranges.
@@ -212,6 +219,10 @@ void RealTimeController::step(const float* s, float* c) {
 
 void RealTimeController::run(const float* S, int n_steps, float* C, const float* gains) {
     if (n_steps <= 0) return;
+    // The whole block is checked before the first step, so that a refused block leaves the
+    // state as it was.
+    require_finite(S, static_cast<std::ptrdiff_t>(n_steps) * n_slopes_, "slopes", n_slopes_);
+    if (gains) require_finite(gains, static_cast<std::ptrdiff_t>(n_steps) * n_states_, "gains", n_states_);
     using MapR = Eigen::Map<const RowMatrixXf>;
     using MapW = Eigen::Map<RowMatrixXf>;
     const int chunk = 1024;
@@ -229,7 +240,7 @@ void RealTimeController::run(const float* S, int n_steps, float* C, const float*
         MapW Ck(C + static_cast<long>(k0) * n_commands_, m, n_commands_);
         Ck.noalias() = Z * sigma_.transpose();  // all commands of the chunk at once (GEMM)
     }
-    if (gains) set_gains(gains + static_cast<long>(n_steps - 1) * n_states_);
+    if (gains) delta_ = Eigen::Map<const Eigen::VectorXf>(gains + static_cast<long>(n_steps - 1) * n_states_, n_states_);
 }
 
 }  // namespace soulctl

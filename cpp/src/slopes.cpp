@@ -1,5 +1,7 @@
 #include "soulctl/slopes.hpp"
 
+#include "soulctl/finite.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -46,6 +48,7 @@ SlopeComputer::SlopeComputer(const std::vector<int64_t>& rows, const std::vector
 }
 
 void SlopeComputer::set_background(const float* frame) {
+    require_finite(frame, static_cast<std::ptrdiff_t>(frame_rows_) * frame_cols_, "background", frame_cols_);
     for (int q = 0; q < 4; ++q)
         for (int i = 0; i < n_sub_; ++i) background_[q][i] = frame[index_[q][i]];
     has_background_ = true;
@@ -57,6 +60,7 @@ void SlopeComputer::clear_background() {
 }
 
 void SlopeComputer::set_reference(const float* slopes) {
+    require_finite(slopes, static_cast<std::ptrdiff_t>(reference_.size()), "reference");
     std::copy(slopes, slopes + reference_.size(), reference_.begin());
     largest_reference_ = 0.0;
     for (float r : reference_) largest_reference_ = std::max(largest_reference_, static_cast<double>(std::fabs(r)));

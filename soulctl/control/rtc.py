@@ -68,7 +68,9 @@ class RTCMatrices:
         return g
 
     def controller(self, n_threads: int = 0):
-        """The C++ real-time controller with these matrices and gains."""
+        """The C++ real-time controller with these matrices and gains.
+
+        n_threads: OpenMP threads for its step(), 0..64 (0 = automatic); outside, ValueError."""
         from .._core import RealTimeController
 
         rtc = RealTimeController(self.Lambda, self.Xi, self.Sigma, n_threads=n_threads)

@@ -4,6 +4,7 @@ equation, the batched replay against single steps, gain changes, structure and e
 import numpy as np
 import pytest
 
+from soulctl import _core
 from soulctl._core import RealTimeController
 from soulctl.control.filters import Filter
 from soulctl.control.rtc import build_rtc
@@ -223,3 +224,34 @@ def test_non_contiguous_slopes_are_accepted():
     big = rng.normal(size=(120,)).astype(np.float32)
     a, b = mats.controller(), mats.controller()
     np.testing.assert_array_equal(a.step(big[::2]), b.step(np.ascontiguousarray(big[::2])))
+
+
+@pytest.mark.parametrize("n_threads", [-1, -5, 65, 1000, 2**40, -(2**70)])
+def test_n_threads_outside_0_to_64_is_refused_not_clamped(n_threads):
+    rng = np.random.default_rng(19)
+    mats = mixed_rtc(rng)
+    expected = rf"^n_threads: expected an integer in 0\.\.64 \(0 = automatic\), got {n_threads}$"
+    with pytest.raises(ValueError, match=expected):
+        RealTimeController(mats.Lambda, mats.Xi, mats.Sigma, n_threads=n_threads)
+    with pytest.raises(ValueError, match=expected):  # the Python side passes it through
+        mats.controller(n_threads=n_threads)
+
+
+@pytest.mark.parametrize("n_threads, message", [(True, "bool"), (2.0, "float"), ("2", "str")])
+def test_n_threads_must_be_an_integer(n_threads, message):
+    with pytest.raises(TypeError, match=f"^n_threads: expected an integer, got {message}$"):
+        RealTimeController(np.eye(2), np.eye(2), np.eye(2), n_threads=n_threads)
+
+
+@pytest.mark.parametrize("n_threads", [0, 1, 2, 64, np.int64(3)])
+def test_n_threads_in_range_is_accepted(n_threads):
+    rng = np.random.default_rng(20)
+    mats = mixed_rtc(rng)
+    rtc = mats.controller(n_threads=n_threads)
+    assert 1 <= rtc.n_threads <= max(1, int(n_threads) or 4)
+    if not _core.openmp:
+        assert rtc.n_threads == 1
+    elif n_threads == 1:
+        assert rtc.n_threads == 1
+    slopes = rng.normal(size=(20, mats.Xi.shape[1])).astype(np.float32)
+    assert_float32_accurate(np.array([rtc.step(s) for s in slopes]), mats, slopes, [mats.Delta] * 20)

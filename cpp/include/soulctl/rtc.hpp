@@ -4,6 +4,11 @@
 // Lambda, Xi, Sigma are fixed at construction; Delta (diagonal gains) may change between
 // any two steps.  Working precision is float32.
 //
+// Every float input must be finite (soulctl/finite.hpp): Lambda, Xi, Sigma, the gains of
+// set_gains() and run(), the slopes of step() and run().  A NaN or infinity throws
+// std::invalid_argument naming the argument before anything changes, so one bad frame never
+// poisons the integrators: the state, Delta and the outputs are as before the call.
+//
 // Structure is found once, at construction, and exploited at every step:
 //  * Lambda is split into its diagonal blocks (connected components of its non-zero
 //    pattern): 1x1 blocks (forgetting factors) become an element-wise product, larger
@@ -17,6 +22,7 @@
 #pragma once
 
 #include <Eigen/Dense>
+#include <string>
 #include <vector>
 
 namespace soulctl {
@@ -31,6 +37,11 @@ struct LambdaBlock {
 
 class RealTimeController {
 public:
+    // n_threads: OpenMP threads for step(), 0 = automatic (OpenMP's maximum, at most 4), else
+    // 1..kMaxThreads; anything else throws std::invalid_argument (n_threads_error).  Fewer may
+    // be used (no more ranges than the state's blocks allow; one without OpenMP): n_threads().
+    static constexpr int kMaxThreads = 64;
+
     RealTimeController(const RowMatrixXf& lambda, const RowMatrixXf& xi, const RowMatrixXf& sigma,
                        int n_threads);
 
@@ -39,17 +50,18 @@ public:
     int n_commands() const { return n_commands_; }
     int n_threads() const { return n_threads_; }
 
-    void set_gains(const float* delta);  // n_states values, the diagonal of Delta
+    void set_gains(const float* delta);  // n_states finite values, the diagonal of Delta
     const Eigen::VectorXf& gains() const { return delta_; }
     const Eigen::VectorXf& state() const { return zeta_; }
     void reset();
 
-    // One frame: s (n_slopes) -> c (n_commands).
+    // One frame: s (n_slopes, finite) -> c (n_commands).
     void step(const float* s, float* c);
 
     // A block of frames for offline replays: S is n_steps x n_slopes (row-major), C receives
     // n_steps x n_commands.  gains, when not null, is n_steps x n_states: Delta at each step.
-    // Leaves the controller in the state it would have after the same steps one by one.
+    // Leaves the controller in the state it would have after the same steps one by one.  The
+    // whole block (S and gains) is checked before the first step: refused, nothing changes.
     void run(const float* S, int n_steps, float* C, const float* gains);
 
     // Structure found at construction (for reports and tests).
@@ -90,5 +102,11 @@ private:
     Eigen::VectorXf u_;       // n_input_rows: Xi s
     Eigen::VectorXf zout_;    // n_output_states: zeta at the output states
 };
+
+// The message for an n_threads outside 0..kMaxThreads (`given` as the caller wrote it).
+inline std::string n_threads_error(const std::string& given) {
+    return "n_threads: expected an integer in 0.." + std::to_string(RealTimeController::kMaxThreads) +
+           " (0 = automatic), got " + given;
+}
 
 }  // namespace soulctl

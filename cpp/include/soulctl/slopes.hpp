@@ -7,6 +7,14 @@
 //   sx = (I1 + I2 - I3 - I4) / N,   sy = (I1 - I2 + I3 - I4) / N.
 // N is either the mean flux per valid sub-aperture (global normalisation, the default)
 // or the sub-aperture's own flux.  The output vector is [sx_0..sx_{n-1}, sy_0..sy_{n-1}].
+//
+// Settings must be finite (soulctl/finite.hpp): the background frame (every pixel) and the
+// reference slopes; a NaN or infinity throws std::invalid_argument naming the argument and
+// keeps the background/reference in use.  Frames are data: a non-finite pixel, like zero or
+// negative flux, makes light unusable instead of raising: with Subaperture normalisation its
+// sub-aperture is dark (zero slopes, counted in n_dark); with Global normalisation the mean
+// flux is not finite, so the whole frame is dark (all slopes zero, n_dark = n_sub).  Either
+// way flux_ok is false and the slopes are finite.  Pixels outside the sub-apertures are never read.
 #pragma once
 
 #include <cstdint>
@@ -34,12 +42,12 @@ public:
     int frame_cols() const { return frame_cols_; }
     Normalization normalization() const { return norm_; }
 
-    // background: a full frame (frame_rows*frame_cols); only the used pixels are kept.
+    // background: a full frame (frame_rows*frame_cols, all finite); only the used pixels are kept.
     void set_background(const float* frame);
     void clear_background();
     bool has_background() const { return has_background_; }
 
-    // reference slopes (2*n_sub), subtracted after normalisation.
+    // reference slopes (2*n_sub, finite), subtracted after normalisation.
     void set_reference(const float* slopes);
     void clear_reference();
     bool has_reference() const { return has_reference_; }
