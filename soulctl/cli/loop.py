@@ -106,7 +106,7 @@ def _render(result, console: Console) -> None:
     t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", _value(m.strehl, ".3f"))
     t.add_row("Tip/Tilt jitter, residual (per axis)", _value(m.tt_jitter_mas, ".2f", " mas"))
     t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
-              f"{_value(m.tt_jitter_pol_mas, '.2f')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f')} mas")
+              f"{_value(m.tt_jitter_pol_mas, '.2f', ' mas')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f', ' mas')}")
     t.add_row("residual wavefront error", _value(m.residual_nm, ".0f", " nm RMS"))
     t.add_row("rejection at 13 Hz (telemetry)", _value(m.rejection_13hz, ".3f"))
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")
