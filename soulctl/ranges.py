@@ -81,6 +81,7 @@ class Range:
 # --- the guide star and the observation (soulctl.observation) -------------------------------
 # The magnitude's range is the look-up table's (tables/magnitude_lut.csv): tables.magnitude_range.
 FRAME_RATE_HZ = Range(10.0, 2000.0, "Hz")
+BINNING = Range(1, 4, integer=True)  # the detector binnings of the look-up table (observation.BINNINGS)
 MODULATION_LAMBDA_OVER_D = Range(0.0, 20.0, "lambda/D")
 # Controlled modes: Tip and Tilt at least (their IIR pair), at most the LBT672's 671 modes
 # (672 actuators less piston; checked against the modal basis in the tests).
@@ -116,11 +117,14 @@ MEASURE_S = Range(0.0, 600.0, "s", lo_open=True)  # optimize gains --measure (be
 MIN_MEASURE_FRAMES = 20  # a measurement shorter than this has no meaningful jitter
 SEQUENCE_S = Range(0.0, 60.0, "s", lo_open=True)  # one trial-and-error sequence
 PROBE_MODE = Range(1, MODES.hi, integer=True)  # 1-based; at most the controlled modes (checked with the observation)
-PROBE_AMPLITUDE_NM = Range(0.0, 1000.0, "nm", lo_open=True)
+PROBE_AMPLITUDE_NM = Range(0.1, 1000.0, "nm")  # 0.1 nm: far below any noise, the lock-in sees nothing smaller
+PROBE_FREQUENCY_HZ = Range(0.0, 1e3, "Hz", lo_open=True)  # and below the loop's Nyquist frequency (checked with the rate)
 PROBE_MIN_CYCLES = 4  # the OGTL probe's period fits this many times in an update period
 
 # --- sweeps -------------------------------------------------------------------------------
 LOCAL_WORKERS_PER_CORE = 2  # sweep --workers: more processes than this per core only cost memory (~0.3 GB each)
+WAIT_WORKERS_S = 60.0  # sweep --scheduler: how long a scheduler may be without workers (--wait-workers)
+WAIT_WORKERS = Range(0.0, 86400.0, "s", lo_open=True)
 
 # --- vibrations (tables/lbt_vibrations.toml, --vibrations) ----------------------------------
 VIBRATION_FREQUENCY_HZ = Range(0.1, 1000.0, "Hz")

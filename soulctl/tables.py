@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .errors import InputError
 from .files import read_input_text
-from .ranges import ROOT_MODULUS, ROOTS_RATE_TOLERANCE
+from .ranges import FRAME_RATE_HZ, ROOT_MODULUS, ROOTS_RATE_TOLERANCE
 
 
 def tables_dir() -> Path:
@@ -130,8 +130,8 @@ def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]
             raise InputError(f"{where}: row {i + 1} of the roots table must hold 9 numbers "
                              f"({', '.join(ROOT_COLUMNS)}), got {[r.get(c) for c in ROOT_COLUMNS]}") from None
         rate, zeros, poles = values[0], tuple(values[1:5]), tuple(values[5:9])
-        if not (rate > 0 and all(map(math.isfinite, values))):
-            raise InputError(f"{where}: row {i + 1}: the frame rate must be > 0 Hz and all roots finite")
+        if not (FRAME_RATE_HZ.contains(rate) and all(map(math.isfinite, values))):
+            raise InputError(f"{where}: row {i + 1}: the frame rate must be in {FRAME_RATE_HZ.text()} and all roots finite")
         if not all(-1.0 <= p <= 1.0 for p in poles):
             raise InputError(f"{where}: row {i + 1}: poles must be in -1..1, got {list(poles)}")
         if not all(abs(z) <= ROOT_MODULUS for z in zeros):

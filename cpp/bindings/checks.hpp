@@ -8,6 +8,10 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include "soulctl/finite.hpp"
+
+#include <cfloat>
+#include <cmath>
 #include <string>
 #include <type_traits>
 #include <utility>
@@ -82,6 +86,20 @@ inline py::array_t<float, py::array::c_style> matrix_input(const py::array& a, c
     if (!has_dtype<float>(a) && !has_dtype<double>(a))
         throw py::value_error(std::string(name) + ": expected dtype float32 or float64, got " + dtype_str(a));
     if (a.ndim() != 2) throw py::value_error(std::string(name) + ": expected a 2-D matrix, got shape " + shape_str(a));
+    if (has_dtype<double>(a)) {
+        // Checked before the cast: numpy would warn (an error under -W error) on values beyond
+        // float32's range, which the core's own check then reports as inf.
+        auto d = py::array_t<double, py::array::c_style>::ensure(a);
+        const double* x = d.data();
+        const py::ssize_t n = d.size(), cols = d.shape(1);
+        for (py::ssize_t i = 0; i < n; ++i) {
+            if (!std::isfinite(x[i])) throw py::value_error(soulctl::non_finite_error(name, static_cast<float>(x[i]), i, cols));
+            if (std::fabs(x[i]) > static_cast<double>(FLT_MAX))
+                throw py::value_error(std::string(name) + ": values must fit in float32 (|x| <= 3.4e38), got " +
+                                      py::str(py::float_(x[i])).cast<std::string>() + " at [" + std::to_string(i / cols) + ", " +
+                                      std::to_string(i % cols) + "]");
+        }
+    }
     return py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(a);
 }
 

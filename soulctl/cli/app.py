@@ -10,13 +10,17 @@ contract of the README for every command:
   file written);
 * 130 / 143 interrupted by SIGINT (Ctrl-C) / SIGTERM: one line, no output written, the
   temporaries removed;
-* 1 an unexpected internal error (a bug: its traceback is printed).
+* 141 the reader of stdout went away (`soulctl ... | head -1`): the outputs are written;
+* 1 an unexpected failure: a bug (its traceback is printed), or the system failing under the
+  command (e.g. a full disk: one line).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
+import warnings
 
 import typer
 
@@ -90,31 +94,65 @@ class Interrupted(BaseException):
         self.signum = signum
 
 
-def _interrupt(signum, frame) -> None:
-    raise Interrupted(signum)
+class _Signals:
+    """The interrupt handler of one command: raises ``Interrupted`` and remembers the signal,
+    since an exception raised while Python runs a finaliser or a weakref callback (h5py closing
+    a file, say) is printed and dropped instead of propagated; ``check`` raises it again before
+    anything is committed."""
+
+    def __init__(self) -> None:
+        self.pending: int | None = None
+
+    def __call__(self, signum, frame) -> None:
+        self.pending = signum
+        raise Interrupted(signum)
+
+    def check(self) -> None:
+        if self.pending is not None:
+            raise Interrupted(self.pending)
 
 
 INTERRUPT_STATUS = {signal.SIGINT: (130, "Ctrl-C"), signal.SIGTERM: (143, "SIGTERM")}
 DISCARDED = "outputs discarded (a sweep keeps its finished rows for --resume)"
+BROKEN_PIPE = 141  # 128 + SIGPIPE, as shell tools report a reader that went away
 
 
-def _run(argv: list[str] | None) -> int:
-    """Run the command inside staged outputs: committed on exit status 0 and 3 only."""
-    with staged_outputs() as stage:
-        result = app(args=argv, prog_name="soulctl", standalone_mode=False)
-        status = result if isinstance(result, int) else 0
-        if status in (0, 3):
+def _run(argv: list[str] | None, signals: _Signals) -> int:
+    """Run the command inside staged outputs: committed on exit status 0 and 3 only (and when
+    the reader of stdout went away after the work was done: the files are complete)."""
+    with staged_outputs() as stage, warnings.catch_warnings():
+        # Third-party warnings (numpy casts, matplotlib's cache, Dask's ports) are not the
+        # user's business and would break the one-line refusal: stderr is soulctl's own.
+        warnings.simplefilter("ignore")
+        try:
+            result = app(args=argv, prog_name="soulctl", standalone_mode=False)
+            status = result if isinstance(result, int) else 0
+        except BrokenPipeError:
+            _silence_stdout()
+            status = BROKEN_PIPE
+        signals.check()
+        if status in (0, 3, BROKEN_PIPE):
             stage.commit()
         return status
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush finds no broken pipe."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout without a file descriptor (tests)
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script.  With argv None (the console script) it exits the
     process; with an explicit argv (tests) it returns the exit status."""
     ascii_fallback()
-    previous = {n: signal.signal(n, _interrupt) for n in INTERRUPT_STATUS} if _main_thread() else {}
+    signals = _Signals()
+    previous = {n: signal.signal(n, signals) for n in INTERRUPT_STATUS} if _main_thread() else {}
     try:
-        status = _run(argv)
+        status = _run(argv, signals)
     except InputError as e:
         status = _fail(str(e))
     except Interrupted as e:
@@ -122,9 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         status = _fail(f"interrupted ({name}); {DISCARDED}", code)
     except KeyboardInterrupt:  # a SIGINT outside the handler (another thread's handler)
         status = _fail(f"interrupted (Ctrl-C); {DISCARDED}", 130)
-    except BrokenPipeError:
-        status = 1  # the reader went away (e.g. `soulctl ... | head`): nothing to say
-    except OSError as e:  # e.g. stdout on a full disk: one line, not a traceback
+    except OSError as e:  # the system failing under the command (a full disk): one line, not a traceback
         status = _fail(f"{e.strerror or e}", 1)
     except Exception as e:
         status = _status_of_cli_exception(e)

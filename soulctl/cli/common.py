@@ -18,6 +18,7 @@ from ..loop.metrics import BANDS
 from ..observation import Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from .configure import parse_magnitude
+from .numbers import number
 from .output import console as make_console
 
 CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
@@ -26,21 +27,21 @@ CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder 
 
 
 # Options of a simulated loop, shared by `loop run` and `optimize gains`.
-SEEING = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).")
-WIND = typer.Option(8.0, "--wind", metavar="M/S", help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).")
-OUTER_SCALE = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).")
+SEEING = typer.Option(1.0, "--seeing", parser=number(ranges.SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).")
+WIND = typer.Option(8.0, "--wind", parser=number(ranges.WIND_M_S), metavar="M/S", help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).")
+OUTER_SCALE = typer.Option(25.0, "--L0", parser=number(ranges.OUTER_SCALE_M), metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).")
 TT_CONTROL = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one).")
 BAND = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
-SEED = typer.Option(1, "--seed", help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).")
+SEED = typer.Option(1, "--seed", parser=number(ranges.SEED), help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).")
 NO_NOISE = typer.Option(False, "--no-noise", help="Noiseless detector.")
 VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml).")
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
-OVERSAMPLING = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
-PERIOD = typer.Option(1.0, "--period", metavar="S", help="Update period of MGM and OGTL (the paper: 1 s); MGM needs 4 Welch segments of >= 64 frames.")
-PROBE_MODE = typer.Option(30, "--probe-mode", help="OGTL probe mode (1-based, at most the controlled modes).")
-PROBE_AMPLITUDE = typer.Option(20.0, "--probe-amplitude", metavar="NM", help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}).")
-PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", metavar="HZ",
+OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(ranges.OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
+PERIOD = typer.Option(1.0, "--period", parser=number(ranges.PERIOD_S), metavar="S", help="Update period of MGM and OGTL (the paper: 1 s); MGM needs 4 Welch segments of >= 64 frames.")
+PROBE_MODE = typer.Option(30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes).")
+PROBE_AMPLITUDE = typer.Option(20.0, "--probe-amplitude", parser=number(ranges.PROBE_AMPLITUDE_NM), metavar="NM", help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}).")
+PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", parser=number(ranges.PROBE_FREQUENCY_HZ), metavar="HZ",
                                help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).")
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 

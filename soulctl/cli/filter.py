@@ -24,6 +24,7 @@ from ..errors import InputError
 from ..files import atomic_write_text, check_output_path
 from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
                       MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
+from .numbers import number
 from .output import console as make_console, print_json, styled
 
 app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).",
@@ -31,6 +32,7 @@ app = typer.Typer(help="Analyse and design temporal control filters (margins, re
 
 UNSTABLE_EXIT = 3  # an analysed loop is unstable (its figures are still printed)
 N_ROOTS_MAX = 8  # zeros or poles of a controller given by its roots
+MAX_LABEL = 80  # characters of a controller's name (a table column, a legend entry)
 CONTROLS = ("iir", "int", "leaky")
 SYSTEMS = ("soul", "flao")
 
@@ -213,6 +215,8 @@ def analyze_command(
         lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", Range(0.0, DELAY_FRAMES.hi * 1e3 / ANALYSIS_RATE_HZ.lo, "ms"))
     if label is not None:
         lists["--label"] = _values(label, "--label", "names")
+        if max(map(len, lists["--label"])) > MAX_LABEL:
+            raise InputError(f"--label: a name must be at most {MAX_LABEL} characters long")
     z, p = _roots(zeros, "--zeros"), _roots(poles, "--poles")
     if (zeros is not None or poles is not None) and not p:
         raise InputError("--poles needs at least one pole (a control filter is an IIR filter)")
@@ -304,18 +308,18 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
 def design_command(
     rate: str = typer.Option("1700,1350,1000,750", "--rate", metavar="HZ[,HZ…]",
                              help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four."),
-    epsilon: float = typer.Option(0.2, "--epsilon", help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."),
-    outer_scale: float = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."),
+    epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
+    seeing: float = typer.Option(1.0, "--seeing", parser=number(SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
+    wind: float = typer.Option(8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."),
+    outer_scale: float = typer.Option(25.0, "--L0", parser=number(OUTER_SCALE_M), metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."),
     vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE",
                                            help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."),
-    noise: float = typer.Option(1.0, "--noise", metavar="MAS", help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()})."),
-    resonance_line: float = typer.Option(2.0, "--resonance-line", metavar="MAS",
+    noise: float = typer.Option(1.0, "--noise", parser=number(NOISE_MAS), metavar="MAS", help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()})."),
+    resonance_line: float = typer.Option(2.0, "--resonance-line", parser=number(NOISE_MAS), metavar="MAS",
                                          help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()})."),
-    delay_ms: float | None = typer.Option(None, "--delay-ms",
+    delay_ms: float | None = typer.Option(None, "--delay-ms", parser=number(Range(0.0, math.inf, "ms")),
                                           help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames)."),
-    seed: int = typer.Option(1, "--seed", help=f"Seed of the differential-evolution search ({SEED.text()})."),
+    seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs."),

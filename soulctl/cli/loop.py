@@ -13,6 +13,7 @@ from rich.console import Console
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
 from ..control.gain_file import SUFFIXES, read_gain_file
+from ..control.trial import MID_GROUP_END
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
@@ -22,12 +23,13 @@ from ..loop.optimize import LiveOptimisers
 from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..observation import Observation, observation_for_magnitude
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import LOOP_GAIN, OVERSAMPLING
+from ..ranges import DURATION_S, LOOP_GAIN, OVERSAMPLING
 from .configure import parse_magnitude
 from . import common
 from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, PERIOD,
                      PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
                      check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
+from .numbers import number
 from .output import console as make_console, print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
@@ -102,7 +104,10 @@ def _render(result, console: Console) -> None:
                        f"{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\", {r.duration_s:g} s")
     g = result.gains
     t.add_row("Tip/Tilt control", f"{'IIR' if obs.tt_control == 'iir' else 'integrator'}, gain {g.tip_tilt:.3g}")
-    t.add_row("gains modes 3-120 / 121-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
+    if obs.modes > MID_GROUP_END:
+        t.add_row(f"gains modes 3-{MID_GROUP_END} / {MID_GROUP_END + 1}-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
+    else:
+        t.add_row(f"gains modes 3-{obs.modes}", f"{g.mid:.3g}" + (" (gain file)" if g.modes else ""))
     t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", _value(m.strehl, ".3f"))
     t.add_row("Tip/Tilt jitter, residual (per axis)", _value(m.tt_jitter_mas, ".2f", " mas"))
     t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
@@ -129,7 +134,7 @@ def run_cmd(
     seeing: float = SEEING,
     wind: float = WIND,
     L0: float = OUTER_SCALE,
-    duration: float = typer.Option(0.2, "--duration", metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."),
+    duration: float = typer.Option(0.2, "--duration", parser=number(DURATION_S), metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."),
     tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."),
     band: str = BAND,

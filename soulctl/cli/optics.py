@@ -13,7 +13,7 @@ from rich.table import Table
 from .. import tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
-from ..ranges import MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
+from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from ..files import check_output_path
 from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
@@ -22,6 +22,7 @@ from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..optics.pwfs import PyramidConfig
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from .numbers import number
 from .output import console as make_console, print_json
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
@@ -50,18 +51,20 @@ def sensing_setup(
 
 
 _MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
-_BINNING = typer.Option(None, "--binning", help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
-_MODES = typer.Option(None, "--modes", help="Controlled modes (default: the look-up table's for the binning).")
-_MODULATION = typer.Option(None, "--modulation", metavar="LAMBDA/D", help="Modulation radius in lambda/D (default 3).")
-_OVERSAMPLING = typer.Option(2, "--oversampling", help="Simulation pixels per binning-1 detector pixel (1..4).")
+_BINNING = typer.Option(None, "--binning", parser=number(BINNING), help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
+_MODES = typer.Option(None, "--modes", parser=number(MODES),
+                      help=f"Controlled modes ({MODES.text()}; default: the look-up table's for the binning).")
+_MODULATION = typer.Option(None, "--modulation", metavar="LAMBDA/D", parser=number(MODULATION_LAMBDA_OVER_D),
+                           help=f"Modulation radius in lambda/D ({MODULATION_LAMBDA_OVER_D.text()}; default 3).")
+_OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4).")
 _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
 
 @app.command("atmosphere")
 def atmosphere(
-    seeing: float = typer.Option(1.0, "--seeing", metavar="ARCSEC", help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
-    wind: float = typer.Option(8.0, "--wind", metavar="M/S", help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()})."),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", help=f"Outer scale ({OUTER_SCALE_M.text()})."),
+    seeing: float = typer.Option(1.0, "--seeing", parser=number(SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
+    wind: float = typer.Option(8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()})."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
     json_output: bool = _JSON,
 ) -> None:
     """Turbulence figures of the default LBT profile: r0 at 500 nm, the WFS and science bands,
@@ -167,17 +170,17 @@ def calibrate_cmd(
 
 @app.command("gains")
 def gains_cmd(
-    seeing: float = typer.Option(0.8, "--seeing", metavar="ARCSEC", help="Seeing of the correction level (the paper's table: 0.8)."),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", help="Outer scale."),
-    controlled_fraction: float = typer.Option(0.1, "--controlled-fraction", help="Amplitude of the controlled modes left in the residual (0..1)."),
+    seeing: float = typer.Option(0.8, "--seeing", metavar="ARCSEC", parser=number(SEEING_ARCSEC), help=f"Seeing of the correction level (the paper's table: 0.8; {SEEING_ARCSEC.text()})."),
+    L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
+    controlled_fraction: float = typer.Option(0.1, "--controlled-fraction", parser=number(FRACTION), help="Amplitude of the controlled modes left in the residual (0..1)."),
     config: Path | None = CONFIG,
     mag: str | None = _MAG,
     binning: int | None = _BINNING,
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
-    screens: int = typer.Option(4, "--screens", help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."),
-    seed: int = typer.Option(1, "--seed", help=f"Seed of the residual phase screens ({SEED.text()})."),
+    screens: int = typer.Option(4, "--screens", parser=number(SCREENS), help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."),
+    seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,

@@ -24,12 +24,14 @@ from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
 from ..loop.run import RunRequest
 from ..loop.simulation import DEFAULT_FORGETTING
 from ..plots.gains import gain_figure_names, write_gain_figures
-from ..ranges import OVERSAMPLING
+from ..observation import TT_CONTROLS
+from ..ranges import MEASURE_S, OPTIMISATION_S, OVERSAMPLING, PERIOD_S, SEQUENCE_S
 from . import common
 from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE,
                      PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
                      check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
 from .loop import gain_file_input, observation_from, parse_gains
+from .numbers import number
 from .output import console as make_console, print_json
 
 app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
@@ -134,10 +136,10 @@ def gains_cmd(
     seeing: float = SEEING,
     wind: float = WIND,
     L0: float = OUTER_SCALE,
-    duration: float = typer.Option(5.0, "--duration", metavar="S", help="MGM: simulated time of the optimisation (0..3600 s)."),
+    duration: float = typer.Option(5.0, "--duration", metavar="S", parser=number(OPTIMISATION_S), help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()})."),
     period: float = PERIOD,
-    measure: float = typer.Option(0.5, "--measure", metavar="S", help="Simulated time measured before and after the optimisation."),
-    sequence: float = typer.Option(0.25, "--sequence", metavar="S", help="Trial-and-error: one closed-loop sequence per gain (20 % settling)."),
+    measure: float = typer.Option(0.5, "--measure", metavar="S", parser=number(MEASURE_S), help="Simulated time measured before and after the optimisation."),
+    sequence: float = typer.Option(0.25, "--sequence", metavar="S", parser=number(SEQUENCE_S), help="Trial-and-error: one closed-loop sequence per gain (20 % settling)."),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
     probe_mode: int = PROBE_MODE,
     probe_amplitude: float = PROBE_AMPLITUDE,
@@ -175,20 +177,27 @@ def gains_cmd(
         check_output_path(out, "--out", inputs)
     if plot is not None:
         check_output_folder(plot, "--plot", gain_figure_names(methods) if telemetry is None else ())
+    # Every option is checked in both modes (the offline one ignores the loop's): one range per quantity.
+    check_run_options(seeing, wind, L0, band, seed)
+    OVERSAMPLING.check(oversampling, "--oversampling")
+    for value, option, accepted in ((duration, "--duration", OPTIMISATION_S), (period, "--period", PERIOD_S),
+                                    (measure, "--measure", MEASURE_S), (sequence, "--sequence", SEQUENCE_S)):
+        accepted.check(value, option)
+    probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
+    loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
+    vib = vibration_spectrum(no_vibrations, vibrations)
     cache = array_cache(no_cache, cache_dir)
     if telemetry is not None:
         if method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
+        if tt_control not in (None, *TT_CONTROLS):
+            raise InputError(f"--tt-control must be 'iir' or 'int', got '{tt_control}'")
         input_file(telemetry, "telemetry file")
         return _offline(telemetry, config, mag, out, json_output, cache)
-    check_run_options(seeing, wind, L0, band, seed)
-    OVERSAMPLING.check(oversampling, "--oversampling")
     obs = observation_from(config, mag, tt_control)
-    vib = vibration_spectrum(no_vibrations, vibrations)
     # the run's own duration is not used: --duration and --measure set the phases
-    run = RunRequest(obs, seeing, wind, L0, gains=parse_gains(gains, DEFAULT_FORGETTING), band=band, seed=seed, noise=not no_noise,
+    run = RunRequest(obs, seeing, wind, L0, gains=loop_gains, band=band, seed=seed, noise=not no_noise,
                      vibrations=vib, oversampling=oversampling, structure=None if no_resonance else StructuralResonance())
-    probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}
     show = not json_output and sys.stderr.isatty()
     results: dict[str, OptimizeResult] = {}

@@ -57,15 +57,42 @@ def ascii_fallback() -> None:
             pass
 
 
+def _utf(stream) -> bool:
+    return (getattr(stream, "encoding", None) or "utf-8").lower().replace("_", "-").startswith("utf")
+
+
+def ascii_text(text: str) -> str:
+    """``text`` with every character ASCII cannot hold transliterated (see the module)."""
+    return text.encode("ascii", errors=ERRORS).decode("ascii")
+
+
+class _Console(Console):
+    """rich's console, except that a reader going away (``| head``) is a BrokenPipeError for
+    the entry point to handle (rich would exit the process with status 1)."""
+
+    def on_broken_pipe(self) -> None:
+        raise BrokenPipeError()
+
+
+class _AsciiConsole(_Console):
+    """A console for a stream that is not UTF-8: text is transliterated before rich lays it
+    out, so that tables are measured on what is printed (λ -> lambda is 6 columns, not 1)."""
+
+    def render_str(self, text: str, **kwargs) -> Text:
+        return super().render_str(ascii_text(text), **kwargs)
+
+
 def console(stderr: bool = False) -> Console:
     """A rich console that prints text as given (no markup, no emoji codes, lines not broken:
-    a path stays on one line; tables still fit the terminal)."""
-    return Console(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True)
+    a path stays on one line; tables still fit the terminal), in ASCII where the stream is not
+    UTF-8."""
+    kind = _Console if _utf(sys.stderr if stderr else sys.stdout) else _AsciiConsole
+    return kind(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True)
 
 
 def styled(text: str, style: str) -> Text:
     """``text`` in a rich style (e.g. "bold red"), the way to colour output without markup."""
-    return Text(text, style=style)
+    return Text(text if _utf(sys.stdout) else ascii_text(text), style=style)
 
 
 def json_safe(value):

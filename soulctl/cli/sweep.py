@@ -15,7 +15,7 @@ from rich.table import Table
 from ..errors import InputError
 from ..files import atomic_write_text
 from ..plots.sweep import strehl_vs_magnitude
-from ..ranges import LOCAL_WORKERS_PER_CORE, Range
+from ..ranges import LOCAL_WORKERS_PER_CORE, WAIT_WORKERS, WAIT_WORKERS_S, Range
 from ..observation import BINNINGS, observation_for_magnitude
 from ..sweep import scheduler as dask_scheduler
 from ..sweep.derive import best_per_magnitude, derived_table, lut_csv
@@ -24,6 +24,7 @@ from ..sweep.grid import read_grid
 from ..sweep.results import ResultsTable
 from ..sweep.runner import execute, local_workers, plan_sweep
 from . import output
+from .numbers import number
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
 
 DERIVED = "derived_lut.csv"
@@ -48,12 +49,11 @@ def _render_derived(rows: list[dict], derived: list[dict], console: Console) -> 
     print(lut_csv(derived), end="")
 
 
-def _confirm(estimate_text: str | None) -> None:
-    """Ask on the terminal before a long sweep (with the estimate unless it was printed);
-    InputError unless the answer is yes."""
+def _confirm(estimate_text: str) -> None:
+    """Ask on the terminal before a long sweep, with the estimate; InputError unless the
+    answer is yes."""
     err = output.console(stderr=True)
-    err.print(f"{estimate_text + '. ' if estimate_text else ''}This sweep takes more than {CONFIRM_TEXT} of CPU. Start it? [y/N] ",
-              end="", soft_wrap=True)
+    err.print(f"{estimate_text}. This sweep takes more than {CONFIRM_TEXT} of CPU. Start it? [y/N] ", end="")
     try:
         answer = sys.stdin.readline()
     except (OSError, ValueError):
@@ -67,13 +67,15 @@ def _confirm(estimate_text: str | None) -> None:
 def sweep(
     grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis."),
     scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster)."),
-    workers: int | None = typer.Option(None, "--workers",
+    workers: int | None = typer.Option(None, "--workers", parser=number(Range(1, 2**31, integer=True)),
                                        help=f"Processes of the local cluster (1..{LOCAL_WORKERS_PER_CORE} per core; default: one per core)."),
     out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table); created once everything else is checked."),
     resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."),
     plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}."),
     derive_table: bool = typer.Option(False, "--derive-table", help=f"Print (and write DIR/{DERIVED}) the best binning and rate per magnitude."),
     yes: bool = typer.Option(False, "--yes", "-y", help=f"Start without asking when the estimate exceeds {CONFIRM_TEXT} of CPU (asked on a terminal only)."),
+    wait_workers: float = typer.Option(WAIT_WORKERS_S, "--wait-workers", metavar="S", parser=number(WAIT_WORKERS),
+                                       help=f"With --scheduler: how long to wait for its first worker ({WAIT_WORKERS.text()})."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = JSON_OUTPUT,
@@ -97,15 +99,15 @@ def sweep(
         raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
     if scheduler is not None:
         dask_scheduler.parse_address(scheduler)
+    WAIT_WORKERS.check(wait_workers, "--wait-workers")
     outputs = [name for name, wanted in ((DERIVED, derive_table), (FIGURE, plot)) if wanted]
     plan = plan_sweep(cases, out, resume, outputs)
     if scheduler is not None and plan.todo:
         dask_scheduler.probe(scheduler)
     cost = estimate([c for _, c in plan.todo], None if scheduler else workers or local_workers())
-    if not json_output:
-        output.console().print(cost.text(), soft_wrap=True)
-    if needs_confirmation(cost) and not yes and sys.stdin.isatty():
-        _confirm(cost.text() if json_output else None)
+    asked = needs_confirmation(cost) and not yes and sys.stdin.isatty()
+    if asked:  # a dialogue on the terminal: the estimate and the question
+        _confirm(cost.text())
     cache = None if no_cache else str(cache_dir or default_cache_dir())
     show = not json_output and sys.stderr.isatty()
     progress = Progress(TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("cases"), TextColumn("{task.fields[state]}"),
@@ -114,6 +116,10 @@ def sweep(
         task = progress.add_task("sweep", total=None, state="") if show else None
 
         def started(n):
+            # The estimate once the run really starts (the scheduler answered, the folder is
+            # locked): a refusal before it stays one line on stderr and nothing on stdout.
+            if not json_output and not asked:
+                output.console(stderr=True).print(cost.text())
             if show:
                 progress.update(task, total=n, state=f"running {min(n, workers or n)}")
 
@@ -123,7 +129,7 @@ def sweep(
                 progress.update(task, completed=report.computed,
                                 state=f"failed {report.failed}, diverged {report.diverged}, running {left}")
 
-        report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started)
+        report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
     rows = list(ResultsTable.read_rows(report.results).values())
     derived = derived_table(rows) if derive_table else None
     if derived is not None:

@@ -23,6 +23,7 @@ from ..files import read_toml
 from ..ranges import VIBRATION_DAMPING, VIBRATION_FREQUENCY_HZ, VIBRATION_RMS_MAS
 
 AXES = ("tip", "tilt", "mean")
+LINE_KEYS = ("frequency_hz", "damping", "tip_mas", "tilt_mas")
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,9 @@ class VibrationSpectrum:
 
     @classmethod
     def from_dict(cls, data: dict, where: str) -> "VibrationSpectrum":
+        unknown = sorted(set(data) - {"source", "line"})
+        if unknown:
+            raise InputError(f"{where}: unknown key {', '.join(unknown)} (accepted: source, [[line]])")
         lines = data.get("line")
         if not isinstance(lines, list) or not lines:
             raise InputError(f"{where}: needs at least one [[line]] table (frequency_hz, damping, tip_mas, tilt_mas)")
@@ -94,8 +98,11 @@ class VibrationSpectrum:
         for i, line in enumerate(lines):
             if not isinstance(line, dict):
                 raise InputError(f"{where}: line {i + 1} must be a table")
+            extra = sorted(set(line) - {*LINE_KEYS, "note"})
+            if extra:
+                raise InputError(f"{where}: line {i + 1} has the unknown key {', '.join(extra)} (accepted: {', '.join(LINE_KEYS)}, note)")
             try:
-                values = {k: line[k] for k in ("frequency_hz", "damping", "tip_mas", "tilt_mas")}
+                values = {k: line[k] for k in LINE_KEYS}
             except KeyError as e:
                 raise InputError(f"{where}: line {i + 1} is missing {e.args[0]!r} "
                                  "(each line needs frequency_hz, damping, tip_mas, tilt_mas)") from None

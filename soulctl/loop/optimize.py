@@ -46,7 +46,7 @@ from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CorrectionLevel, optical_gains
-from ..ranges import MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
+from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
 from .run import (RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop,
@@ -220,6 +220,9 @@ class LiveOptimisers:
             period_settings(self._frames(observation), observation)
         rate = observation.frame_rate_hz
         need = closing_frames(rate) + 2 * self._frames(observation)
+        if need / rate > DURATION_S.hi:
+            raise InputError(f"--period {self.period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
+                             f"the {DURATION_S.hi:g} s a run may last; shorten --period")
         if round(duration_s * rate) < need:
             raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {self.period_s:g} s "
                              f"(the loop closes, then two updates), got {duration_s:g} s")

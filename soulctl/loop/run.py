@@ -18,16 +18,13 @@ from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSE
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache
-from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate
+from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
 from ..optics.pwfs import PyramidConfig
 from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
+from ..control.trial import MID_GROUP_END
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry, telemetry_bytes
 
 VIBRATION_HZ = 13.0
-# At oversampling 1 the pupil has 40 pixels across for ~30 actuators: the high-order modes of
-# the 20x20 and 40x40 configurations are barely sampled and their loop hardly converges
-# (R13, 20x20, 250 modes: 812 nm residual against 233 nm at oversampling 2).
-MAX_MODES_AT_OVERSAMPLING_1 = 90
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
 
@@ -56,11 +53,7 @@ class RunRequest:
         SEED.check(self.seed, "seed")
         OVERSAMPLING.check(self.oversampling, "oversampling")
         band_wavelength(self.band)
-        if self.oversampling == 1 and self.observation.modes > MAX_MODES_AT_OVERSAMPLING_1:
-            raise InputError(
-                f"--oversampling 1 samples the pupil on 40 pixels (1.4 per actuator pitch), too coarse for "
-                f"{self.observation.modes} modes: accepted up to {MAX_MODES_AT_OVERSAMPLING_1} modes; use 2..4"
-            )
+        check_sampling(self.observation.modes, self.oversampling)
 
     @property
     def frames(self) -> int:
@@ -113,9 +106,15 @@ def check_stability(observation: Observation, gains: LoopGains, structure: Struc
     """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
     plant (chi = 1, the structural resonance on Tip/Tilt)."""
     if gains.modes is not None:
-        groups = [("Tip/Tilt", g, True) for g in set(gains.modes[:2])] + [("mode gain", g, False) for g in set(gains.modes[2:])]
+        first = {}  # each distinct gain, named by the first mode that has it
+        for i, g in enumerate(gains.modes):
+            first.setdefault((i < 2, g), i + 1)
+        groups = [("Tip/Tilt" if tt else f"mode {m}", g, tt) for (tt, g), m in first.items()]
     else:
-        groups = [("Tip/Tilt", gains.tip_tilt, True), ("modes 3-120", gains.mid, False), ("modes 121-last", gains.high, False)]
+        n = observation.modes  # the groups this observation has (modes 121-last only beyond 120)
+        groups = [("Tip/Tilt", gains.tip_tilt, True)] + [(name, g, False) for name, g, first in
+                  ((f"modes 3-{min(n, MID_GROUP_END)}", gains.mid, 3), (f"modes {MID_GROUP_END + 1}-last", gains.high, MID_GROUP_END + 1))
+                  if n >= first]
     for name, g, tt in groups:
         if g <= 0:
             continue

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
 from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, frequency_grid
 from ..errors import InputError
@@ -78,6 +79,9 @@ def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None 
 
 
 def save_figure(fig: Figure, path: Path) -> None:
-    """Write the figure atomically in the format its suffix names."""
+    """Write the figure atomically in the format its suffix names.  Every text is drawn as
+    given: '$' in a user's label is a dollar sign, not matplotlib's math mode."""
     fmt = plot_format(path)
+    for text in fig.findobj(Text):
+        text.set_parse_math(False)
     atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120))

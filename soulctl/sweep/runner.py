@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from .case import calibrate_case, calibration_setup, failed_row, run_case
 from .results import ResultsTable, check_unlocked, results_lock
+from ..ranges import WAIT_WORKERS_S
 from .scheduler import CONNECT_TIMEOUT_S, probe
 
 RESULTS = "results.csv"
@@ -80,19 +81,25 @@ def plan_sweep(cases: list[dict], out_dir: str | Path, resume: bool = False, out
     return SweepPlan(cases, out, resume, table, todo, len(done))
 
 
-def connect(stack: ExitStack, scheduler: str | None, workers: int | None):
+def connect(stack: ExitStack, scheduler: str | None, workers: int | None, wait_workers_s: float = WAIT_WORKERS_S):
     """A Dask client: on ``scheduler`` (checked by ``scheduler.probe`` first; InputError naming
-    it when unreachable), else on a local cluster of ``workers`` processes (default: one per
-    core), one thread each."""
+    it when unreachable, or when no worker joins it within ``wait_workers_s``), else on a local
+    cluster of ``workers`` processes (default: one per core), one thread each."""
     from dask.distributed import Client, LocalCluster  # here: importing Dask costs every other command ~1 s
 
     if scheduler:
         address = probe(scheduler)
         try:
-            return stack.enter_context(Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s"))
+            client = stack.enter_context(Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s"))
         except Exception as e:  # noqa: BLE001 - what answers at the address is the user's: e.g. a worker (TypeError)
             raise InputError(f"cannot connect to the Dask scheduler at {scheduler} ({type(e).__name__}: {e}; is it the "
                              f"scheduler's address?); nothing was run") from None
+        try:
+            client.wait_for_workers(1, timeout=wait_workers_s)
+        except TimeoutError:
+            raise InputError(f"the Dask scheduler at {scheduler} has no worker (none joined within {wait_workers_s:g} s): start "
+                             f"workers with 'dask worker {address}', or give --wait-workers; nothing was run") from None
+        return client
     n = workers or local_workers()
     cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                                silence_logs=40))
@@ -105,12 +112,13 @@ def local_workers() -> int:
 
 
 def execute(plan: SweepPlan, scheduler: str | None = None, workers: int | None = None, cache_dir: str | None = None,
-            on_row: Callable[[dict, SweepReport], None] | None = None, on_start: Callable[[int], None] | None = None) -> SweepReport:
+            on_row: Callable[[dict, SweepReport], None] | None = None, on_start: Callable[[int], None] | None = None,
+            wait_workers_s: float = WAIT_WORKERS_S) -> SweepReport:
     """Run a plan (see the module): its folder is created only once the scheduler answered."""
     table = plan.table
     report = SweepReport(total=plan.total, skipped=plan.skipped, results=table.path)
     with ExitStack() as stack:
-        client = connect(stack, scheduler, workers) if plan.todo else None
+        client = connect(stack, scheduler, workers, wait_workers_s) if plan.todo else None
         created = not plan.out_dir.exists()
         try:
             plan.out_dir.mkdir(exist_ok=True)
@@ -145,7 +153,7 @@ def execute(plan: SweepPlan, scheduler: str | None = None, workers: int | None =
                 on_row(row, report)
 
         if todo and client is None:  # rows removed since the plan (an edited file): start the cluster now
-            client = connect(stack, scheduler, workers)
+            client = connect(stack, scheduler, workers, wait_workers_s)
         calibrations, futures = {}, {}
         for cid, case in todo:
             try:

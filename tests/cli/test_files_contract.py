@@ -249,3 +249,60 @@ def test_a_terminal_without_utf8_gets_ascii(args, tmp_path):
     p.stdout.decode("ascii")
     if args[-1] == "13":
         assert b"lambda/D" in p.stdout
+
+
+def test_a_signal_lost_in_a_finaliser_still_discards_the_outputs(tmp_path, capsys, monkeypatch):
+    """Python prints and drops an exception raised in a finaliser or weakref callback (h5py
+    closing a file): the signal is remembered and nothing is committed."""
+    from soulctl.cli import loop as loop_cli
+
+    def swallowed(*_):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.1)  # the handler runs here, and its exception is dropped below
+        except BaseException:  # noqa: BLE001 - as a finaliser would
+            pass
+
+    monkeypatch.setattr(loop_cli, "write_loop_figures", swallowed)
+    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", tmp_path / "tm.h5",
+            "--plot", tmp_path, "--cache-dir", tmp_path / "cache"]
+    status, out, err = run(args, capsys)
+    assert status == 143 and "interrupted (SIGTERM)" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+
+
+def test_a_reader_that_goes_away_keeps_the_outputs(tmp_path):
+    p = subprocess.Popen([shutil.which("soulctl"), "loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05",
+                          "--telemetry", str(tmp_path / "tm.h5"), "--cache-dir", str(tmp_path / "cache")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    p.stdout.read(1)  # like `| head -c 1`
+    p.stdout.close()
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 141 and err == b""
+    assert (tmp_path / "tm.h5").stat().st_size > 0
+
+
+def test_an_unwritable_cache_home_keeps_refusals_to_one_line(tmp_path):
+    env = {**os.environ, "XDG_CACHE_HOME": "/proc/soulctl-no-cache", "MPLCONFIGDIR": "/proc/soulctl-no-mpl"}
+    p = subprocess.run([shutil.which("soulctl"), "configure", "--mag", "19"], capture_output=True, env=env, cwd=tmp_path, timeout=60)
+    assert p.returncode == 2 and p.stderr.count(b"\n") == 1 and p.stdout == b""
+
+
+def test_ascii_tables_are_measured_on_what_is_printed(tmp_path):
+    p = subprocess.run([shutil.which("soulctl"), "filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", "λ☃日本"],
+                       capture_output=True, env={**os.environ, "PYTHONIOENCODING": "ascii"}, cwd=tmp_path, timeout=60)
+    assert p.returncode == 0
+    rows = [line for line in p.stdout.decode("ascii").splitlines() if line.startswith(("|", "+"))]
+    assert len(rows) > 10 and len({len(line) for line in rows}) == 1
+
+
+@pytest.mark.parametrize("label", ["$x^{$", "a$b$,$\\alpha$"])
+def test_labels_are_not_matplotlib_math(label, tmp_path, capsys):
+    status, out, err = run(["filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", label, "--plot", tmp_path / "l.png"], capsys)
+    assert status == 0, err
+    assert (tmp_path / "l.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_overlong_labels_are_refused(capsys):
+    status, _, err = run(["filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", "x" * 81], capsys)
+    assert status == 2 and "at most 80 characters" in err

@@ -235,7 +235,7 @@ def test_mode_counts_agree_with_the_mirror(optics_cache):
 
 
 def test_under_determined_calibrations_are_refused(capsys, cache_dir):
-    refused(*run(["optics", "calibrate", "--binning", "4", "--oversampling", "1", "--modes", "171"], capsys, cache_dir),
+    refused(*run(["optics", "calibrate", "--binning", "4", "--modes", "671"], capsys, cache_dir),
             "cannot be calibrated from the", "accepted at most")
 
 
@@ -290,3 +290,86 @@ def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
     n_slopes, n_modes = cal.interaction_matrix.shape
     estimate = telemetry_bytes(100, n_slopes, cal.basis.M.shape[0], n_modes) / TELEMETRY_PEAK_FACTOR
     assert grown <= estimate <= 1.5 * grown
+
+
+# --------------------------------------------------------- what adversarial testing found
+
+def test_offline_optimisation_checks_every_option(tmp_path, capsys, cache_dir):
+    h5 = tmp_path / "t.h5"
+    h5.write_bytes(b"not read: the options are checked first")
+    for option, value, words in [("--seeing", "nan", "--seeing must be in"), ("--seed", "-3", "--seed must be in"),
+                                 ("--duration", "nan", "--duration must be in"), ("--probe-mode", "9999", "--probe-mode must be in"),
+                                 ("--oversampling", "99", "--oversampling must be in"), ("--period", "-1", "--period must be in"),
+                                 ("--gains", "99,99,99", "--gains must be TT,MID,HIGH"), ("--tt-control", "foo", "--tt-control")]:
+        refused(*run(["optimize", "gains", "--telemetry", h5, option, value], capsys, cache_dir), words)
+
+
+def test_calibration_and_loop_refuse_the_same_sampling(capsys, cache_dir):
+    refused(*run(["optics", "calibrate", "--binning", "3", "--modes", "91", "--oversampling", "1"], capsys, cache_dir),
+            "accepted up to 90 modes")
+
+
+@pytest.mark.parametrize("args", [
+    ["optics", "atmosphere", "--seeing", "١", "--json"],
+    ["optics", "atmosphere", "--seeing", "１", "--json"],
+    ["optics", "atmosphere", "--wind", "1_0", "--json"],
+    ["filter", "design", "--rate", "1700", "--seed", "１", "--epsilon", "٠.٢", "--json"],
+])
+def test_every_numeric_option_reads_numbers_the_same_way(args, capsys):
+    status, out, err = run(args, capsys)
+    assert status == 0, err
+    json.loads(out)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["optics", "atmosphere", "--seeing", "abc"], "must be a number in 0.05..10 arcsec, got 'abc'"),
+    (["optics", "gains", "--screens", "1.5"], "must be an integer in 1..64, got '1.5'"),
+    (["loop", "run", *FAST, "--oversampling", "1.5"], "must be an integer in 1..4, got '1.5'"),
+])
+def test_a_text_that_is_not_a_number_is_refused_with_the_range(args, words, capsys):
+    refused(*run(args, capsys), words)
+
+
+def test_an_integral_float_is_an_integer(capsys, cache_dir):
+    a = run(["loop", "run", *FAST, "--seed", "3", "--json"], capsys, cache_dir)
+    b = run(["loop", "run", *FAST, "--seed", "3.0", "--json"], capsys, cache_dir)
+    assert a[0] == b[0] == 0 and json.loads(a[1])["metrics"] == json.loads(b[1])["metrics"]
+
+
+@pytest.mark.parametrize("gains, words", [
+    ("0.3,9,0.2", "modes 3-90 gain 9 is unstable"),  # 90 modes: modes 3-90, no group 121-last
+])
+def test_stability_refusals_name_the_groups_the_loop_has(gains, words, capsys, cache_dir):
+    refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), words)
+    # the gain of a group the loop does not have is not checked: it applies to no mode
+    status, out, err = run(["loop", "run", *FAST, "--gains", "0.3,0.2,9", "--json"], capsys, cache_dir)
+    assert status == 0, err
+
+
+def test_stability_refusals_name_the_mode_of_a_gain_file(tmp_path, capsys, cache_dir):
+    gains = tmp_path / "g.toml"
+    gains.write_text("gains = [" + ", ".join(["0.2"] * 10 + ["9"] + ["0.2"] * 79) + "]\n")
+    refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), "mode 11 gain 9 is unstable")
+
+
+def test_a_period_no_run_can_hold_is_refused_as_such(capsys, cache_dir):
+    refused(*run(["loop", "run", *FAST, "--mgm", "--period", "600"], capsys, cache_dir), "shorten --period")
+
+
+@pytest.mark.parametrize("args, words", [
+    (["loop", "run", *FAST, "--ogtl", "--probe-amplitude", "1e-300"], "--probe-amplitude must be in 0.1..1000 nm"),
+])
+def test_probes_below_any_signal_are_refused(args, words, capsys, cache_dir):
+    refused(*run(args, capsys, cache_dir), words)
+
+
+def test_roots_table_rates_are_frame_rates(tmp_path, capsys):
+    roots = tmp_path / "roots.csv"
+    roots.write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1e300,0,0,0,0,0,0,0.5,1\n")
+    refused(*run(["configure", "--mag", "9.7", "--roots", roots], capsys), "frame rate must be in 10..2000 Hz")
+
+
+def test_vibration_files_refuse_unknown_keys(tmp_path, capsys, cache_dir):
+    vib = tmp_path / "vib.toml"
+    vib.write_text("[[line]]\nfrequency_hz = 13.0\ndamping = 0.02\ntip_mas = 9.0\ntilt_mas = 6.5\namplitude = 3\n")
+    refused(*run(["loop", "run", *FAST, "--vibrations", vib], capsys, cache_dir), "unknown key amplitude")

@@ -1,0 +1,51 @@
+"""How the command line reads a number: one parser for every numeric option, so that every
+option reads numbers as ``soulctl.ranges`` describes (Python's syntax: Unicode decimal digits
+are digits, ``1_000`` is 1000; an integer option takes ``3`` or ``3.0``, never ``3.5``), and a
+text that is not a number is refused with the option's accepted range.  The range itself is
+checked by the command (one message, "--X must be in ..., got ...", for every command)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import typer
+
+from ..ranges import Range
+
+_EXACT_FLOAT_INTEGERS = 2**53  # above, a float no longer holds every integer
+
+
+def _integer(text: str) -> int | None:
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return int(value) if math.isfinite(value) and value.is_integer() and abs(value) < _EXACT_FLOAT_INTEGERS else None
+
+
+def number(accepted: Range) -> Callable[[str], float | int]:
+    """A typer ``parser=`` for an option whose values are in ``accepted`` (ints for an integer
+    range, floats otherwise)."""
+
+    def parse(text):
+        if isinstance(text, (int, float)) and not isinstance(text, bool):  # a default
+            return text
+        text = str(text).strip()
+        if accepted.integer:
+            value = _integer(text)
+        else:
+            try:
+                value = float(text)
+            except ValueError:
+                value = None
+        if value is None:
+            kind = "an integer" if accepted.integer else "a number"
+            raise typer.BadParameter(f"must be {kind} in {accepted.text()}, got '{text}'")
+        return value
+
+    return parse
