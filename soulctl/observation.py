@@ -10,7 +10,6 @@ operating points quoted in the paper.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -232,9 +231,6 @@ class Observation:
             return cls.from_dict(data)
         except InputError as e:
             raise InputError(f"configuration file {path}: {e}") from None
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict())
 
 
 def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None,
