@@ -268,15 +268,16 @@ def _config_edit(member, value):
     return change
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(max_examples=60, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(edits=st.lists(EDIT, min_size=1, max_size=3))
 def test_any_corruption_exits_2_with_one_line_or_0_with_gains_loop_run_accepts(env, capsys, edits):
     def change(f):
         for e in edits:
             try:
                 e(f)
-            except (TypeError, ValueError, OverflowError):  # h5py cannot store that value: not a file to test
-                pass
+            except (TypeError, ValueError, OverflowError, OSError, KeyError):  # h5py cannot store that value (e.g. real gains
+                pass  # into a dataset an earlier edit made complex, or under a deleted group): that edit does not apply
     path = edited(env, change, "property.h5")
     status, out, err, out_file = offline(path, env, capsys)
     assert status in (0, 2), err
