@@ -102,7 +102,8 @@ def output_target(path: str | Path) -> Path:
     return Path(os.path.realpath(p)) if p.is_symlink() else p
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths name one file (through links; by name when either does not exist)."""
     try:
         return os.path.samefile(a, b)
     except OSError:
@@ -114,7 +115,7 @@ def check_output_path(path: str | Path, option: str, inputs: Iterable[tuple[str,
     one of ``inputs`` ((option, path) pairs), a new path or a writable regular file, in a
     folder that can be written.  Returns the target (a symlink's target)."""
     for in_option, in_path in inputs:
-        if in_path is not None and _same_file(Path(path), Path(in_path)):
+        if in_path is not None and same_file(path, in_path):
             raise InputError(f"{option} {path} is also the input {in_option}: writing it would destroy the input; choose another path")
     target = output_target(path)
     try:

@@ -21,7 +21,7 @@ from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, LoopAnalysis, P
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
-from ..files import atomic_write_text, check_output_path
+from ..files import atomic_write_text, check_output_path, same_file
 from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
                       MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
 from .numbers import number
@@ -342,7 +342,7 @@ def design_command(
     for path, option in ((out, "--out"), (plot, "--plot")):
         if path is not None:
             check_output_path(path, option, [("--vibrations", vibrations)])
-    if out is not None and plot is not None and _same_path(out, plot):
+    if out is not None and plot is not None and same_file(out, plot):
         raise InputError(f"--out and --plot name the same file {out}")
     if plot is not None:
         from ..plots.transfer import plot_format
@@ -399,17 +399,13 @@ def design_command(
 
 
 def _design_delay(delay_ms: float, rate: float) -> float:
-    """--delay-ms in frames at ``rate``, within ``DELAY_FRAMES``."""
+    """--delay-ms in frames at ``rate``, within ``DESIGN_DELAY_FRAMES``."""
     if not (math.isfinite(delay_ms) and delay_ms >= 0):
         raise InputError(f"--delay-ms must be a number >= 0 ms, got {delay_ms:.10g}")
     d = delay_ms * 1e-3 * rate
     if not DESIGN_DELAY_FRAMES.contains(d):
         raise InputError(f"--delay-ms {delay_ms:.10g} at {rate:g} Hz is {d:.4g} frames: the design accepts {DESIGN_DELAY_FRAMES.text()}")
     return d
-
-
-def _same_path(a: Path, b: Path) -> bool:
-    return Path(a).resolve() == Path(b).resolve()
 
 
 app.command(name="analyze")(analyze_command)

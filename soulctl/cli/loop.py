@@ -54,8 +54,8 @@ def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
     (``control.gain_file``: TOML ``gains = [...]``, or text/CSV lines)."""
     if text is None:
         return None
-    path = Path(text)
-    if path.suffix.lower() in SUFFIXES or path.exists():
+    path = _gain_file(text)
+    if path is not None:
         return LoopGains.from_modes(read_gain_file(path), forgetting)
     parts = text.split(",")
     try:
@@ -67,9 +67,15 @@ def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
     return LoopGains(*values, forgetting=forgetting)
 
 
+def _gain_file(text: str) -> Path | None:
+    """--gains as a gain file (a gain file's suffix, or an existing path), else None (groups)."""
+    path = Path(text)
+    return path if path.suffix.lower() in SUFFIXES or path.exists() else None
+
+
 def gain_file_input(text: str | None) -> tuple[str, Path | None]:
     """--gains as an input file of the command (for the output checks), or None."""
-    return ("--gains", Path(text) if text is not None and (Path(text).suffix.lower() in SUFFIXES or Path(text).exists()) else None)
+    return ("--gains", None if text is None else _gain_file(text))
 
 
 def _result_dict(result) -> dict:

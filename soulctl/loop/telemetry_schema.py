@@ -155,19 +155,13 @@ def describe(value) -> str:
     return type(value).__name__
 
 
-def _finite_number(value) -> bool:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:  # an integer beyond any float
-        return False
+FINITE = Range(-math.inf, math.inf)  # any finite number (an int of any size; not a bool)
 
 
 def check_number(range_: Range, value, name: str):
     """``range_.check`` for any value (text, arrays and huge integers included): the value, or
     an InputError naming ``name``, the range and the value."""
-    if not (_finite_number(value) and range_.contains(value)):
+    if not range_.contains(value):  # False for text, arrays, bools, NaN and infinities
         kind = "an integer" if range_.integer else "a number"
         raise InputError(f"{name} must be {kind} in {range_.text()}, got {describe(value)}")
     return range_.check(value, name)
@@ -474,7 +468,7 @@ def configuration_structure(conf: dict, path) -> StructuralResonance | None:
     if not isinstance(d, dict):
         raise InputError(f"{what} must be null or a JSON object {{frequency_hz, damping, coupling}}, got {describe(d)}")
     for key, value in d.items():
-        if not _finite_number(value):
+        if not FINITE.contains(value):
             raise InputError(f"{what}.{key} must be a finite number, got {describe(value)}")
     try:
         return StructuralResonance(**d)

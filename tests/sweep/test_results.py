@@ -53,12 +53,18 @@ def test_a_case_run_again_appends_a_row_and_the_last_row_counts(tmp_path):
     assert ResultsTable(table.path, cases).resume() == {case_id(cases[0])}
 
 
-def test_an_incomplete_last_line_is_ignored_and_truncated(tmp_path):
-    cases = parse_grid({"magnitude": [12.0, 13.0]})
+def _with_one_ok_row(tmp_path, cases) -> ResultsTable:
+    """A results file holding the ok row of the first case (the start of the edits below)."""
     table = ResultsTable(tmp_path / "results.csv", cases)
     table.open()
     table.add(ok_row(cases[0]))
     table.close()
+    return table
+
+
+def test_an_incomplete_last_line_is_ignored_and_truncated(tmp_path):
+    cases = parse_grid({"magnitude": [12.0, 13.0]})
+    table = _with_one_ok_row(tmp_path, cases)
     whole = table.path.read_bytes()
     torn = ok_row(cases[1])
     table.path.write_bytes(whole + _line(torn)[:40])  # a crash in the middle of a write
@@ -90,10 +96,7 @@ def _line(row):
 ])
 def test_edited_rows_are_refused_naming_the_line(tmp_path, edit, message):
     cases = parse_grid({"magnitude": [12.0]})
-    table = ResultsTable(tmp_path / "results.csv", cases)
-    table.open()
-    table.add(ok_row(cases[0]))
-    table.close()
+    table = _with_one_ok_row(tmp_path, cases)
     table.path.write_text(edit(table.path.read_text()))
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.")):
         ResultsTable(table.path, cases).resume()
@@ -101,10 +104,7 @@ def test_edited_rows_are_refused_naming_the_line(tmp_path, edit, message):
 
 def test_a_byte_order_mark_crlf_and_other_columns_are_accepted_and_kept(tmp_path):
     cases = parse_grid({"magnitude": [12.0, 13.0]})
-    table = ResultsTable(tmp_path / "results.csv", cases)
-    table.open()
-    table.add(ok_row(cases[0]))
-    table.close()
+    table = _with_one_ok_row(tmp_path, cases)
     lines = table.path.read_text().splitlines()
     text = "\r\n".join([lines[0] + ",notes", lines[1] + ",seen by me"]) + "\r\n"
     table.path.write_bytes(b"\xef\xbb\xbf" + text.encode())  # as a spreadsheet saves it
