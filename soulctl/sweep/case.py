@@ -75,6 +75,12 @@ def failed_row(case: dict, reason: str) -> dict:
             "reason": reason, "run_seconds": 0.0, "soulctl_version": __version__}
 
 
+def optimisation_period_s(duration_s: float) -> float:
+    """The update period of a case's gain optimisation: half its duration (two updates), at
+    most the paper's 1 s."""
+    return min(1.0, duration_s / 2)
+
+
 def _finished(**metrics) -> dict:
     """The status and metrics of a case that ran: 'ok' with every metric, else 'failed' (a run
     too short for a metric has none, and an ok row always has all of them)."""
@@ -100,8 +106,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 m = result.metrics
                 row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
-            # MGM updates every half of the duration (at most the paper's 1 s): two updates
-            period = min(1.0, p["duration"] / 2)
+            period = optimisation_period_s(p["duration"])
             result = optimize(OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period,
                                               measure_s=p["duration"]), cache,
                               calibration=calibration)

@@ -27,7 +27,7 @@ from ..control.trial import gain_groups
 from ..errors import InputError
 from ..loop.optimize import OGTL_SETTLING_PERIODS, TRIAL_VALUES, OptimizeRequest
 from ..loop.run import closing_frames
-from .case import DEFAULTS, observation_for
+from .case import DEFAULTS, observation_for, optimisation_period_s
 
 SOURCE = "bench/results/frame_cost.json (bench/bench_frame_cost.py)"
 # (binning, oversampling): (CPU ms per frame, CPU s per case, CPU s per calibration, cold), measured
@@ -101,7 +101,7 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
     rate = obs.frame_rate_hz
     n = max(1, round(p["duration"] * rate))
     if p["gain_method"] != "default":
-        period = max(1, round(min(1.0, p["duration"] / 2) * rate))  # as case.run_case asks
+        period = max(1, round(optimisation_period_s(p["duration"]) * rate))
         n_close = closing_frames(rate) + period // 2  # stretched to an update boundary: half a period on average
         if p["gain_method"] == "mgm":
             n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n
