@@ -16,6 +16,7 @@ from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..loop.metrics import BANDS
 from ..observation import Observation, observation_for_magnitude
+from ..loop.auxloops import summary as aux_summary
 from ..optics.cache import ArrayCache
 from .configure import parse_magnitude
 from .numbers import number
@@ -38,9 +39,13 @@ VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration 
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(ranges.OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
-PERIOD = typer.Option(1.0, "--period", parser=number(ranges.PERIOD_S), metavar="S", help="Update period of MGM and OGTL (the paper: 1 s); MGM needs 4 Welch segments of >= 64 frames.")
+PERIOD = typer.Option(None, "--period", parser=number(ranges.PERIOD_S), metavar="S",
+                      help="Update period of MGM and OGTL (default: the paper's 1 s, longer where the frame rate needs it: "
+                           "MGM needs 4 Welch segments of >= 64 frames).")
 PROBE_MODE = typer.Option(30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes).")
-PROBE_AMPLITUDE = typer.Option(20.0, "--probe-amplitude", parser=number(ranges.PROBE_AMPLITUDE_NM), metavar="NM", help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}).")
+PROBE_AMPLITUDE = typer.Option(None, "--probe-amplitude", parser=number(ranges.PROBE_AMPLITUDE_NM), metavar="NM",
+                               help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}; default: 20 nm, more where the "
+                                    "WFS noise needs it for a reliable estimate, at most 80 nm).")
 PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", parser=number(ranges.PROBE_FREQUENCY_HZ), metavar="HZ",
                                help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).")
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
@@ -99,3 +104,20 @@ def quantity_table(title: str) -> Table:
     t.add_column("quantity")
     t.add_column("value", justify="right")
     return t
+
+
+def aux_rows(telemetry) -> list[tuple[str, str]]:
+    """Table rows of what the auxiliary loops did (``loop.auxloops.summary``)."""
+    s = aux_summary({name: telemetry.aux_arrays(name) for name in telemetry.aux})
+    rows = []
+    if "ogtl" in s:
+        o = s["ogtl"]
+        rows.append(("OGTL probe (mode, amplitude, frequency)", f"{o['probe_mode']}, {o['probe_amplitude_nm']:.3g} nm, {o['probe_frequency_hz']:.4g} Hz"))
+        rows.append(("OGTL updates (k bounded to 1..k_max)", f"{o['updates']} (k_max {o['k_max']:.3g}): "
+                     + ", ".join(f"{n} {name}" for name, n in o["statuses"].items())))
+    if "mgm" in s:
+        rows.append(("MGM updates (noise-dominated modes, last)", f"{s['mgm']['updates']} ({s['mgm']['noise_dominated_modes_last']})"))
+    if "safety" in s:
+        f = s["safety"]
+        rows.append(("safety net: restores of the last good gains and k", f"{f['restores']}" + (" (could not recover)" if f["gave_up"] else "")))
+    return rows

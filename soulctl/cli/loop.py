@@ -26,7 +26,7 @@ from ..plots.loop import LOOP_FIGURES, write_loop_figures
 from ..ranges import DURATION_S, LOOP_GAIN, OVERSAMPLING
 from .configure import parse_magnitude
 from . import common
-from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, PERIOD,
+from .common import (aux_rows, aux_summary, BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, PERIOD,
                      PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
                      check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
 from .numbers import number
@@ -95,6 +95,7 @@ def _result_dict(result) -> dict:
         d["auxiliary_loops"] = sorted(result.telemetry.aux)
         d["final_gains"] = result.final_gains.tolist()
         d["final_sensitivity"] = result.final_sensitivity
+        d["auxiliary_summary"] = aux_summary({name: result.telemetry.aux_arrays(name) for name in result.telemetry.aux})
     return d
 
 
@@ -127,6 +128,8 @@ def _render(result, console: Console) -> None:
         t.add_row("final gains Tip / Tilt / 3-120 / 121-last", f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / "
                   + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"))
         t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
+        for label, text in aux_rows(result.telemetry):
+            t.add_row(label, text)
     t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s" if result.seconds > 0 else "n/a")
     console.print(t)
     for note in result.notes:
@@ -153,9 +156,9 @@ def run_cmd(
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
-    period: float = PERIOD,
+    period: float | None = PERIOD,
     probe_mode: int = PROBE_MODE,
-    probe_amplitude: float = PROBE_AMPLITUDE,
+    probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
     telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),

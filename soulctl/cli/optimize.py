@@ -27,7 +27,7 @@ from ..plots.gains import gain_figure_names, write_gain_figures
 from ..observation import TT_CONTROLS
 from ..ranges import MEASURE_S, OPTIMISATION_S, OVERSAMPLING, PERIOD_S, SEQUENCE_S
 from . import common
-from .common import (BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE,
+from .common import (aux_rows, aux_summary, BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE,
                      PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
                      check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
 from .loop import gain_file_input, observation_from, parse_gains
@@ -39,7 +39,7 @@ app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error
 METHOD_CHOICES = METHODS + ("both",)
 
 
-def probe_settings(mode: int, amplitude: float, frequency: float | None) -> OgtlSettings:
+def probe_settings(mode: int, amplitude: float | None, frequency: float | None) -> OgtlSettings:
     """The OGTL probe of the --probe-* options (checked by OgtlSettings)."""
     return OgtlSettings(mode=mode, amplitude_nm=amplitude, frequency_hz=frequency)
 
@@ -71,6 +71,8 @@ def _result_dict(result: OptimizeResult) -> dict:
         "optical_gain_estimate": float(ogtl["optical_gain"][-1]) if len(ogtl.get("optical_gain", [])) else None,
         "trial_best": [float(g) for g in tm.aux_arrays("trial").get("best", []) if math.isfinite(g)] if r.method == "trial" else None,
         "mgm_updates": len(tm.aux.get("mgm", [])),
+        "safety_restores": result.safety_events,
+        "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
     }
 
 
@@ -94,6 +96,8 @@ def _render(results: dict[str, OptimizeResult], console: Console) -> None:
                   *[_group_text(group_summary(x.gains)[i]) for x in results.values()])
     t.add_row("gains Tip / Tilt", *[f"{x.gains[0]:.3f} / {x.gains[1]:.3f}" for x in results.values()])
     t.add_row("slope sensitivity k", *[f"{x.loop.rtc_parameters.sensitivity:.3f}" if x.request.ogtl else "1 (no OGTL)" for x in results.values()])
+    for label, _ in aux_rows(first.loop.telemetry):
+        t.add_row(label, *[dict(aux_rows(x.loop.telemetry)).get(label, "-") for x in results.values()])
     t.add_row("simulated / wall time [s]", *[f"{x.loop.frame / obs.frame_rate_hz:.1f} / {x.seconds:.0f}" for x in results.values()])
     console.print(t)
 
@@ -137,12 +141,12 @@ def gains_cmd(
     wind: float = WIND,
     L0: float = OUTER_SCALE,
     duration: float = typer.Option(5.0, "--duration", metavar="S", parser=number(OPTIMISATION_S), help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()})."),
-    period: float = PERIOD,
+    period: float | None = PERIOD,
     measure: float = typer.Option(0.5, "--measure", metavar="S", parser=number(MEASURE_S), help="Simulated time measured before and after the optimisation."),
     sequence: float = typer.Option(0.25, "--sequence", metavar="S", parser=number(SEQUENCE_S), help="Trial-and-error: one closed-loop sequence per gain (20 % settling)."),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
     probe_mode: int = PROBE_MODE,
-    probe_amplitude: float = PROBE_AMPLITUDE,
+    probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
     tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."),
@@ -182,7 +186,8 @@ def gains_cmd(
     OVERSAMPLING.check(oversampling, "--oversampling")
     for value, option, accepted in ((duration, "--duration", OPTIMISATION_S), (period, "--period", PERIOD_S),
                                     (measure, "--measure", MEASURE_S), (sequence, "--sequence", SEQUENCE_S)):
-        accepted.check(value, option)
+        if value is not None:
+            accepted.check(value, option)
     probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
     loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
     vib = vibration_spectrum(no_vibrations, vibrations)

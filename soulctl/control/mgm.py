@@ -33,6 +33,16 @@ Choices where the paper is silent:
   iterations as bring that bracket below ``REL_TOL * upper_i`` (13 for the default grid).
 * J is summed over the Welch frequencies without the DC bin and without the factor df (it does
   not move the minimum).
+* Noise-dominated modes (``noise_floor``, ``noise_dominated``): the WFS noise is white, so the
+  POL PSD's floor, its median over the top quarter of the band (``FLOOR_BAND``, where the
+  turbulence of every mode has fallen by decades), is the mode's noise level.  A mode whose
+  POL power above that floor is below the noise's over the band (SNR < 1) gets at least the
+  loop gain ``NOISE_LOOP_GAIN`` (g chi = 0.05, capped at the upper limit).  Why: the signal of
+  such a mode is red and lives in the lowest Welch bins; with the short segments of a short
+  window (64 frames at 250 Hz: 3.9 Hz bins) J's minimum falls to g = 0, the lower edge of the
+  range, in 96-100 % of 250-frame windows for SNR 0.05-0.9, where the true optimum is g chi =
+  0.02-0.11 and g = 0 leaves 2-9 times its residual; g chi = 0.05 stays within 1.4 times it
+  over that SNR range, for delays of 1.5-3.5 frames (docs/physics.md, tests/control/test_mgm.py).
 """
 
 from __future__ import annotations
@@ -50,6 +60,8 @@ from .transfer import Loop, Plant, max_stable_gain
 UNBOUNDED_LOOP_GAIN = 10.0  # g chi of a loop with no finite maximum stable gain
 REL_TOL = 1e-4  # tolerance of the refined gain, relative to the upper limit
 MIN_SEGMENTS = 4  # Welch segments a window must hold (50 % overlap)
+FLOOR_BAND = 0.75  # the noise floor: the PSD's median above this fraction of Nyquist
+NOISE_LOOP_GAIN = 0.05  # g chi at least, for a noise-dominated mode
 _CHUNK_ELEMENTS = 131_072  # float64 elements per (modes, gains, frequencies) temporary: 1 MB, cache-sized
 _INVPHI = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618..., the golden-section ratio
 
@@ -244,6 +256,21 @@ def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid) -> np.ndarray:
     return np.clip(np.where(better, g_ref, g_grid), 0.0, upper)
 
 
+def noise_floor(psd, f, rate_hz: float) -> np.ndarray:
+    """Per mode, the white-noise level of the POL PSD: its median over f >= FLOOR_BAND x Nyquist."""
+    psd = np.asarray(psd, dtype=float)
+    top = np.asarray(f) >= FLOOR_BAND * 0.5 * rate_hz
+    return np.median(psd[:, top], axis=1) if top.any() else np.zeros(psd.shape[0])
+
+
+def noise_dominated(psd, floor) -> np.ndarray:
+    """Per mode, True when the POL power above the noise floor, sum max(Phi - floor, 0), is below
+    the noise's over the band, floor x F."""
+    psd = np.asarray(psd, dtype=float)
+    signal = np.sum(np.maximum(psd - floor[:, None], 0.0), axis=1)
+    return signal < floor * psd.shape[1]
+
+
 def update_gains(previous, optimum, settings: MgmSettings) -> np.ndarray:
     """g_RTC(kappa) = (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa) (paper, Eq. gainUpdate)."""
     previous = np.asarray(previous, dtype=float)
@@ -288,13 +315,17 @@ class ModalGainMachine:
 
     def optimum(self, pol) -> tuple[np.ndarray, dict]:
         """(g_hat, info) from the POL series pol (frames, n_modes); info holds f (Hz), psd
-        (n_modes, F) and upper (the gain limits)."""
+        (n_modes, F), upper (the gain limits), noise_floor (per mode) and noise_dominated (the
+        modes given at least NOISE_LOOP_GAIN / chi)."""
         pol = np.asarray(pol, dtype=float)
         if pol.ndim != 2 or pol.shape[1] != self.n_modes:
             raise InputError(f"POL telemetry must be (frames, {self.n_modes}) for {self.n_modes} modes, got shape {pol.shape}")
         f, psd = pol_psd(pol, self.rate_hz, self.settings)
         gains = optimal_gains(psd, self.open_loops, self.upper, self.settings.grid)
-        return gains, {"f": f, "psd": psd, "upper": self.upper}
+        floor = noise_floor(psd, f, self.rate_hz)
+        noisy = noise_dominated(psd, floor)
+        gains = np.where(noisy, np.maximum(gains, np.minimum(NOISE_LOOP_GAIN / self.chi, self.upper)), gains)
+        return gains, {"f": f, "psd": psd, "upper": self.upper, "noise_floor": floor, "noise_dominated": noisy}
 
     def step(self, previous_gains, pol) -> np.ndarray:
         """New RTC gains: Eq. gainUpdate from the previous gains and the optimum of pol."""

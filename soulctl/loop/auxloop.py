@@ -7,8 +7,9 @@ The closed loop knows only this interface:
 * :class:`TelemetryWindow` - the last frames' records, read-only, with the gains and the slope
   sensitivity k that were in force during them;
 * :class:`RtcParameters` - what a task may write: the modal gains (the diagonal of Delta), the
-  slope sensitivity k (the RTC multiplies the slopes by k before reconstruction) and a modal
-  probe (a sinusoid the RTC adds to one mode's commands, as SOUL's disturbance injection);
+  slope sensitivity k (the RTC multiplies the slopes by k before reconstruction), a modal
+  probe (a sinusoid the RTC adds to one mode's commands, as SOUL's disturbance injection) and
+  a reset of the RTC's state (the loop opened and closed again);
 * :class:`AuxLoop` - ``start`` once before the first frame, ``update`` every period; ``update``
   returns a record (numbers or arrays) stored in the telemetry as a time series.
 
@@ -76,6 +77,7 @@ class RtcParameters:
         self._apply_gains = apply_gains
         self.sensitivity = float(sensitivity)
         self.probe: ModalProbe | None = None
+        self.reset_requested = False  # the loop zeroes the RTC's state before the next frame
 
     @property
     def gains(self) -> np.ndarray:
@@ -93,6 +95,11 @@ class RtcParameters:
         if not (math.isfinite(k) and lo <= k <= hi):
             raise InputError(f"slope sensitivity k must be in {lo:g}..{hi:g}, got {k:g}")
         self.sensitivity = float(k)
+
+    def request_reset(self) -> None:
+        """Open the loop and close it again from the next frame: the RTC's state zeta is set
+        to zero (the commands restart from a flat mirror, which the delay line then reaches)."""
+        self.reset_requested = True
 
     def set_probe(self, probe: ModalProbe | None) -> None:
         if probe is not None and not (0 <= probe.mode < self.n_modes):

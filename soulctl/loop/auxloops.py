@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -26,53 +27,106 @@ from .metrics import pseudo_open_loop
 
 
 class OgtlTask(AuxLoop):
+    """OGTL (``control.ogtl``): the probe from ``start``, one k update per period with the
+    reliability, bound, rate, spiral and growth rules; ``k_max`` the upper bound of k (1 /
+    gamma_probe at the worst seeing, from the task's builder); ``amplitude_nm`` the probe's
+    amplitude when the settings leave it to the operating point."""
+
     name = "ogtl"
 
-    def __init__(self, period_frames: int, settings: ogtl.OgtlSettings = ogtl.OgtlSettings()):
+    def __init__(self, period_frames: int, settings: ogtl.OgtlSettings = ogtl.OgtlSettings(),
+                 k_max: float = ogtl.SENSITIVITY_RANGE[1], amplitude_nm: float | None = None):
         super().__init__(period_frames)
         self.settings = settings
+        self.k_max = float(min(k_max, ogtl.SENSITIVITY_RANGE[1]))
+        self.amplitude_nm = settings.amplitude_nm or amplitude_nm or ogtl.PROBE_AMPLITUDE_NM
         self.frequency_hz = math.nan
-        self._commands_rms: float | None = None  # of the previous window (the hold rule)
+        self.step_scale = 1.0  # the safety net halves it after a recovery
+        self._commands_rms: float | None = None  # of the previous window (the growth rule)
+        self.chi_now: float | None = None  # the latest reliable chi of the probed mode, at the k it set
+        self._last: tuple[float, float] | None = None  # (k, chi_hat) of the last reliable estimate
+        self.ceiling = math.inf  # k's ceiling once a spiral was seen (``ogtl.spiralling``)
 
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
         self.frequency_hz = self.settings.probe_frequency(rate_hz)
-        rtc.set_probe(ModalProbe(self.settings.mode - 1, self.settings.amplitude_nm, self.frequency_hz))
+        rtc.set_probe(ModalProbe(self.settings.mode - 1, self.amplitude_nm, self.frequency_hz))
+
+    def damp(self) -> None:
+        self.step_scale *= 0.5
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         m = self.settings.mode - 1
-        chi = ogtl.optical_gain_estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz,
-                                         window.rate_hz, window.first_frame)
-        k = ogtl.updated_sensitivity(window.sensitivity, chi, self.settings.gain)
+        est = ogtl.estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz,
+                            window.rate_hz, window.first_frame)
         others = np.arange(window.command_modes.shape[1]) != m  # the probe is not the loop's motion
         rms = float(np.sqrt(np.mean(window.command_modes[:, others] ** 2)))
-        k, held = ogtl.held_sensitivity(window.sensitivity, k, rms, self._commands_rms, self.settings.hold_growth)
+        growing = ogtl.commands_growing(rms, self._commands_rms, self.settings.hold_growth)
         self._commands_rms = rms
+        settings = dataclasses.replace(self.settings, gain=self.settings.gain * self.step_scale,
+                                       max_step=1.0 + (self.settings.max_step - 1.0) * self.step_scale)
+        k, status = ogtl.next_sensitivity(window.sensitivity, est, settings, min(self.k_max, self.ceiling), growing)
+        reliable = status not in (ogtl.LOW_SNR, ogtl.NO_ESTIMATE)
+        if reliable and ogtl.spiralling(window.sensitivity, est.chi, self._last):
+            k, status = self._last[0], ogtl.SPIRAL
+            self.ceiling = k  # k is not raised past the value before the spiral again
+        elif reliable:
+            self._last = (window.sensitivity, est.chi)
+        if reliable:
+            self.chi_now = est.chi * k / window.sensitivity
+        elif self.chi_now is not None:
+            self.chi_now *= k / window.sensitivity
         rtc.set_sensitivity(k)
-        return {"chi": chi, "optical_gain": chi / window.sensitivity, "sensitivity": k, "held": held}
+        return {"chi": est.chi, "chi_sigma": est.sigma, "snr": est.snr, "optical_gain": est.chi / window.sensitivity,
+                "sensitivity": k, "status": status, "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
+                "mode": self.settings.mode, "amplitude_nm": self.amplitude_nm, "frequency_hz": self.frequency_hz, "k_max": self.k_max,
+                "k_ceiling": min(self.k_max, self.ceiling)}
 
 
 class MgmTask(AuxLoop):
     """MGM on the window of each period.  ``chi``: the optical gains chi_i of the plant model
     (Eq. plant with gamma k): with OGTL active the optical-gain table normalised to the probed
-    mode (OGTL keeps that one at 1), otherwise the table times the fixed k."""
+    mode (OGTL keeps that one at 1), otherwise the table times the fixed k.
+
+    With ``ogtl`` (the run's OGTL task), the model is scaled by what OGTL knows of the probed
+    mode: its latest reliable chi at the current k, or, before it has one (a noise-dominated
+    loop where OGTL holds k), ``probe_gain`` x k, the table's gamma of the probed mode:
+    chi_i = chi_model,i x scale.  The safety net's ``damp`` halves rho."""
 
     name = "mgm"
 
-    def __init__(self, period_frames: int, machine: mgm.ModalGainMachine):
+    def __init__(self, period_frames: int, machine: mgm.ModalGainMachine, ogtl: OgtlTask | None = None, probe_gain: float = 1.0):
         super().__init__(period_frames)
         self.machine = machine
+        self.ogtl = ogtl
+        self.probe_gain = float(probe_gain)
+        self.rho_scale = 1.0
+
+    def damp(self) -> None:
+        self.rho_scale *= 0.5
+
+    def chi_scale(self, window_k: float, k_now: float) -> float:
+        """chi of the probed mode during a window at ``window_k``, relative to the model's (1
+        without OGTL); OGTL's ``chi_now`` is at ``k_now`` (it has run for this update)."""
+        if self.ogtl is None:
+            return 1.0
+        if self.ogtl.chi_now is not None:
+            return self.ogtl.chi_now * window_k / k_now
+        return self.probe_gain * window_k
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         n, _ = fractional_taps(window.delay_frames)
         usable = window.frames - n - 1  # the first n + 1 frames lack their commands
         if usable < mgm.min_frames(self.machine.settings):
             return {}
-        pol = pseudo_open_loop(window.measured_modes / self.machine.chi, window.command_modes, window.delay_frames,
+        scale = self.chi_scale(window.sensitivity, rtc.sensitivity)
+        pol = pseudo_open_loop(window.measured_modes / (self.machine.chi * scale), window.command_modes, window.delay_frames,
                                self.machine.structure)
-        optimum, _ = self.machine.optimum(pol[n + 1 :])
-        gains = mgm.update_gains(window.gains, optimum, self.machine.settings) * (window.sensitivity / rtc.sensitivity)
+        optimum, info = self.machine.optimum(pol[n + 1 :])
+        optimum = optimum / scale
+        settings = dataclasses.replace(self.machine.settings, rho=self.machine.settings.rho * self.rho_scale)
+        gains = mgm.update_gains(window.gains, optimum, settings) * (window.sensitivity / rtc.sensitivity)
         rtc.set_gains(gains)
-        return {"gains": gains, "optimum": optimum}
+        return {"gains": gains, "optimum": optimum, "chi_scale": scale, "noise_dominated": int(np.sum(info["noise_dominated"]))}
 
 
 class TrialAndErrorTask(AuxLoop):
@@ -91,16 +145,29 @@ class TrialAndErrorTask(AuxLoop):
         self.measure = measure
         self._group, self._index = 0, 0
         self._merits: list[float] = []
+        self._failed = False
         self.best: list[float] = []
 
     @property
     def done(self) -> bool:
         return self._group >= len(self.groups)
 
+    def damp(self) -> None:
+        """The safety net restored the gains during this sequence: its gain and the scan's higher
+        ones score as the worst, and the group ends with the best of the others."""
+        self._failed = True
+
     def _set_trial(self, rtc: RtcParameters) -> None:
-        g = rtc.gains
+        g = self._with_best(rtc.gains)
         g[self.groups[self._group][1]] = self.scans[self._group][self._index]
         rtc.set_gains(g)
+
+    def _with_best(self, gains: np.ndarray) -> np.ndarray:
+        """``gains`` with the groups already scanned at their best (a restore by the safety net
+        may have set older gains)."""
+        for (_, modes), best in zip(self.groups, self.best):
+            gains[modes] = best
+        return gains
 
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
         self._set_trial(rtc)
@@ -110,18 +177,22 @@ class TrialAndErrorTask(AuxLoop):
             return {}
         name, modes = self.groups[self._group]
         measured = window.measured_modes[-self.measure :, modes]
-        merit = float(np.sqrt(np.mean(np.sum(measured**2, axis=1))))
-        gain = float(self.scans[self._group][self._index])
-        self._merits.append(merit)
-        record = {"group": self._group, "gain": gain, "merit": merit, "best": math.nan}
-        self._index += 1
-        if self._index == len(self.scans[self._group]):
-            best = trial.best_gain(self.scans[self._group], self._merits)
+        scan = self.scans[self._group]
+        gain = float(scan[self._index])
+        if self._failed:  # this gain and the higher ones of the scan score as the worst: the group ends
+            self._merits += [math.inf] * (len(scan) - self._index)
+            self._index = len(scan)
+        else:
+            self._merits.append(float(np.sqrt(np.mean(np.sum(measured**2, axis=1)))))
+            self._index += 1
+        self._failed = False
+        record = {"group": self._group, "gain": gain, "merit": self._merits[-1], "best": math.nan}
+        if self._index == len(scan):
+            # no finite merit: every gain failed, the group keeps what the safety net restored
+            best = trial.best_gain(scan, self._merits) if np.isfinite(self._merits).any() else float(np.mean(rtc.gains[modes]))
             self.best.append(best)
             record["best"] = best
-            g = rtc.gains
-            g[modes] = best
-            rtc.set_gains(g)
+            rtc.set_gains(self._with_best(rtc.gains))
             self._group, self._index, self._merits = self._group + 1, 0, []
         if not self.done and self._index < len(self.scans[self._group]):
             self._set_trial(rtc)
@@ -154,3 +225,138 @@ class LiveMetricsTask(AuxLoop):
         magnitude = self.reference_magnitude - 2.5 * math.log10(flux / self.reference_flux) if flux > 0 else math.nan
         return {"modal_rms_nm": rms, "strehl_estimate": math.exp(-((2 * math.pi * rms / self.wavelength_nm) ** 2)),
                 "magnitude_estimate": magnitude}
+
+
+class SafetyNet(AuxLoop):
+    """The RTC's safety net beside the optimisers.  Every period it measures, over the window
+    (the probed mode left out):
+
+    * r, the residual the WFS sees at unit sensitivity, sqrt(sum_i <(R s)_i^2>) / k;
+    * s, the RMS of the commands' frame-to-frame steps, sqrt(sum_i <(c_i(k) - c_i(k-1))^2>):
+      the noise the loop propagates and any oscillation (the turbulence is slow);
+    * c, the RMS of the commands of modes 3 and up, sqrt(sum_i <c_i^2>).
+
+    Per state of the RTC parameters (gains and k) it keeps their means.  The loop is in trouble
+    when r exceeds ``threshold`` (3) x the lowest state mean of r (a tripled residual; in a
+    healthy loop r moves by 2-3x from one check to the next with a strong vibration line), when
+    s jumps to ``STEP_JUMP`` (6) x the previous state's (an over-gained loop: one MGM update
+    changes a gain by at most ~3x), or when s or c grow to ``GROWTH`` (2) x their means over the
+    state's first checks (an instability at fixed parameters, or a runaway: a loop the PWFS has
+    lost grows in its commands while its WFS signal saturates and even falls).  On two checks
+    in trouble in a row (or one beyond twice a limit) the net opens the loop and closes it
+    again (the RTC's state reset: a loop the PWFS has lost does not find its way back by
+    itself) with the last good state's gains and k - a state is good when its mean r is within
+    ``GOOD`` of the lowest - halves the next steps of the ``tuned`` tasks (their ``damp``),
+    skips ``GRACE_CHECKS`` checks while the loop closes, and the optimisation continues.  After
+    ``give_up`` checks in a row in trouble it stops acting: the loop could not recover (the
+    simulation's divergence test then decides)."""
+
+    name = "safety"
+    GOOD = 1.25
+    MIN_CHECKS = 3  # checks a state needs before its means count
+    STEP_JUMP = 6.0
+    GROWTH = 2.0
+    GRACE_CHECKS = 2  # checks skipped after a restore, while the loop closes again
+
+    def __init__(self, period_frames: int, tuned: Sequence[AuxLoop] = (), threshold: float = 3.0, give_up: int = 20):
+        super().__init__(period_frames)
+        if not (threshold > 1 and give_up >= 1):
+            raise InputError(f"safety net: threshold must be > 1 and give_up >= 1, got {threshold!r} and {give_up!r}")
+        self.tuned = list(tuned)
+        self.threshold = float(threshold)
+        self.give_up = int(give_up)
+        self.best = math.inf  # the lowest state mean of r
+        self.good: tuple[np.ndarray, float] | None = None  # (gains, k) of the last good state
+        self._state: tuple[bytes, float] | None = None
+        self._sum, self._count = np.zeros(3), 0
+        self._start = np.full(3, math.inf)  # the state's means over its first MIN_CHECKS checks
+        self._previous_s = math.inf  # s's mean over the previous state
+        self._above = 0  # checks in a row in trouble
+        self._grace = 0  # checks left to skip
+        self.events = 0
+        self.gave_up = False
+
+    @staticmethod
+    def _measure(window: TelemetryWindow, rtc: RtcParameters) -> np.ndarray:
+        keep = np.ones(window.measured_modes.shape[1], dtype=bool)
+        if rtc.probe is not None:
+            keep[rtc.probe.mode] = False
+        c = window.command_modes[:, keep]
+        r = math.sqrt(float(np.sum(np.mean(window.measured_modes[:, keep] ** 2, axis=0)))) / window.sensitivity
+        s = math.sqrt(float(np.sum(np.mean(np.diff(c, axis=0) ** 2, axis=0))))
+        high = math.sqrt(float(np.sum(np.mean(c[:, 2:] ** 2, axis=0)))) if c.shape[1] > 2 else 0.0
+        return np.array([r, s, high])
+
+    def _enter(self, window: TelemetryWindow) -> None:
+        """Start the statistics of a new state (or carry on with the current one)."""
+        state = (window.gains.tobytes(), window.sensitivity)
+        if state == self._state:
+            return
+        if self._count:
+            self._previous_s = self._sum[1] / self._count
+        self._state, self._sum, self._count, self._start = state, np.zeros(3), 0, np.full(3, math.inf)
+
+    def _fold(self, x: np.ndarray, window: TelemetryWindow) -> None:
+        self._sum += x
+        self._count += 1
+        mean = self._sum / self._count
+        if self._count == self.MIN_CHECKS:
+            self._start = mean.copy()
+        if self._count >= self.MIN_CHECKS:
+            self.best = min(self.best, mean[0])
+            if mean[0] <= self.GOOD * self.best:
+                self.good = (window.gains, window.sensitivity)
+
+    def _trouble(self, x: np.ndarray) -> float:
+        """The largest ratio of a measure to its limit (> 1: in trouble)."""
+        ratios = (x[0] / (self.threshold * self.best), x[1] / (self.STEP_JUMP * self._previous_s),
+                  x[1] / (self.GROWTH * self._start[1]), x[2] / (self.GROWTH * self._start[2]))
+        return float(max(v for v in ratios if math.isfinite(v)) if any(math.isfinite(v) for v in ratios) else 0.0)
+
+    def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
+        if window.frames < 3:
+            return {}
+        if self._grace:  # the loop is closing again after a restore
+            self._grace -= 1
+            return {}
+        x = self._measure(window, rtc)
+        self._enter(window)
+        self._fold(x, window)
+        trouble = self._trouble(x)
+        self._above = self._above + 1 if trouble > 1 else 0
+        restored = 0
+        if not self.gave_up and self.good is not None and (self._above >= 2 or trouble > 2):
+            if self._above > self.give_up:
+                self.gave_up = True
+            else:
+                gains, k = self.good
+                rtc.set_gains(gains)
+                rtc.set_sensitivity(k)
+                rtc.request_reset()
+                for task in self.tuned:
+                    task.damp()
+                restored, self.events = 1, self.events + 1
+                self._grace, self._above, self._state, self._count = self.GRACE_CHECKS, 0, None, 0
+        return {"residual_nm": x[0], "steps_nm": x[1], "commands_nm": x[2], "residual_ref_nm": self.best if math.isfinite(self.best) else math.nan,
+                "trouble": trouble, "restored": restored, "gave_up": int(self.gave_up)}
+
+
+def summary(records: dict) -> dict:
+    """What the auxiliary loops did, from the telemetry's records (``Telemetry.aux_arrays`` per
+    task name): OGTL's probe, bound and update statuses; MGM's updates and noise-dominated
+    modes; the safety net's restores."""
+    out: dict = {}
+    og = records.get("ogtl", {})
+    if len(og.get("frame", [])):
+        status = og["status"].astype(int)
+        out["ogtl"] = {"updates": int(status.size), "probe_mode": int(og["mode"][-1]), "probe_amplitude_nm": float(og["amplitude_nm"][-1]),
+                       "probe_frequency_hz": float(og["frequency_hz"][-1]), "k_max": float(og["k_max"][-1]),
+                       "statuses": {ogtl.STATUS[i]: int(np.sum(status == i)) for i in np.unique(status)}}
+    mg = records.get("mgm", {})
+    if len(mg.get("frame", [])):
+        out["mgm"] = {"updates": int(len(mg["frame"])), "noise_dominated_modes_last": int(mg["noise_dominated"][-1])}
+    sf = records.get("safety", {})
+    if len(sf.get("frame", [])):
+        out["safety"] = {"restores": int(np.sum(sf["restored"])), "restored_at_frames": sf["frame"][sf["restored"] == 1].tolist(),
+                         "gave_up": bool(sf["gave_up"][-1])}
+    return out

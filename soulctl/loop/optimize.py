@@ -17,7 +17,7 @@ Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter are measured over
 reference correction level (0.8" seeing, the paper's choice), computed with the optical models
 and cached with the calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
 without, gamma_i times the fixed sensitivity k = 1.  OGTL starts from k = 1 once the loop is
-closed and has 4 updates to settle (log k within 6 % of its value) before anything is
+closed and settles (4 to 12 updates, until one moves log k by less than 0.1) before anything is
 measured, so that neither optimiser scans while k is still far from it.  (Starting it at
 1/gamma_30 of the table instead over-drove the loops whose real optical gain was higher than
 the table's - a 0.6" loop has a higher gamma than the 0.8" reference - and before the loop is
@@ -31,6 +31,7 @@ as long as the table holds.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -38,16 +39,19 @@ import numpy as np
 
 from ..control import mgm
 from ..control.delay import fractional_taps
+from ..control import ogtl as ogtl_model
 from ..control.ogtl import OgtlSettings
 from ..control.transfer import max_stable_gain
 from ..control.trial import gain_groups, scan_gains
+from ..disturbance.modal_psd import cutoff_hz, modal_psd
+from ..disturbance.turbulence import LAMBDA_REF_M, LBT_DIAMETER_M, TurbulenceTipTilt
 from ..errors import InputError
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
-from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, TrialAndErrorTask
+from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
 from .run import (RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop,
                   sampled_structure)
@@ -59,7 +63,12 @@ MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them set
 TRIAL_VALUES = 8  # gains per group
 TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
-OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement
+OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at least ...
+OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
+SETTLED_LOG_STEP = 0.1  # k has settled when its last update changed log k by less than this
+DEFAULT_PERIOD_S = 1.0  # the paper's update period, where the frame rate allows it (``default_period_s``)
+SAFETY_CHECK_S = 0.2  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
+SAFETY_CHECK_MIN_FRAMES = 10
 
 
 @dataclass(frozen=True)
@@ -67,15 +76,19 @@ class OptimizeRequest:
     run: RunRequest  # observation, conditions, initial gains, band, seed, ...
     method: str = "mgm"
     duration_s: float = 5.0  # MGM's optimisation phase
-    period_s: float = 1.0  # MGM's update period (the paper: 1 s)
+    period_s: float | None = None  # MGM's and OGTL's update period; None: ``default_period_s``
     ogtl: bool = True
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
     measure_s: float = 0.5  # before and after
     trial_sequence_s: float = 0.25  # one trial-and-error sequence (20 % of it settling)
-    chi_seeing_arcsec: float = 0.8
+    chi_seeing_arcsec: float | None = None  # the optical-gain table's seeing; None: the run's (``chi_seeing``)
     mgm_settings: mgm.MgmSettings | None = None  # None: segment from the period
 
     def __post_init__(self):
+        if self.period_s is None:
+            object.__setattr__(self, "period_s", default_period_s(self.run.observation, self.ogtl_settings))
+        if self.chi_seeing_arcsec is None:
+            object.__setattr__(self, "chi_seeing_arcsec", self.run.seeing_arcsec)
         if self.method not in METHODS:
             raise InputError(f"--method must be one of {', '.join(METHODS)}, got '{self.method}'")
         for name, option, accepted in (("duration_s", "--duration", OPTIMISATION_S), ("period_s", "--period", PERIOD_S),
@@ -101,6 +114,17 @@ class OptimizeRequest:
     def settings_for_rate(self, rate_hz: float) -> mgm.MgmSettings:
         """MGM settings for windows of one period (see ``period_settings``)."""
         return self.mgm_settings or period_settings(self.frames(self.period_s), self.run.observation)
+
+
+def default_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> float:
+    """The default update period of MGM and OGTL: the paper's 1 s, lengthened (to a whole 0.1 s)
+    where the frame rate needs more for MGM's 4 Welch segments of 64 frames after the frames
+    the delay leaves without commands, or for the probe's PROBE_MIN_CYCLES cycles."""
+    rate = observation.frame_rate_hz
+    n, _ = fractional_taps(observation.delay_frames)
+    need = mgm.min_frames(mgm.MgmSettings(segment=MIN_SEGMENT)) + n + 1
+    seconds = max(DEFAULT_PERIOD_S, need / rate, PROBE_MIN_CYCLES / settings.probe_frequency(rate))
+    return math.ceil(round(seconds * 10, 9)) / 10
 
 
 def check_probe(settings: OgtlSettings, observation, period_s: float) -> None:
@@ -158,6 +182,7 @@ class OptimizeResult:
     loop: ClosedLoop
     chi: np.ndarray | None
     diverged_at: int | None = None
+    safety_events: int = 0  # times the safety net restored the last good gains and k
     seconds: float = 0.0
     phases: dict = field(default_factory=dict)  # name -> (first frame, end frame)
 
@@ -208,40 +233,50 @@ class LiveOptimisers:
 
     mgm: bool = True
     ogtl: bool = True
-    period_s: float = 1.0
+    period_s: float | None = None  # None: ``default_period_s``
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
-    chi_seeing_arcsec: float = 0.8
+    chi_seeing_arcsec: float | None = None  # None: the run's seeing
 
     def check(self, observation, duration_s: float) -> None:
         """InputError for a period too short for MGM's PSDs, a run too short for one update
         after the loop has closed, or a probe beyond the modes."""
-        PERIOD_S.check(self.period_s, "--period")
+        period_s = self.period(observation)
+        PERIOD_S.check(period_s, "--period")
         if self.mgm:
             period_settings(self._frames(observation), observation)
         rate = observation.frame_rate_hz
         need = closing_frames(rate) + 2 * self._frames(observation)
         if need / rate > DURATION_S.hi:
-            raise InputError(f"--period {self.period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
+            raise InputError(f"--period {period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
                              f"the {DURATION_S.hi:g} s a run may last; shorten --period")
         if round(duration_s * rate) < need:
-            raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {self.period_s:g} s "
+            raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {period_s:g} s "
                              f"(the loop closes, then two updates), got {duration_s:g} s")
         if self.ogtl:
-            check_probe(self.ogtl_settings, observation, self.period_s)
+            check_probe(self.ogtl_settings, observation, period_s)
+
+    def period(self, observation) -> float:
+        """--period, or the default for the observation's frame rate (``default_period_s``)."""
+        return self.period_s if self.period_s is not None else default_period_s(observation, self.ogtl_settings)
 
     def _frames(self, observation) -> int:
-        return max(1, round(self.period_s * observation.frame_rate_hz))
+        return max(1, round(self.period(observation) * observation.frame_rate_hz))
 
-    def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, photons_per_frame: float):
+    def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, loop: ClosedLoop):
         obs = request.observation
         period = self._frames(obs)
-        chi = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, self.chi_seeing_arcsec)
-        tasks = [OgtlTask(period, self.ogtl_settings)] if self.ogtl else []
+        seeing = self.chi_seeing_arcsec or request.seeing_arcsec
+        chi = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, seeing)
+        sensor = loop.sensor
+        ogtl = ogtl_task(self.ogtl_settings, period, calibration, cache, sensor, seeing) if self.ogtl else None
+        tasks: list = [ogtl] if ogtl is not None else []
         if self.mgm:
-            settings = period_settings(period, obs)
-            tasks.append(MgmTask(period, mgm_machine(obs, request.structure, chi, settings, gains.forgetting)))
-        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, photons_per_frame))
-        initial = capped_gains(gains.per_mode(len(chi)), obs, request.structure, chi, gains.forgetting)
+            machine = mgm_machine(obs, request.structure, chi, period_settings(period, obs), gains.forgetting)
+            tasks.append(MgmTask(period, machine, ogtl, probe_gain(calibration, cache, self.ogtl_settings.mode, seeing)))
+        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, sensor.photons_per_frame))
+        tasks.append(safety_net(obs.frame_rate_hz, tasks))
+        worst = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, ogtl_model.WORST_SEEING_ARCSEC)
+        initial = initial_gains(gains, request, calibration, loop, chi, optical_gain_table(calibration, cache, request.seeing_arcsec), worst)
         return tasks, initial
 
 
@@ -256,6 +291,60 @@ def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, for
     return np.minimum(gains, fraction * limits)
 
 
+MODEL_SEGMENT = 8192  # frequency grid of the model PSD: fine enough for the lowest cut-offs (0.1 Hz at 1700 Hz)
+
+
+def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibration, loop: ClosedLoop, chi: np.ndarray,
+                  gamma: np.ndarray, chi_worst: np.ndarray) -> np.ndarray:
+    """The optimisers' starting gains from the operating point: the run's gains capped for
+    stability (``capped_gains``) at the larger of each mode's chi in the plant model and
+    ``chi_worst``, its chi at the worst seeing (with OGTL, gamma_i / gamma_probe grows as the
+    correction degrades: the low orders lose less optical gain than the probed mode), and by ``noise_aware_gains``, MGM's optimum on a model of the
+    loop's POL PSD: the turbulence of each mode at the run's seeing, L0 and wind, the
+    vibrations on Tip/Tilt, and the WFS noise of the operating point (``sensor.modal_noise_nm``
+    over ``gamma``, the optical gains the model expects at the run's seeing), for the modes whose noise dominates.  A bright
+    star keeps the design gains (lower gains there risk losing the PWFS's lock on a large
+    low-order excursion); a faint one starts at the gains its noise allows, so that OGTL
+    raising k towards chi = 1 cannot over-drive the noise."""
+    obs = request.observation
+    capped = capped_gains(gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting)
+    noise = loop.sensor.modal_noise_nm(calibration.reconstructor)
+    atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
+    model = noise_aware_gains(obs, request.structure, gains.forgetting, chi, calibration.basis.variance, atmosphere, noise / gamma,
+                              request.vibrations, 1.0 / loop.mas_per_nm_tt)
+    return np.minimum(capped, model)
+
+
+def noise_aware_gains(observation, structure, forgetting: float, chi: np.ndarray, basis_variance: np.ndarray,
+                      atmosphere: AtmosphereConfig, pol_noise_nm: np.ndarray, vibrations=None, nm_per_mas: float = 1.0) -> np.ndarray:
+    """MGM's optimum (Eq. cost) for each noise-dominated mode on the model POL PSD (inf for the
+    others: they keep their design gains), on a MODEL_SEGMENT grid, over the MGM range (margin
+    included).  A mode is noise-dominated when its turbulence's variance is below the noise's
+    (MGM's own rule, ``mgm.noise_dominated``).  The model: white noise of ``pol_noise_nm`` RMS per frame plus the
+    turbulence - for Tip/Tilt the frozen-flow Tip/Tilt PSD (``TurbulenceTipTilt`` at the
+    effective wind) and the vibrations' lines, in nm through ``nm_per_mas``; for the other modes
+    the layers' ``modal_psd`` weighted by their Cn^2 (basis variances in rad^2 at 500 nm for
+    r0 = 1 m)."""
+    rate = observation.frame_rate_hz
+    n = len(chi)
+    f = np.fft.rfftfreq(MODEL_SEGMENT, 1.0 / rate)[1:]
+    unit, ba = _unit_loops(observation, structure, forgetting, n)
+    L1 = mgm.unit_open_loops(unit, chi, observation.delay_frames, rate, f, ba)
+    upper = mgm.gain_limits(unit, chi, observation.delay_frames, rate, mgm.MgmSettings().margin, ba)
+    nm2 = np.asarray(basis_variance[:n]) * atmosphere.r0_m ** (-5.0 / 3.0) * (LAMBDA_REF_M * 1e9 / (2 * math.pi)) ** 2
+    modes = np.arange(1, n + 1)
+    psd = np.repeat((np.asarray(pol_noise_nm) ** 2 / (rate / 2))[:, None], f.size, axis=1)
+    for w, layer in zip(atmosphere.weights, atmosphere.layers):
+        psd[2:] += modal_psd(f, w * nm2[2:], cutoff_hz(modes[2:], layer.wind_speed_m_s, LBT_DIAMETER_M))
+    tt = TurbulenceTipTilt(atmosphere.seeing_arcsec, atmosphere.L0_m, atmosphere.effective_wind_speed_m_s).psd(f)
+    if vibrations is not None:
+        tt = tt + vibrations.psd(f)
+    psd[:2] += tt * nm_per_mas**2
+    g = mgm.optimal_gains(psd, L1, upper)
+    signal = np.sum(psd, axis=1) * (f[1] - f[0]) - np.asarray(pol_noise_nm) ** 2 * (f[-1] - f[0]) / (rate / 2)
+    return np.where(signal < np.asarray(pol_noise_nm) ** 2, g, np.inf)
+
+
 def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tuple[list, tuple | None]:
     """The optimisers' unit-gain filters per mode and the (b, a) of the structural resonance
     on Tip/Tilt when the frame rate samples it (else None)."""
@@ -264,6 +353,34 @@ def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tupl
     sampled = sampled_structure(structure, rate)
     ba = None if sampled is None else tuple(tuple(map(float, x)) for x in sampled.coefficients(rate))
     return unit, ba
+
+
+def ogtl_task(settings: OgtlSettings, period_frames: int, calibration: Calibration, cache: ArrayCache, sensor,
+              chi_seeing_arcsec: float = 0.8) -> OgtlTask:
+    """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
+    (the optical model's table), the probe's amplitude from the settings or, by default, from
+    the probed mode's WFS noise (``sensor.modal_noise_nm``) and its table gamma at the reference
+    seeing (``ogtl_model.default_amplitude``)."""
+    m = settings.mode - 1
+    worst = optical_gain_table(calibration, cache, ogtl_model.WORST_SEEING_ARCSEC)[m]
+    amplitude = settings.amplitude_nm
+    if amplitude is None:
+        gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)[m]
+        amplitude = ogtl_model.default_amplitude(float(sensor.modal_noise_nm(calibration.reconstructor)[m]), float(gamma), period_frames,
+                                           settings.min_snr)
+    return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude)
+
+
+def safety_net(rate_hz: float, tasks) -> SafetyNet:
+    """The safety net checking every SAFETY_CHECK_S (at least SAFETY_CHECK_MIN_FRAMES frames),
+    damping those of ``tasks`` that can be damped (OGTL, MGM, trial-and-error)."""
+    tuned = [t for t in tasks if t is not None and hasattr(t, "damp")]
+    return SafetyNet(max(SAFETY_CHECK_MIN_FRAMES, round(SAFETY_CHECK_S * rate_hz)), tuned)
+
+
+def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = 0.8) -> float:
+    """gamma of the probed mode in the reference table: MGM's chi scale before OGTL has a reliable estimate."""
+    return float(optical_gain_table(calibration, cache, seeing_arcsec)[probe_mode - 1])
 
 
 def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> np.ndarray:
@@ -279,6 +396,28 @@ def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int)
     return PhaseMetrics(psf.strehl, float(np.sqrt(np.mean(rms**2))), float(np.sqrt(np.mean(tt.var(axis=0)))))
 
 
+def _settled(records: list[dict]) -> bool:
+    """OGTL's k has settled: its last update moved log k by less than SETTLED_LOG_STEP."""
+    if not records:
+        return False
+    previous = records[-2]["sensitivity"] if len(records) > 1 else 1.0
+    return abs(math.log(records[-1]["sensitivity"] / previous)) < SETTLED_LOG_STEP
+
+
+def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayCache, chi: np.ndarray, forgetting: float,
+               ogtl: OgtlTask | None) -> tuple[MgmTask | TrialAndErrorTask, int]:
+    """The optimisation phase's task and its length in frames."""
+    obs = request.run.observation
+    if request.method == "mgm":
+        machine = mgm_machine(obs, request.run.structure, chi, request.settings_for_rate(obs.frame_rate_hz), forgetting)
+        gamma = probe_gain(calibration, cache, request.ogtl_settings.mode, request.chi_seeing_arcsec)
+        return MgmTask(request.frames(request.period_s), machine, ogtl, gamma), request.frames(request.duration_s)
+    sequence = request.frames(request.trial_sequence_s)
+    settle = max(1, sequence // 5)
+    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi), settle, sequence - settle)
+    return trial, sequence * sum(len(s) for s in trial.scans)
+
+
 def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None,
              calibration: Calibration | None = None) -> OptimizeResult:
     """Run the phases (see the module docstring).  ``progress(done, total)`` per frame;
@@ -290,26 +429,20 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     if not r.allow_unstable:
         check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)
-    n_modes = cal.basis.n_modes
     chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
-    if request.method == "mgm":
-        machine = mgm_machine(obs, r.structure, chi, request.settings_for_rate(obs.frame_rate_hz), gains.forgetting)
-        optimiser = MgmTask(request.frames(request.period_s), machine)
-        n_opt = request.frames(request.duration_s)
-    else:
-        sequence = request.frames(request.trial_sequence_s)
-        settle = max(1, sequence // 5)
-        optimiser = TrialAndErrorTask(n_modes, trial_scans(request, chi), settle, sequence - settle)
-        n_opt = sequence * sum(len(s) for s in optimiser.scans)
     atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
-    gains = LoopGains.from_modes(capped_gains(gains.per_mode(n_modes), obs, r.structure, chi, gains.forgetting), gains.forgetting)
     loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
+    worst = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, ogtl_model.WORST_SEEING_ARCSEC)
+    loop.set_gains(initial_gains(gains, r, cal, loop, chi, optical_gain_table(cal, cache, r.seeing_arcsec), worst))
     period = request.frames(request.period_s)
-    aux = [OgtlTask(period, request.ogtl_settings)] if request.ogtl else []
+    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, loop.sensor, request.chi_seeing_arcsec) if request.ogtl else None
+    optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl)
+    aux: list = [ogtl] if ogtl is not None else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
+    net = safety_net(obs.frame_rate_hz, aux + [optimiser])
     initial = loop.rtc_parameters.gains
     n_measure = request.frames(request.measure_s)
-    n_settle = OGTL_SETTLING_PERIODS * period if request.ogtl else 0
+    n_settle = OGTL_MAX_SETTLING_PERIODS * period if request.ogtl else 0  # at most
     # closing is stretched so that *before* ends on an update boundary: the optimiser starts
     # with OGTL's updates and MGM's windows are whole periods (tasks run when frame % period == 0)
     n_close = closing_frames(obs.frame_rate_hz)
@@ -332,17 +465,22 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     try:
         loop.run(n_close, progress=tick)
         result.phases["closing"] = (0, n_close)
-        for task in aux:
+        for task in aux + [net]:
             loop.add_aux_loop(task)
         if n_settle:
-            loop.run(n_settle, progress=tick)
+            for i in range(OGTL_MAX_SETTLING_PERIODS):
+                loop.run(period, progress=tick)
+                if i + 1 >= OGTL_SETTLING_PERIODS and _settled(loop.telemetry.aux["ogtl"]):
+                    break
             result.phases["settling"] = (n_close, loop.frame)
         start = loop.frame
         loop.run(n_measure, psf=psf_before, skip=skip, progress=tick)
         result.before = _phase_metrics(loop, psf_before, start + skip, loop.frame)
         result.phases["before"] = (start, loop.frame)
         start = loop.frame
+        loop.remove_aux_loop(net)  # the net acts after the optimiser in an update
         loop.add_aux_loop(optimiser)
+        loop.add_aux_loop(net)
         loop.run(n_opt, progress=tick)
         loop.remove_aux_loop(optimiser)
         result.phases["optimisation"] = (start, loop.frame)
@@ -354,5 +492,6 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     except LoopDiverged as e:
         result.diverged_at = e.frame
         result.gains = loop.rtc_parameters.gains
+    result.safety_events = net.events
     result.seconds = time.perf_counter() - t0
     return result

@@ -261,7 +261,7 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
                       seed=request.seed, structure=structure)
     n_close, start_aux = 0, None
     if aux is not None:
-        tasks, initial = aux(request, gains, cal, cache, loop.sensor.photons_per_frame)
+        tasks, initial = aux(request, gains, cal, cache, loop)
         loop.set_gains(initial)
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, closing_frames(obs.frame_rate_hz))

@@ -406,9 +406,12 @@ class ClosedLoop:
             record = aux.update(window, params)
             if record:
                 self.telemetry.aux[aux.name].append({"frame": self.frame, **record})
-        if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity:
+        if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity or params.reset_requested:
             self._parameters_since = self.frame
             self._record_gains()
+        if params.reset_requested:
+            self.rtc.reset()
+            params.reset_requested = False
 
     def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into

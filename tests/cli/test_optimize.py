@@ -114,7 +114,7 @@ def test_loop_run_with_mgm_and_ogtl_records_them_in_the_telemetry(tmp_path, caps
                            capsys, cache_dir)
     assert status == 0, err
     d = json.loads(out)
-    assert d["auxiliary_loops"] == ["metrics", "mgm", "ogtl"] and d["final_sensitivity"] > 1
+    assert d["auxiliary_loops"] == ["metrics", "mgm", "ogtl", "safety"] and d["final_sensitivity"] > 1
     arrays, _ = read_telemetry(h5)
     assert arrays["aux/mgm/gains"].shape == (3, 54) and arrays["aux/mgm/frame"].tolist() == [407, 814, 1221]
     assert arrays["aux/ogtl/sensitivity"].shape == (3,) and np.all(arrays["aux/ogtl/optical_gain"] > 0)

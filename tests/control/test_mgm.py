@@ -208,7 +208,7 @@ def test_machine_matches_single_modes_and_steps():
     pol = lfilter([1.0], [1.0, -0.995], rng.standard_normal((3000, 6)), axis=0) + rng.standard_normal((3000, 6))
     machine = ModalGainMachine(filters, chi, 2.0, 1700.0, structure=structure)
     g, info = machine.optimum(pol)
-    assert set(info) == {"f", "psd", "upper"} and info["psd"].shape == (6, 256)
+    assert set(info) == {"f", "psd", "upper", "noise_floor", "noise_dominated"} and info["psd"].shape == (6, 256)
     for i in (0, 1, 3, 5):  # Tip/Tilt keeps its resonance when alone as mode 0
         alone = ModalGainMachine([filters[i]], chi[i : i + 1], 2.0, 1700.0, structure=structure if i < 2 else None)
         assert alone.upper[0] == pytest.approx(machine.upper[i], rel=1e-12)
@@ -217,6 +217,50 @@ def test_machine_matches_single_modes_and_steps():
     np.testing.assert_allclose(machine.step(prev, pol), 0.5 * prev + 0.45 * g)
     with pytest.raises(InputError):
         machine.optimum(pol[:, :5])
+
+
+def test_noise_floor_is_the_white_noise_density():
+    """White noise of variance s^2 has the one-sided density s^2 / (rate / 2); a red signal
+    on top leaves the floor where it is (it has no power in the top quarter of the band)."""
+    rng = np.random.default_rng(5)
+    x, _ = disturbance(seed=1)
+    noise = 2.0 * rng.standard_normal((FRAMES, 1))
+    for pol in (noise, noise + x[:, None]):
+        f, psd = pol_psd(pol, RATE, MgmSettings())
+        assert mgm.noise_floor(psd, f, RATE)[0] == pytest.approx(4.0 / (RATE / 2), rel=0.1)
+
+
+@pytest.mark.parametrize("snr, dominated", [(0.0, True), (0.3, True), (0.6, True), (2.0, False), (10.0, False)])
+def test_noise_dominated_is_signal_power_below_the_noise(snr, dominated):
+    """snr: the variance of the red (AR) signal over the noise's; the boundary is 1."""
+    rng = np.random.default_rng(6)
+    x, _ = disturbance(seed=2)
+    noise = rng.standard_normal(FRAMES)
+    pol = (np.sqrt(snr) * x / x.std() + noise)[:, None]
+    f, psd = pol_psd(pol, RATE, MgmSettings())
+    assert mgm.noise_dominated(psd, mgm.noise_floor(psd, f, RATE))[0] == dominated
+
+
+@pytest.mark.parametrize("snr", [0.1, 0.5, 0.9])
+def test_a_noise_dominated_mode_keeps_a_floor_gain_that_beats_the_short_windows_zero(snr):
+    """A signal below the noise, MGM on 250-frame windows (64-frame Welch segments): J's minimum
+    falls to g = 0 (the signal is in the lowest bins), the noise rule lifts it to g chi =
+    NOISE_LOOP_GAIN; the brute-force residual there is within 1.5 times the best gain's, at
+    g = 0 more than twice it."""
+    x, _ = disturbance(seed=0)
+    noise = np.random.default_rng(7).standard_normal(FRAMES) * 3.0
+    x = x / x.std() * np.sqrt(snr) * 3.0 / CHI  # signal variance snr x the noise's (in POL units)
+    machine = ModalGainMachine([Filter.leaky(0.99, 1.0)], np.array([CHI]), 1.5, RATE, MgmSettings(segment=64))
+    pol = x + noise / CHI
+    f, psd = pol_psd(pol[:250, None], RATE, machine.settings)
+    assert optimal_gains(psd, machine.open_loops, machine.upper)[0] < 0.01 * machine.upper[0]  # the edge
+    g_hat, info = machine.optimum(pol[:250, None])
+    assert info["noise_dominated"][0] and g_hat[0] == pytest.approx(mgm.NOISE_LOOP_GAIN / CHI)
+    gains = np.append(np.linspace(0.0, 0.2, 41) * machine.upper[0], g_hat[0])
+    m, y = closed_loop(x, noise, CHI, gains, 1.5, 0.99)
+    variance = np.var((x[:, None] - y)[SETTLE:], axis=0)
+    assert variance[-1] <= 1.5 * variance[:-1].min()
+    assert variance[0] > 2 * variance[:-1].min()
 
 
 @pytest.mark.parametrize("kwargs", [dict(nu=0.0), dict(nu=1.1), dict(rho=0.0), dict(rho=1.5), dict(margin=-0.1),

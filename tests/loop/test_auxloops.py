@@ -9,8 +9,8 @@ import pytest
 
 from soulctl.control.trial import scan_gains
 from soulctl.loop.auxloop import AuxLoop
-from soulctl.loop.auxloops import OgtlTask, TrialAndErrorTask
-from soulctl.loop.simulation import ClosedLoop, LoopGains
+from soulctl.loop.auxloops import OgtlTask, SafetyNet, TrialAndErrorTask
+from soulctl.loop.simulation import ClosedLoop, LoopDiverged, LoopGains
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate, calibration_sensor, mode_maps, push_pull
@@ -106,3 +106,57 @@ def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_cali
     assert scans[0][0] <= task.best[0] <= scans[0][-1]
     # Tip/Tilt at the lowest scanned gain leaves the turbulence's Tip/Tilt nearly unrejected
     assert rec["merit"][0] > rec["merit"][1:4].min()
+
+
+class Saboteur(AuxLoop):
+    """Sets every gain to ``factor`` x its value at its first update (an optimiser gone wrong)
+    and counts the safety net's ``damp`` calls."""
+
+    name = "saboteur"
+
+    def __init__(self, period, factor):
+        super().__init__(period)
+        self.factor = factor
+        self.damped = 0
+        self.done = False
+
+    def damp(self):
+        self.damped += 1
+
+    def update(self, window, rtc):
+        if not self.done:
+            rtc.set_gains(rtc.gains * self.factor)
+            self.done = True
+        return {}
+
+
+def _sabotaged_loop(small_calibration, net):
+    saboteur = Saboteur(300, 12.0)
+    tasks = [saboteur] + ([SafetyNet(20, [saboteur])] if net else [])
+    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=3,
+                      aux_loops=tasks)
+    return loop, saboteur
+
+
+def test_the_safety_net_restores_the_last_good_gains_and_damps_the_optimiser(small_calibration):
+    """Gains raised 12x, past the stable range: without the net the loop diverges; with it the
+    gains come back, the optimiser is damped, the event is recorded, the loop stays closed."""
+    loop, _ = _sabotaged_loop(small_calibration, net=False)
+    with pytest.raises(LoopDiverged):
+        loop.run(1200)
+    loop, saboteur = _sabotaged_loop(small_calibration, net=True)
+    tm = loop.run(1200)
+    rec = tm.aux_arrays("safety")
+    assert rec["restored"].sum() >= 1 and saboteur.damped == rec["restored"].sum() and not rec["gave_up"].any()
+    assert np.allclose(loop.rtc_parameters.gains, LoopGains(0.3, 0.4, 0.4).per_mode(54))
+    first = int(rec["frame"][rec["restored"] == 1][0])
+    assert 300 < first <= 400  # within a few checks of the sabotage
+    assert np.mean(tm.residual_rms_nm[-200:]) < 2 * np.mean(tm.residual_rms_nm[100:300])  # recovered
+
+
+def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration):
+    net = SafetyNet(20)
+    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=4,
+                      aux_loops=[net])
+    loop.run(2000)
+    assert net.events == 0 and np.all(np.isfinite(net.best))

@@ -1,0 +1,130 @@
+"""Gain optimisation over the look-up table's magnitudes (issue: MGM and OGTL that never drive
+the loop unstable).  Not in CI: the 40x40 cases cost minutes each.
+
+For every R magnitude x seeing x seed x variant, `optimize gains` with default options except
+the short run lengths (``--duration``, ``--measure``, ``--sequence`` below): the configuration
+of the look-up table, its default period, initial gains, probe and safety net.  Variants:
+mgm+ogtl (the default), trial+ogtl, mgm, trial.  Checks per point:
+
+* no divergence (exit 3);
+* Strehl after >= Strehl before - 0.01;
+* MGM's Strehl after >= trial-and-error's - 0.01 (same magnitude, seeing, seed and OGTL).
+
+Rows are appended to a JSON-lines file as cases finish (a stopped run keeps what it did and is
+resumed by running again with the same --out); the summary table is printed at the end.
+
+Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
+      [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--workers 2] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from soulctl.cli.common import default_cache_dir
+from soulctl.loop.auxloops import summary
+from soulctl.loop.optimize import OptimizeRequest, optimize
+from soulctl.loop.run import RunRequest
+from soulctl.observation import observation_for_magnitude
+from soulctl.optics.cache import ArrayCache
+
+MAGS = (8.0, 9.7, 10.9, 11.9, 13.0, 14.5, 15.5, 16.5, 17.5, 18.5)
+SEEINGS = (0.6, 1.0, 1.5)
+VARIANTS = ("mgm+ogtl", "trial+ogtl", "mgm", "trial")
+DURATION_S, MEASURE_S, SEQUENCE_S = 3.0, 0.5, 0.15  # short runs
+TOLERANCE = 0.01
+OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
+
+
+def run_case(mag: float, seeing: float, seed: int, variant: str, cache_dir: str) -> dict:
+    """One `optimize gains` point; the row of the results."""
+    method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
+    t0 = time.perf_counter()
+    request = OptimizeRequest(RunRequest(observation_for_magnitude(mag), seeing, seed=seed), method, DURATION_S, None, ogtl,
+                              measure_s=MEASURE_S, trial_sequence_s=SEQUENCE_S)
+    r = optimize(request, ArrayCache(cache_dir))
+    records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
+    return {"mag": mag, "seeing": seeing, "seed": seed, "variant": variant, "period_s": request.period_s,
+            "diverged_at": r.diverged_at, "before": r.before.strehl if r.before else None,
+            "after": r.after.strehl if r.after else None, "safety_restores": r.safety_events,
+            "k": r.loop.rtc_parameters.sensitivity, "aux": summary(records), "seconds": time.perf_counter() - t0}
+
+
+def _key(row: dict) -> tuple:
+    return (row["mag"], row["seeing"], row["seed"], row["variant"])
+
+
+def checks(rows: list[dict]) -> list[dict]:
+    """Per row: ok flags of the three checks (None where a comparison has no partner)."""
+    by = {_key(r): r for r in rows}
+    out = []
+    for r in rows:
+        ok_div = r["diverged_at"] is None
+        ok_gain = ok_div and r["after"] >= r["before"] - TOLERANCE
+        ok_mgm = None
+        if r["variant"].startswith("mgm"):
+            partner = by.get((r["mag"], r["seeing"], r["seed"], r["variant"].replace("mgm", "trial")))
+            if partner is not None and partner["after"] is not None and r["after"] is not None:
+                ok_mgm = r["after"] >= partner["after"] - TOLERANCE
+        out.append({**r, "ok_divergence": ok_div, "ok_after_before": ok_gain, "ok_mgm_vs_trial": ok_mgm})
+    return out
+
+
+def render(rows: list[dict], console: Console) -> None:
+    t = Table(title="optimize gains over the look-up table (Strehl in H: before -> after; !: a check failed)")
+    for c in ("R", "variant", *[f'{s:g}"' for s in SEEINGS], "restores", "checks"):
+        t.add_column(c, justify="right")
+    cases = sorted({(r["mag"], r["variant"]) for r in rows}, key=lambda x: (x[0], VARIANTS.index(x[1])))
+    for mag, variant in cases:
+        cells = []
+        sel = [r for r in rows if r["mag"] == mag and r["variant"] == variant]
+        for s in SEEINGS:
+            pts = [r for r in sel if r["seeing"] == s]
+            cells.append("  ".join("div" if r["diverged_at"] is not None else
+                                   f"{r['before']:.3f}->{r['after']:.3f}" + ("" if r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False else "!")
+                                   for r in pts))
+        failed = sum(1 for r in sel if not (r["ok_divergence"] and r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False))
+        t.add_row(f"{mag:g}", variant, *cells, str(sum(r["safety_restores"] for r in sel)), f"{len(sel) - failed}/{len(sel)}")
+    console.print(t)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mags", default=",".join(f"{m:g}" for m in MAGS))
+    p.add_argument("--seeings", default=",".join(f"{s:g}" for s in SEEINGS))
+    p.add_argument("--seeds", default="1,2,3")
+    p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--out", type=Path, default=OUT)
+    a = p.parse_args()
+    todo = [(float(m), float(s), int(seed), v) for m in a.mags.split(",") for s in a.seeings.split(",")
+            for seed in a.seeds.split(",") for v in a.variants.split(",")]
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    done = [json.loads(line) for line in a.out.read_text().splitlines()] if a.out.exists() else []
+    have = {_key(r) for r in done}
+    todo = [c for c in todo if c not in have]
+    todo.sort(key=lambda c: -c[0])  # the faint (fast) cases first
+    cache = str(default_cache_dir())
+    with ProcessPoolExecutor(a.workers) as pool, a.out.open("a") as f:
+        futures = [pool.submit(run_case, *c, cache) for c in todo]
+        for fut in as_completed(futures):
+            row = fut.result()
+            f.write(json.dumps(row) + "\n")
+            f.flush()
+            print(f"R{row['mag']:g} {row['seeing']:g}\" seed {row['seed']} {row['variant']}: "
+                  f"{row['before']} -> {row['after']} (diverged at {row['diverged_at']}), {row['seconds']:.0f} s", flush=True)
+    wanted = {(float(m), float(s), int(seed), v) for m in a.mags.split(",") for s in a.seeings.split(",")
+              for seed in a.seeds.split(",") for v in a.variants.split(",")}
+    rows = checks([r for r in (json.loads(line) for line in a.out.read_text().splitlines()) if _key(r) in wanted])
+    render(rows, Console())
+
+
+if __name__ == "__main__":
+    main()
