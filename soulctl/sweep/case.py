@@ -15,7 +15,7 @@ from .. import __version__, tables
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
-from ..loop.optimize import OptimizeRequest, optimize
+from ..loop.optimize import OptimizeRequest, default_period_s, optimize
 from ..loop.run import RunRequest, run
 from ..loop.run import calibration_setup as run_calibration_setup
 from ..observation import BINNINGS, Observation, observation_for_magnitude, tt_filter_roots
@@ -75,10 +75,11 @@ def failed_row(case: dict, reason: str) -> dict:
             "reason": reason, "run_seconds": 0.0, "soulctl_version": __version__}
 
 
-def optimisation_period_s(duration_s: float) -> float:
-    """The update period of a case's gain optimisation: half its duration (two updates), at
-    most the paper's 1 s."""
-    return min(1.0, duration_s / 2)
+def optimisation_period_s(duration_s: float, observation: Observation) -> float:
+    """The update period of a case's gain optimisation: the default for its frame rate
+    (``loop.optimize.default_period_s``, the rule of `optimize gains` and `loop run --mgm`),
+    or half the duration (two updates) when that is shorter."""
+    return min(default_period_s(observation), duration_s / 2)
 
 
 def _finished(**metrics) -> dict:
@@ -106,7 +107,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 m = result.metrics
                 row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
-            period = optimisation_period_s(p["duration"])
+            period = optimisation_period_s(p["duration"], request.observation)
             result = optimize(OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period,
                                               measure_s=p["duration"]), cache,
                               calibration=calibration)

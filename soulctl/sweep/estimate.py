@@ -4,7 +4,8 @@
 A case costs ``CASE_FIXED_S`` (set-up, metrics) plus its frames times ``FRAME_MS`` of its
 binning and oversampling; each distinct calibration costs ``CALIBRATION_S`` once (less when
 the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
-``gain_method = mgm`` the closing, OGTL's settling (4 update periods) and three times
+``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
+settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after); for ``trial`` the closing, the settling, twice
 ``duration`` and the scan (8 gains per group, 0.25 s each); the auxiliary loops' own cost
 (MGM, OGTL) is not counted.
@@ -101,7 +102,7 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
     rate = obs.frame_rate_hz
     n = max(1, round(p["duration"] * rate))
     if p["gain_method"] != "default":
-        period = max(1, round(optimisation_period_s(p["duration"]) * rate))
+        period = max(1, round(optimisation_period_s(p["duration"], obs) * rate))
         n_close = closing_frames(rate) + period // 2  # stretched to an update boundary: half a period on average
         if p["gain_method"] == "mgm":
             n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n
