@@ -13,7 +13,8 @@ from soulctl.cli.loop import parse_gains
 from soulctl.control import mgm
 from soulctl.control.structure import StructuralResonance
 from soulctl.loop.offline import nominal_limits
-from soulctl.loop.run import check_stability, sampled_structure
+from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s
+from soulctl.loop.run import RunRequest, check_stability, closing_frames, sampled_structure
 from soulctl.loop.simulation import LoopGains
 from soulctl.loop.telemetry_file import read_telemetry
 from soulctl.observation import observation_for_magnitude
@@ -215,3 +216,48 @@ def test_loop_run_refuses_a_period_too_short_for_mgm_and_a_run_too_short_for_it(
     assert status == 2 and "--period must be at least" in err
     status, _, err = cli(["loop", "run", *SMALL, "--mgm", "--duration", "1"], capsys, cache_dir)
     assert status == 2 and "--duration must be at least 2.12 s" in err
+
+
+def test_faint_star_optimisation_with_every_default_holds(capsys, cache_dir):
+    """`optimize gains --mag 16.5` with every option at its default diverged (OGTL drove k to
+    3.8-4.6 on estimates it could not trust, before MGM had made one update).  Now: exit 0,
+    no worse after than before, k within its bounds, a probe sized for the noise."""
+    status, out, err = cli(["optimize", "gains", "--mag", "16.5", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["diverged_at_frame"] is None and d["after"]["strehl"] >= d["before"]["strehl"] - 0.01
+    og = d["auxiliary_summary"]["ogtl"]
+    assert 1.0 <= d["sensitivity"] <= og["k_max"] and og["probe_amplitude_nm"] > 20.0
+    assert d["mgm_updates"] >= 4 and "safety" in d["auxiliary_summary"]
+
+
+def test_the_default_period_is_valid_at_every_magnitude():
+    """The default update period (1 s, longer where the frame rate needs it) is accepted by
+    MGM and the probe at every row of the look-up table, in `optimize gains` and `loop run
+    --mgm --ogtl` alike (`--mag 18` refused its own default period)."""
+    for mag in np.arange(0.0, 18.51, 0.5):
+        obs = observation_for_magnitude(float(mag))
+        run = RunRequest(obs, allow_unstable=True)
+        request = OptimizeRequest(run, "mgm")  # raises InputError on an invalid period
+        assert request.period_s == default_period_s(obs) >= 1.0
+        live = LiveOptimisers()
+        assert live.period(obs) == request.period_s
+        live.check(obs, closing_frames(obs.frame_rate_hz) / obs.frame_rate_hz + 2 * request.period_s + 0.01)
+    assert default_period_s(observation_for_magnitude(18.5)) == pytest.approx(1.7)  # 100 Hz: 162 frames of Welch segments
+
+
+def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
+    status, out, err = cli(["optimize", "gains", "--mag", "18", "--duration", "2.5", "--measure", "0.3", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    assert json.loads(out)["mgm_updates"] == 2  # 2.5 s at the 1.1 s default period of 160 Hz
+
+
+def test_ogtl_alone_in_a_noise_dominated_loop_stays_in_bounds(capsys, cache_dir):
+    """R17.5 (1.7 photons per sub-aperture per frame): OGTL keeps k in [1, k_max] and the loop
+    closed (validation/faint_cases.py runs it for 60 s)."""
+    status, out, err = cli(["loop", "run", "--mag", "17.5", "--ogtl", "--duration", "20", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    og = d["auxiliary_summary"]["ogtl"]
+    assert d["diverged_at_frame"] is None and 1.0 <= d["final_sensitivity"] <= og["k_max"]
+    assert og["updates"] >= 15 and d["metrics"]["strehl"] > 0
