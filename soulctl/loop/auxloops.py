@@ -228,64 +228,76 @@ class LiveMetricsTask(AuxLoop):
 
 
 class SafetyNet(AuxLoop):
-    """The RTC's safety net beside the optimisers.  Every period it measures, over the window
-    (the probed mode left out):
+    """The RTC's safety net beside the optimisers.  It runs every ``period_frames`` (a few
+    frames) and sums, over those frames and without the probed mode:
 
     * r, the residual the WFS sees at unit sensitivity, sqrt(sum_i <(R s)_i^2>) / k;
     * s, the RMS of the commands' frame-to-frame steps, sqrt(sum_i <(c_i(k) - c_i(k-1))^2>):
       the noise the loop propagates and any oscillation (the turbulence is slow);
     * c, the RMS of the commands of modes 3 and up, sqrt(sum_i <c_i^2>).
 
-    Per state of the RTC parameters (gains and k) it keeps their means.  The loop is in trouble
-    when r exceeds ``threshold`` (3) x the lowest state mean of r (a tripled residual; in a
-    healthy loop r moves by 2-3x from one check to the next with a strong vibration line), when
-    s jumps to ``STEP_JUMP`` (6) x the previous state's (an over-gained loop: one MGM update
-    changes a gain by at most ~3x), or when s or c grow to ``GROWTH`` (2) x their means over the
-    state's first checks (an instability at fixed parameters, or a runaway: a loop the PWFS has
-    lost grows in its commands while its WFS signal saturates and even falls).  On two checks
-    in trouble in a row (or one beyond twice a limit) the net opens the loop and closes it
-    again (the RTC's state reset: a loop the PWFS has lost does not find its way back by
-    itself) with the last good state's gains and k - a state is good when its mean r is within
-    ``GOOD`` of the lowest - halves the next steps of the ``tuned`` tasks (their ``damp``),
-    skips ``GRACE_CHECKS`` checks while the loop closes, and the optimisation continues.  After
-    ``give_up`` checks in a row in trouble it stops acting: the loop could not recover (the
-    simulation's divergence test then decides)."""
+    Every ``checks`` runs (a check: ~0.1 s) it takes r, s and c over the check and keeps their
+    means per state of the RTC parameters (gains and k).  The loop is in trouble when r exceeds
+    ``threshold`` (3) x the lowest state mean of r (a tripled residual; in a healthy loop r
+    moves by 2-3x from one check to the next with a strong vibration line), when s jumps to
+    ``STEP_JUMP`` (6) x the previous state's (one MGM update changes a gain by at most ~3x),
+    or when s or c grow to ``GROWTH`` (2) x their means over the state's first checks (an
+    instability at fixed parameters, or a runaway: a loop the PWFS has lost grows in its
+    commands while its WFS signal saturates and even falls); on ``IN_A_ROW`` (3) checks in
+    trouble in a row, or one beyond twice a limit, it acts.  Between checks, every run, it trips at once
+    when c over the last ``period_frames`` exceeds ``FAST_GROWTH`` (2.5) x the previous state's
+    mean (a runaway within a check, e.g. a trial gain the PWFS cannot hold).  Acting: the net
+    opens the loop and closes it again (the RTC's state reset: a loop the PWFS has lost does
+    not find its way back by itself) with the last good state's gains and k - a state is good
+    when its mean r is within ``GOOD`` of the lowest - halves the next steps of the ``tuned``
+    tasks (their ``damp``), skips ``GRACE_CHECKS`` checks while the loop closes, and the
+    optimisation continues.  After ``give_up`` checks in a row in trouble it stops acting: the
+    loop could not recover (the simulation's divergence test then decides)."""
 
     name = "safety"
     GOOD = 1.25
     MIN_CHECKS = 3  # checks a state needs before its means count
     STEP_JUMP = 6.0
     GROWTH = 2.0
+    FAST_GROWTH = 2.5
     GRACE_CHECKS = 2  # checks skipped after a restore, while the loop closes again
+    IN_A_ROW = 3  # checks in trouble in a row before the net acts (fast runaways trip the fast rule)
 
-    def __init__(self, period_frames: int, tuned: Sequence[AuxLoop] = (), threshold: float = 3.0, give_up: int = 20):
+    def __init__(self, period_frames: int, tuned: Sequence[AuxLoop] = (), threshold: float = 3.0, give_up: int = 20, checks: int = 1):
         super().__init__(period_frames)
-        if not (threshold > 1 and give_up >= 1):
-            raise InputError(f"safety net: threshold must be > 1 and give_up >= 1, got {threshold!r} and {give_up!r}")
+        if not (threshold > 1 and give_up >= 1 and checks >= 1):
+            raise InputError(f"safety net: threshold must be > 1, give_up and checks >= 1, got {threshold!r}, {give_up!r}, {checks!r}")
         self.tuned = list(tuned)
         self.threshold = float(threshold)
         self.give_up = int(give_up)
+        self.checks = int(checks)
         self.best = math.inf  # the lowest state mean of r
         self.good: tuple[np.ndarray, float] | None = None  # (gains, k) of the last good state
         self._state: tuple[bytes, float] | None = None
         self._sum, self._count = np.zeros(3), 0
         self._start = np.full(3, math.inf)  # the state's means over its first MIN_CHECKS checks
-        self._previous_s = math.inf  # s's mean over the previous state
+        self._previous = np.full(3, math.inf)  # the previous state's means
+        self._runs = np.zeros(6)  # sums of squares and their counts (r, s, c) over the current check
+        self._n_runs = 0
         self._above = 0  # checks in a row in trouble
         self._grace = 0  # checks left to skip
         self.events = 0
         self.gave_up = False
 
     @staticmethod
-    def _measure(window: TelemetryWindow, rtc: RtcParameters) -> np.ndarray:
+    def _sums(window: TelemetryWindow, rtc: RtcParameters) -> np.ndarray:
+        """Sums of squares and counts of r, s and c over the window."""
         keep = np.ones(window.measured_modes.shape[1], dtype=bool)
         if rtc.probe is not None:
             keep[rtc.probe.mode] = False
         c = window.command_modes[:, keep]
-        r = math.sqrt(float(np.sum(np.mean(window.measured_modes[:, keep] ** 2, axis=0)))) / window.sensitivity
-        s = math.sqrt(float(np.sum(np.mean(np.diff(c, axis=0) ** 2, axis=0))))
-        high = math.sqrt(float(np.sum(np.mean(c[:, 2:] ** 2, axis=0)))) if c.shape[1] > 2 else 0.0
-        return np.array([r, s, high])
+        d = np.diff(c, axis=0)
+        m = window.measured_modes[:, keep] / window.sensitivity
+        return np.array([np.sum(m**2), len(m), np.sum(d**2), len(d), np.sum(c[:, 2:] ** 2), len(c)])
+
+    @staticmethod
+    def _rms(sums: np.ndarray) -> np.ndarray:
+        return np.sqrt(sums[0::2] / np.maximum(sums[1::2], 1))
 
     def _enter(self, window: TelemetryWindow) -> None:
         """Start the statistics of a new state (or carry on with the current one)."""
@@ -293,8 +305,9 @@ class SafetyNet(AuxLoop):
         if state == self._state:
             return
         if self._count:
-            self._previous_s = self._sum[1] / self._count
+            self._previous = self._sum / self._count
         self._state, self._sum, self._count, self._start = state, np.zeros(3), 0, np.full(3, math.inf)
+        self._runs, self._n_runs = np.zeros(6), 0
 
     def _fold(self, x: np.ndarray, window: TelemetryWindow) -> None:
         self._sum += x
@@ -309,9 +322,20 @@ class SafetyNet(AuxLoop):
 
     def _trouble(self, x: np.ndarray) -> float:
         """The largest ratio of a measure to its limit (> 1: in trouble)."""
-        ratios = (x[0] / (self.threshold * self.best), x[1] / (self.STEP_JUMP * self._previous_s),
+        ratios = (x[0] / (self.threshold * self.best), x[1] / (self.STEP_JUMP * self._previous[1]),
                   x[1] / (self.GROWTH * self._start[1]), x[2] / (self.GROWTH * self._start[2]))
-        return float(max(v for v in ratios if math.isfinite(v)) if any(math.isfinite(v) for v in ratios) else 0.0)
+        finite = [v for v in ratios if math.isfinite(v)]
+        return float(max(finite)) if finite else 0.0
+
+    def _restore(self, rtc: RtcParameters) -> None:
+        gains, k = self.good
+        rtc.set_gains(gains)
+        rtc.set_sensitivity(k)
+        rtc.request_reset()
+        for task in self.tuned:
+            task.damp()
+        self.events += 1
+        self._grace, self._above, self._state, self._count = self.GRACE_CHECKS * self.checks, 0, None, 0
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         if window.frames < 3:
@@ -319,26 +343,31 @@ class SafetyNet(AuxLoop):
         if self._grace:  # the loop is closing again after a restore
             self._grace -= 1
             return {}
-        x = self._measure(window, rtc)
         self._enter(window)
+        sums = self._sums(window, rtc)
+        self._runs += sums
+        self._n_runs += 1
+        now = self._rms(sums)
+        if not self.gave_up and self.good is not None and now[2] > self.FAST_GROWTH * self._previous[2]:
+            self._restore(rtc)
+            return {"residual_nm": now[0], "steps_nm": now[1], "commands_nm": now[2], "trouble": math.nan, "restored": 1,
+                    "gave_up": int(self.gave_up)}
+        if self._n_runs < self.checks:
+            return {}
+        x = self._rms(self._runs)
+        self._runs, self._n_runs = np.zeros(6), 0
         self._fold(x, window)
         trouble = self._trouble(x)
         self._above = self._above + 1 if trouble > 1 else 0
         restored = 0
-        if not self.gave_up and self.good is not None and (self._above >= 2 or trouble > 2):
+        if not self.gave_up and self.good is not None and (self._above >= self.IN_A_ROW or trouble > 2):
             if self._above > self.give_up:
                 self.gave_up = True
             else:
-                gains, k = self.good
-                rtc.set_gains(gains)
-                rtc.set_sensitivity(k)
-                rtc.request_reset()
-                for task in self.tuned:
-                    task.damp()
-                restored, self.events = 1, self.events + 1
-                self._grace, self._above, self._state, self._count = self.GRACE_CHECKS, 0, None, 0
-        return {"residual_nm": x[0], "steps_nm": x[1], "commands_nm": x[2], "residual_ref_nm": self.best if math.isfinite(self.best) else math.nan,
-                "trouble": trouble, "restored": restored, "gave_up": int(self.gave_up)}
+                self._restore(rtc)
+                restored = 1
+        return {"residual_nm": x[0], "steps_nm": x[1], "commands_nm": x[2], "trouble": trouble, "restored": restored,
+                "gave_up": int(self.gave_up)}
 
 
 def summary(records: dict) -> dict:

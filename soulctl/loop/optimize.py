@@ -60,6 +60,8 @@ from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains,
 METHODS = ("trial", "mgm")
 MIN_SEGMENT = 64  # frames: the shortest Welch segment MGM accepts
 MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them settling)
+DEFAULT_SEQUENCE_S = 0.25  # the default trial-and-error sequence, at least DEFAULT_SEQUENCE_FRAMES
+DEFAULT_SEQUENCE_FRAMES = 100
 TRIAL_VALUES = 8  # gains per group
 TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
@@ -67,8 +69,9 @@ OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at le
 OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
 SETTLED_LOG_STEP = 0.1  # k has settled when its last update changed log k by less than this
 DEFAULT_PERIOD_S = 1.0  # the paper's update period, where the frame rate allows it (``default_period_s``)
-SAFETY_CHECK_S = 0.2  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
+SAFETY_CHECK_S = 0.1  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
 SAFETY_CHECK_MIN_FRAMES = 10
+SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts within them
 
 
 @dataclass(frozen=True)
@@ -80,13 +83,15 @@ class OptimizeRequest:
     ogtl: bool = True
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
     measure_s: float = 0.5  # before and after
-    trial_sequence_s: float = 0.25  # one trial-and-error sequence (20 % of it settling)
+    trial_sequence_s: float | None = None  # one trial-and-error sequence (20 % settling); None: ``default_sequence_s``
     chi_seeing_arcsec: float | None = None  # the optical-gain table's seeing; None: the run's (``chi_seeing``)
     mgm_settings: mgm.MgmSettings | None = None  # None: segment from the period
 
     def __post_init__(self):
         if self.period_s is None:
             object.__setattr__(self, "period_s", default_period_s(self.run.observation, self.ogtl_settings))
+        if self.trial_sequence_s is None:
+            object.__setattr__(self, "trial_sequence_s", default_sequence_s(self.run.observation))
         if self.chi_seeing_arcsec is None:
             object.__setattr__(self, "chi_seeing_arcsec", self.run.seeing_arcsec)
         if self.method not in METHODS:
@@ -125,6 +130,13 @@ def default_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> fl
     need = mgm.min_frames(mgm.MgmSettings(segment=MIN_SEGMENT)) + n + 1
     seconds = max(DEFAULT_PERIOD_S, need / rate, PROBE_MIN_CYCLES / settings.probe_frequency(rate))
     return math.ceil(round(seconds * 10, 9)) / 10
+
+
+def default_sequence_s(observation) -> float:
+    """The default trial-and-error sequence: 0.25 s, at least 100 frames (a low gain's loop at a
+    low frame rate needs them to settle and to be scored through the noise), to a whole 0.01 s."""
+    seconds = max(DEFAULT_SEQUENCE_S, DEFAULT_SEQUENCE_FRAMES / observation.frame_rate_hz)
+    return math.ceil(round(seconds * 100, 9)) / 100
 
 
 def check_probe(settings: OgtlSettings, observation, period_s: float) -> None:
@@ -372,10 +384,12 @@ def ogtl_task(settings: OgtlSettings, period_frames: int, calibration: Calibrati
 
 
 def safety_net(rate_hz: float, tasks) -> SafetyNet:
-    """The safety net checking every SAFETY_CHECK_S (at least SAFETY_CHECK_MIN_FRAMES frames),
-    damping those of ``tasks`` that can be damped (OGTL, MGM, trial-and-error)."""
+    """The safety net running every SAFETY_RUN_FRAMES frames and checking every SAFETY_CHECK_S
+    (at least SAFETY_CHECK_MIN_FRAMES frames), damping those of ``tasks`` that can be damped
+    (OGTL, MGM, trial-and-error)."""
     tuned = [t for t in tasks if t is not None and hasattr(t, "damp")]
-    return SafetyNet(max(SAFETY_CHECK_MIN_FRAMES, round(SAFETY_CHECK_S * rate_hz)), tuned)
+    checks = max(1, round(max(SAFETY_CHECK_MIN_FRAMES, SAFETY_CHECK_S * rate_hz) / SAFETY_RUN_FRAMES))
+    return SafetyNet(SAFETY_RUN_FRAMES, tuned, checks=checks)
 
 
 def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = 0.8) -> float:
@@ -405,8 +419,9 @@ def _settled(records: list[dict]) -> bool:
 
 
 def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayCache, chi: np.ndarray, forgetting: float,
-               ogtl: OgtlTask | None) -> tuple[MgmTask | TrialAndErrorTask, int]:
-    """The optimisation phase's task and its length in frames."""
+               ogtl: OgtlTask | None, initial: np.ndarray) -> tuple[MgmTask | TrialAndErrorTask, int]:
+    """The optimisation phase's task and its length in frames.  Trial-and-error scans each
+    group's initial gain too, so that it keeps it when no scanned gain does better."""
     obs = request.run.observation
     if request.method == "mgm":
         machine = mgm_machine(obs, request.run.structure, chi, request.settings_for_rate(obs.frame_rate_hz), forgetting)
@@ -414,7 +429,8 @@ def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayC
         return MgmTask(request.frames(request.period_s), machine, ogtl, gamma), request.frames(request.duration_s)
     sequence = request.frames(request.trial_sequence_s)
     settle = max(1, sequence // 5)
-    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi), settle, sequence - settle)
+    scans = [np.unique(np.append(scan, np.mean(initial[modes]))) for scan, (_, modes) in zip(trial_scans(request, chi), gain_groups(len(chi)))]
+    trial = TrialAndErrorTask(calibration.basis.n_modes, scans, settle, sequence - settle)
     return trial, sequence * sum(len(s) for s in trial.scans)
 
 
@@ -436,7 +452,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     loop.set_gains(initial_gains(gains, r, cal, loop, chi, optical_gain_table(cal, cache, r.seeing_arcsec), worst))
     period = request.frames(request.period_s)
     ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, loop.sensor, request.chi_seeing_arcsec) if request.ogtl else None
-    optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl)
+    optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
     net = safety_net(obs.frame_rate_hz, aux + [optimiser])

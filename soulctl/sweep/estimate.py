@@ -7,7 +7,7 @@ the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
 ``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
 settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after); for ``trial`` the closing, the settling, twice
-``duration`` and the scan (8 gains per group, 0.25 s each); the auxiliary loops' own cost
+``duration`` and the scan (8 gains and the initial one per group, 0.25 s or 100 frames each); the auxiliary loops' own cost
 (MGM, OGTL) is not counted.
 
 FRAME_MS, CASE_FIXED_S and CALIBRATION_S are CPU times measured by
@@ -19,14 +19,13 @@ one (the local cluster measured 1.64x on 2 workers: bench/results/sweep.json).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from functools import lru_cache
 
 from ..control.trial import gain_groups
 from ..errors import InputError
-from ..loop.optimize import OGTL_SETTLING_PERIODS, TRIAL_VALUES, OptimizeRequest
+from ..loop.optimize import OGTL_SETTLING_PERIODS, TRIAL_VALUES, default_sequence_s
 from ..loop.run import closing_frames
 from .case import DEFAULTS, observation_for, optimisation_period_s
 
@@ -44,7 +43,6 @@ CASE_FIXED_S = {k: v[1] for k, v in _MEASURED.items()}
 CALIBRATION_S = {k: v[2] for k, v in _MEASURED.items()}
 PARALLEL_EFFICIENCY = 0.82  # bench/results/sweep.json: speed-up 1.64 on 2 workers
 CONFIRM_ABOVE_S = 3600.0  # estimated CPU time above which a terminal is asked before the sweep starts
-TRIAL_SEQUENCE_S = next(f.default for f in dataclasses.fields(OptimizeRequest) if f.name == "trial_sequence_s")
 
 
 @dataclass(frozen=True)
@@ -107,7 +105,7 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
         if p["gain_method"] == "mgm":
             n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n
         else:
-            scan = len(gain_groups(obs.modes)) * TRIAL_VALUES * max(1, round(TRIAL_SEQUENCE_S * rate))
+            scan = len(gain_groups(obs.modes)) * (TRIAL_VALUES + 1) * max(1, round(default_sequence_s(obs) * rate))
             n = n_close + OGTL_SETTLING_PERIODS * period + 2 * n + scan
     return n, CASE_FIXED_S[key] + n * FRAME_MS[key] / 1e3, (obs.binning, obs.modes, obs.modulation_lambda_over_d, p["oversampling"])
 
