@@ -329,10 +329,10 @@ def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibratio
 
 def noise_aware_gains(observation, structure, forgetting: float, chi: np.ndarray, basis_variance: np.ndarray,
                       atmosphere: AtmosphereConfig, pol_noise_nm: np.ndarray, vibrations=None, nm_per_mas: float = 1.0) -> np.ndarray:
-    """MGM's optimum (Eq. cost) for each noise-dominated mode on the model POL PSD (inf for the
-    others: they keep their design gains), on a MODEL_SEGMENT grid, over the MGM range (margin
-    included).  A mode is noise-dominated when its turbulence's variance is below the noise's
-    (MGM's own rule, ``mgm.noise_dominated``).  The model: white noise of ``pol_noise_nm`` RMS per frame plus the
+    """MGM's optimum (Eq. cost) on the model POL PSD for Tip/Tilt and each noise-dominated mode
+    (inf for the others: they keep their design gains), on a MODEL_SEGMENT grid, over the MGM
+    range (margin included).  A mode is noise-dominated when its turbulence's variance is below
+    the noise's (MGM's own rule, ``mgm.noise_dominated``).  The model: white noise of ``pol_noise_nm`` RMS per frame plus the
     turbulence - for Tip/Tilt the frozen-flow Tip/Tilt PSD (``TurbulenceTipTilt`` at the
     effective wind) and the vibrations' lines, in nm through ``nm_per_mas``; for the other modes
     the layers' ``modal_psd`` weighted by their Cn^2 (basis variances in rad^2 at 500 nm for
@@ -354,7 +354,9 @@ def noise_aware_gains(observation, structure, forgetting: float, chi: np.ndarray
     psd[:2] += tt * nm_per_mas**2
     g = mgm.optimal_gains(psd, L1, upper)
     signal = np.sum(psd, axis=1) * (f[1] - f[0]) - np.asarray(pol_noise_nm) ** 2 * (f[-1] - f[0]) / (rate / 2)
-    return np.where(signal < np.asarray(pol_noise_nm) ** 2, g, np.inf)
+    noisy = signal < np.asarray(pol_noise_nm) ** 2
+    noisy[:2] = True  # Tip/Tilt: its model (turbulence and vibration lines) is trusted whatever its SNR
+    return np.where(noisy, g, np.inf)
 
 
 def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tuple[list, tuple | None]:
