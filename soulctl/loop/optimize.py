@@ -63,7 +63,8 @@ MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them set
 DEFAULT_SEQUENCE_S = 0.25  # the default trial-and-error sequence, at least DEFAULT_SEQUENCE_FRAMES
 DEFAULT_SEQUENCE_FRAMES = 100
 TRIAL_VALUES = 8  # gains per group
-TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches
+TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches ...
+TRIAL_SPAN = 3.0  # ... and at most this multiple of the group's largest initial gain
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
 OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at least ...
 OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
@@ -225,15 +226,20 @@ def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettin
     return mgm.ModalGainMachine(tuple(unit), chi, d, observation.frame_rate_hz, settings, ba)
 
 
-def trial_scans(request: OptimizeRequest, chi: np.ndarray) -> list[np.ndarray]:
+def trial_scans(request: OptimizeRequest, chi: np.ndarray, initial: np.ndarray | None = None) -> list[np.ndarray]:
     """Per group, TRIAL_VALUES gains up to TRIAL_TOP x the nominal maximum stable gain over
-    the group's largest chi."""
+    the group's largest chi, and at most TRIAL_SPAN x the group's largest ``initial`` gain:
+    where the noise set the initial gains low, the scan stays around them (a scan to 0.8 g_max
+    ran noise-dominated R16.5-17.5 loops at k ~ 3 away)."""
     obs = request.run.observation
     structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
     scans = []
     for _, modes in gain_groups(len(chi)):
         g_max = max_stable_gain(nominal_loop(obs, 1.0, modes.start == 0, structure))
-        scans.append(scan_gains(TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(chi[modes]))), TRIAL_VALUES))
+        top = TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(chi[modes])))
+        if initial is not None and np.max(initial[modes]) > 0:
+            top = min(top, TRIAL_SPAN * float(np.max(initial[modes])))
+        scans.append(scan_gains(top, TRIAL_VALUES))
     return scans
 
 
@@ -431,7 +437,8 @@ def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayC
         return MgmTask(request.frames(request.period_s), machine, ogtl, gamma), request.frames(request.duration_s)
     sequence = request.frames(request.trial_sequence_s)
     settle = max(1, sequence // 5)
-    scans = [np.unique(np.append(scan, np.mean(initial[modes]))) for scan, (_, modes) in zip(trial_scans(request, chi), gain_groups(len(chi)))]
+    scans = [np.unique(np.append(scan, np.mean(initial[modes])))
+             for scan, (_, modes) in zip(trial_scans(request, chi, initial), gain_groups(len(chi)))]
     trial = TrialAndErrorTask(calibration.basis.n_modes, scans, settle, sequence - settle)
     return trial, sequence * sum(len(s) for s in trial.scans)
 
