@@ -167,9 +167,10 @@ def gains_cmd(
     """Optimise the modal gains in the simulated closed loop: measure at the initial gains, run
     the optimiser live as an auxiliary loop (trial-and-error: the three groups scanned in
     sequence; MGM: every mode every --period from the pseudo-open-loop PSDs), measure at the
-    optimised gains.  With --ogtl the optical gain tracking loop runs throughout.  Prints the
-    gains and the Strehl ratio and residual before and after; exit status 3 if the loop
-    diverges.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
+    optimised gains.  With --ogtl the optical gain tracking loop runs throughout; a safety net
+    restores the last good gains and k when the loop degrades.  Prints the gains and the
+    Strehl ratio and residual before and after; exit status 3 only if the loop diverged all
+    the same.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
     would apply.
 
     Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/
