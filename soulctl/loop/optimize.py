@@ -13,20 +13,21 @@ One continuous closed loop in phases:
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running).
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter are measured over *before* and
-*after*.  MGM's plant model takes chi_i from the optical-gain table of the calibration at a
-reference correction level (0.8" seeing, the paper's choice), computed with the optical models
-and cached with the calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
+*after*.  MGM's plant model takes chi_i from the optical-gain table of the calibration at the
+run's seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
+calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
 without, gamma_i times the fixed sensitivity k = 1.  OGTL starts from k = 1 once the loop is
 closed and settles (4 to 12 updates, until one moves log k by less than 0.1) before anything is
 measured, so that neither optimiser scans while k is still far from it.  (Starting it at
 1/gamma_30 of the table instead over-drove the loops whose real optical gain was higher than
 the table's - a 0.6" loop has a higher gamma than the 0.8" reference - and before the loop is
 closed the open-loop residual is far outside the PWFS's linear range.)  The initial gains
-are capped at half the plant model's maximum stable gain (``capped_gains``).
+come from the operating point (``initial_gains``), the update period from the frame rate
+(``default_period_s``), and a safety net guards every phase after the closing (``SafetyNet``).
 
 Trial-and-error scans each group up to 0.8 x the nominal maximum stable gain divided by the
-largest chi_i of the group (the same table): the scan stays stable for every mode of the group
-as long as the table holds.
+largest chi_i of the group (the same table), at most 3 x the group's initial gain, and the
+initial gain itself.
 """
 
 from __future__ import annotations
@@ -285,17 +286,15 @@ class LiveOptimisers:
         period = self._frames(obs)
         seeing = self.chi_seeing_arcsec or request.seeing_arcsec
         chi = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, seeing)
-        sensor = loop.sensor
-        ogtl = ogtl_task(self.ogtl_settings, period, calibration, cache, sensor, seeing) if self.ogtl else None
+        noise = loop.sensor.modal_noise_nm(calibration.reconstructor)
+        ogtl = ogtl_task(self.ogtl_settings, period, calibration, cache, noise, seeing) if self.ogtl else None
         tasks: list = [ogtl] if ogtl is not None else []
         if self.mgm:
             machine = mgm_machine(obs, request.structure, chi, period_settings(period, obs), gains.forgetting)
             tasks.append(MgmTask(period, machine, ogtl, probe_gain(calibration, cache, self.ogtl_settings.mode, seeing)))
-        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, sensor.photons_per_frame))
+        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, loop.sensor.photons_per_frame))
         tasks.append(safety_net(obs.frame_rate_hz, tasks))
-        worst = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, ogtl_model.WORST_SEEING_ARCSEC)
-        initial = initial_gains(gains, request, calibration, loop, chi, optical_gain_table(calibration, cache, request.seeing_arcsec), worst)
-        return tasks, initial
+        return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
 
 
 def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float,
@@ -312,21 +311,23 @@ def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, for
 MODEL_SEGMENT = 8192  # frequency grid of the model PSD: fine enough for the lowest cut-offs (0.1 Hz at 1700 Hz)
 
 
-def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibration, loop: ClosedLoop, chi: np.ndarray,
-                  gamma: np.ndarray, chi_worst: np.ndarray) -> np.ndarray:
+def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibration, cache: ArrayCache, loop: ClosedLoop,
+                  chi: np.ndarray, noise: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
     """The optimisers' starting gains from the operating point: the run's gains capped for
-    stability (``capped_gains``) at the larger of each mode's chi in the plant model and
-    ``chi_worst``, its chi at the worst seeing (with OGTL, gamma_i / gamma_probe grows as the
-    correction degrades: the low orders lose less optical gain than the probed mode), and by ``noise_aware_gains``, MGM's optimum on a model of the
-    loop's POL PSD: the turbulence of each mode at the run's seeing, L0 and wind, the
-    vibrations on Tip/Tilt, and the WFS noise of the operating point (``sensor.modal_noise_nm``
-    over ``gamma``, the optical gains the model expects at the run's seeing), for the modes whose noise dominates.  A bright
-    star keeps the design gains (lower gains there risk losing the PWFS's lock on a large
-    low-order excursion); a faint one starts at the gains its noise allows, so that OGTL
-    raising k towards chi = 1 cannot over-drive the noise."""
+    stability (``capped_gains``) at the larger of each mode's chi in the plant model and its
+    chi at the worst seeing (with OGTL, gamma_i / gamma_probe grows as the correction degrades:
+    the low orders lose less optical gain than the probed mode), and by ``noise_aware_gains``,
+    MGM's optimum on a model of the loop's POL PSD: the turbulence of each mode at the run's
+    seeing, L0 and wind, the vibrations on Tip/Tilt, and the WFS noise of the operating point
+    (``noise``, ``sensor.modal_noise_nm``) over the optical gains the model expects at the
+    run's seeing, for Tip/Tilt and the modes whose noise dominates.  A bright star keeps the
+    design gains (lower gains there risk losing the PWFS's lock on a large low-order
+    excursion); a faint one starts at the gains its noise allows, so that OGTL raising k
+    towards chi = 1 cannot over-drive the noise."""
     obs = request.observation
+    chi_worst = plant_model(calibration, cache, ogtl, probe_mode, ogtl_model.WORST_SEEING_ARCSEC)
+    gamma = optical_gain_table(calibration, cache, request.seeing_arcsec)
     capped = capped_gains(gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting)
-    noise = loop.sensor.modal_noise_nm(calibration.reconstructor)
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
     model = noise_aware_gains(obs, request.structure, gains.forgetting, chi, calibration.basis.variance, atmosphere, noise / gamma,
                               request.vibrations, 1.0 / loop.mas_per_nm_tt)
@@ -375,19 +376,18 @@ def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tupl
     return unit, ba
 
 
-def ogtl_task(settings: OgtlSettings, period_frames: int, calibration: Calibration, cache: ArrayCache, sensor,
+def ogtl_task(settings: OgtlSettings, period_frames: int, calibration: Calibration, cache: ArrayCache, noise: np.ndarray,
               chi_seeing_arcsec: float = 0.8) -> OgtlTask:
     """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
     (the optical model's table), the probe's amplitude from the settings or, by default, from
-    the probed mode's WFS noise (``sensor.modal_noise_nm``) and its table gamma at the reference
-    seeing (``ogtl_model.default_amplitude``)."""
+    the probed mode's WFS noise (``noise``: ``sensor.modal_noise_nm``) and its table gamma at
+    the plant model's seeing (``ogtl_model.default_amplitude``)."""
     m = settings.mode - 1
     worst = optical_gain_table(calibration, cache, ogtl_model.WORST_SEEING_ARCSEC)[m]
     amplitude = settings.amplitude_nm
     if amplitude is None:
         gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)[m]
-        amplitude = ogtl_model.default_amplitude(float(sensor.modal_noise_nm(calibration.reconstructor)[m]), float(gamma), period_frames,
-                                           settings.min_snr)
+        amplitude = ogtl_model.default_amplitude(float(noise[m]), float(gamma), period_frames, settings.min_snr)
     return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude)
 
 
@@ -457,10 +457,10 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
     atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
     loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
-    worst = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, ogtl_model.WORST_SEEING_ARCSEC)
-    loop.set_gains(initial_gains(gains, r, cal, loop, chi, optical_gain_table(cal, cache, r.seeing_arcsec), worst))
+    noise = loop.sensor.modal_noise_nm(cal.reconstructor)
+    loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
     period = request.frames(request.period_s)
-    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, loop.sensor, request.chi_seeing_arcsec) if request.ogtl else None
+    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing_arcsec) if request.ogtl else None
     optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
