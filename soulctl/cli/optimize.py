@@ -59,10 +59,13 @@ def _result_dict(result: OptimizeResult) -> dict:
         "method": r.method,
         "ogtl": r.ogtl,
         "diverged_at_frame": result.diverged_at,
+        "diverged_in": result.diverged_in if result.diverged_at is not None else None,
         "seconds": result.seconds,
         "phases": {k: {"first_frame": a, "end_frame": b} for k, (a, b) in result.phases.items()},
         "before": result.before.to_dict() if result.before else None,
         "after": result.after.to_dict() if result.after else None,
+        "sensitivity_before_after": list(result.sensitivities),
+        "during_run": {k: v.to_dict() for k, v in result.during_run.items()},
         "groups": group_summary(result.gains),
         "gains": result.gains.tolist(),
         "initial_gains": result.initial_gains.tolist(),
@@ -86,6 +89,7 @@ def _render(results: dict[str, OptimizeResult], console: Console) -> None:
     for method in results:
         t.add_column("trial-and-error" if method == "trial" else "MGM", justify="right")
     rows = [("Strehl ratio (" + rr.band + ") before → after", lambda x: f"{x.before.strehl:.3f} → {x.after.strehl:.3f}"),
+            ("  during the run (other turbulence)", lambda x: f"{x.during_run['before'].strehl:.3f} → {x.during_run['after'].strehl:.3f}"),
             ("residual before → after [nm]", lambda x: f"{x.before.residual_nm:.0f} → {x.after.residual_nm:.0f}"),
             ("Tip/Tilt jitter before → after [mas]", lambda x: f"{x.before.tt_jitter_mas:.2f} → {x.after.tt_jitter_mas:.2f}")]
     ok = {m: x for m, x in results.items() if x.diverged_at is None}
@@ -142,7 +146,7 @@ def gains_cmd(
     L0: float = OUTER_SCALE,
     duration: float = typer.Option(5.0, "--duration", metavar="S", parser=number(OPTIMISATION_S), help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()})."),
     period: float | None = PERIOD,
-    measure: float = typer.Option(0.5, "--measure", metavar="S", parser=number(MEASURE_S), help="Simulated time measured before and after the optimisation."),
+    measure: float = typer.Option(0.5, "--measure", metavar="S", parser=number(MEASURE_S), help="Simulated time measured before and after the optimisation (in the run and in the paired evaluation)."),
     sequence: float | None = typer.Option(None, "--sequence", metavar="S", parser=number(SEQUENCE_S),
                                           help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames)."),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
@@ -169,8 +173,9 @@ def gains_cmd(
     sequence; MGM: every mode every --period from the pseudo-open-loop PSDs), measure at the
     optimised gains.  With --ogtl the optical gain tracking loop runs throughout; a safety net
     restores the last good gains and k when the loop degrades.  Prints the gains and the
-    Strehl ratio and residual before and after; exit status 3 only if the loop diverged all
-    the same.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
+    Strehl ratio and residual before and after, both measured in loops closed afresh on the
+    run's own turbulence and noise (a paired comparison; the run's own phases, at other times,
+    are shown beside them); exit status 3 only if the loop diverged all the same.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
     would apply.
 
     Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/

@@ -131,17 +131,22 @@ class MgmTask(AuxLoop):
 
 class TrialAndErrorTask(AuxLoop):
     """Scans the groups in order; each sequence is ``settle`` frames (not scored, the loop
-    settling at the new gain) plus ``measure`` frames scored by the group's measured-mode RMS.
+    settling at the new gain) plus ``measure`` frames scored by the group's measured-mode RMS;
+    an update whose window is shorter than a sequence (the task started between two updates)
+    waits for the next.  A group's ``incumbents`` gain (one of its scan) is kept unless another
+    is significantly better (``trial.chosen_gain``).
     When a group is done its best gain is set and kept; after the last group the task is idle."""
 
     name = "trial"
 
-    def __init__(self, n_modes: int, scans: Sequence[np.ndarray], settle: int, measure: int):
+    def __init__(self, n_modes: int, scans: Sequence[np.ndarray], settle: int, measure: int,
+                 incumbents: Sequence[float | None] | None = None):
         super().__init__(settle + measure)
         self.groups = trial.gain_groups(n_modes)
         if len(scans) != len(self.groups):
             raise InputError(f"trial-and-error needs one gain scan per group ({len(self.groups)}), got {len(scans)}")
         self.scans = [np.asarray(s, dtype=float) for s in scans]
+        self.incumbents = list(incumbents) if incumbents is not None else [None] * len(scans)  # kept unless beaten (``trial.chosen_gain``)
         self.measure = measure
         self._group, self._index = 0, 0
         self._merits: list[float] = []
@@ -175,6 +180,8 @@ class TrialAndErrorTask(AuxLoop):
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         if self.done:
             return {}
+        if not self._failed and window.frames < self.period_frames:
+            return {}  # the sequence began after the last update (the task started off the period): not complete yet
         name, modes = self.groups[self._group]
         measured = window.measured_modes[-self.measure :, modes]
         scan = self.scans[self._group]
@@ -189,7 +196,8 @@ class TrialAndErrorTask(AuxLoop):
         record = {"group": self._group, "gain": gain, "merit": self._merits[-1], "best": math.nan}
         if self._index == len(scan):
             # no finite merit: every gain failed, the group keeps what the safety net restored
-            best = trial.best_gain(scan, self._merits) if np.isfinite(self._merits).any() else float(np.mean(rtc.gains[modes]))
+            best = (trial.chosen_gain(scan, self._merits, self.incumbents[self._group]) if np.isfinite(self._merits).any()
+                    else float(np.mean(rtc.gains[modes])))
             self.best.append(best)
             record["best"] = best
             rtc.set_gains(self._with_best(rtc.gains))

@@ -10,10 +10,13 @@ One continuous closed loop in phases:
 1. *before*: ``measure_s`` at the initial gains (OGTL running when asked);
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
-3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running).
+3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
+4. *evaluation*: the initial gains at k of the end of *before*, and the optimised gains at the
+   final k, each in a loop closed afresh on the run's own turbulence and noise (``evaluate``).
 
-Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter are measured over *before* and
-*after*.  MGM's plant model takes chi_i from the optical-gain table of the calibration at the
+Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
+result's *before* and *after*: a paired comparison, the two differing by the gains and k alone;
+those of the run's own phases (``during_run``) differ by the turbulence of their time too.  MGM's plant model takes chi_i from the optical-gain table of the calibration at the
 run's seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
 calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
 without, gamma_i times the fixed sensitivity k = 1.  OGTL starts from k = 1 once the loop is
@@ -25,9 +28,9 @@ closed the open-loop residual is far outside the PWFS's linear range.)  The init
 come from the operating point (``initial_gains``), the update period from the frame rate
 (``default_period_s``), and a safety net guards every phase after the closing (``SafetyNet``).
 
-Trial-and-error scans each group up to 0.8 x the nominal maximum stable gain divided by the
-largest chi_i of the group (the same table), at most 3 x the group's initial gain, and the
-initial gain itself.
+Trial-and-error scans each group geometrically from 1/3 to 3 x its initial gain (and that gain
+itself), below 0.8 x the nominal maximum stable gain divided by the largest chi_i of the group
+(the same table).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from ..control.delay import fractional_taps
 from ..control import ogtl as ogtl_model
 from ..control.ogtl import OgtlSettings
 from ..control.transfer import max_stable_gain
-from ..control.trial import gain_groups, scan_gains
+from ..control.trial import gain_groups, scan_around, scan_gains
 from ..disturbance.modal_psd import cutoff_hz, modal_psd
 from ..disturbance.turbulence import LAMBDA_REF_M, LBT_DIAMETER_M, TurbulenceTipTilt
 from ..errors import InputError
@@ -64,8 +67,8 @@ MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them set
 DEFAULT_SEQUENCE_S = 0.25  # the default trial-and-error sequence, at least DEFAULT_SEQUENCE_FRAMES
 DEFAULT_SEQUENCE_FRAMES = 100
 TRIAL_VALUES = 8  # gains per group
-TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan reaches ...
-TRIAL_SPAN = 3.0  # ... and at most this multiple of the group's largest initial gain
+TRIAL_TOP = 0.8  # fraction of the nominal (chi = 1) maximum stable gain the scan stays below
+TRIAL_SPAN = 3.0  # the scan spans 1/TRIAL_SPAN to TRIAL_SPAN x the group's initial gain
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
 OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at least ...
 OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
@@ -74,6 +77,7 @@ DEFAULT_PERIOD_S = 1.0  # the paper's update period, where the frame rate allows
 SAFETY_CHECK_S = 0.1  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
 SAFETY_CHECK_MIN_FRAMES = 10
 SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts within them
+EVALUATION_SETTLE_S = 0.2  # the paired evaluation's settling at k after the closing (``evaluate``)
 
 
 @dataclass(frozen=True)
@@ -196,9 +200,12 @@ class OptimizeResult:
     loop: ClosedLoop
     chi: np.ndarray | None
     diverged_at: int | None = None
+    diverged_in: str = "run"  # or "evaluation": the paired evaluation's loop (``evaluate``), frame counted from its start
     safety_events: int = 0  # times the safety net restored the last good gains and k
     seconds: float = 0.0
     phases: dict = field(default_factory=dict)  # name -> (first frame, end frame)
+    during_run: dict = field(default_factory=dict)  # "before"/"after" -> PhaseMetrics of the run's own phases
+    sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
 
 
 def optical_gain_table(calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = 0.8, screens: int = 4, seed: int = 1) -> np.ndarray:
@@ -228,19 +235,21 @@ def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettin
 
 
 def trial_scans(request: OptimizeRequest, chi: np.ndarray, initial: np.ndarray | None = None) -> list[np.ndarray]:
-    """Per group, TRIAL_VALUES gains up to TRIAL_TOP x the nominal maximum stable gain over
-    the group's largest chi, and at most TRIAL_SPAN x the group's largest ``initial`` gain:
-    where the noise set the initial gains low, the scan stays around them (a scan to 0.8 g_max
-    ran noise-dominated R16.5-17.5 loops at k ~ 3 away)."""
+    """Per group, the gains trial-and-error scans, below TRIAL_TOP x the nominal maximum stable
+    gain over the group's largest chi.  With ``initial`` gains, a scan around the group's mean
+    initial gain (``scan_around``: TRIAL_VALUES gains from 1/TRIAL_SPAN to TRIAL_SPAN x, and the
+    initial gain itself, so that the group keeps it when no other gain does better): a scan from
+    near zero chose a Tip/Tilt gain of 0.05 at R14.5, 1.0" (Strehl 0.42 -> 0.28 on the same
+    turbulence), and one to 0.8 g_max ran noise-dominated R16.5-17.5 loops at k ~ 3 away.
+    Without, TRIAL_VALUES gains from 5 % of that top to the top (``scan_gains``)."""
     obs = request.run.observation
     structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
     scans = []
     for _, modes in gain_groups(len(chi)):
         g_max = max_stable_gain(nominal_loop(obs, 1.0, modes.start == 0, structure))
         top = TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(chi[modes])))
-        if initial is not None and np.max(initial[modes]) > 0:
-            top = min(top, TRIAL_SPAN * float(np.max(initial[modes])))
-        scans.append(scan_gains(top, TRIAL_VALUES))
+        centre = 0.0 if initial is None else float(np.mean(initial[modes]))
+        scans.append(scan_around(centre, top, TRIAL_SPAN, TRIAL_VALUES) if centre > 0 else scan_gains(top, TRIAL_VALUES))
     return scans
 
 
@@ -411,6 +420,33 @@ def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_m
     return mgm_chi(optical_gain_table(calibration, cache, seeing_arcsec), ogtl, probe_mode)
 
 
+def _new_loop(r: RunRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:
+    """The run's closed loop at t = 0: same seed, same turbulence, vibrations and noise."""
+    atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
+    return ClosedLoop(r.observation, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
+
+
+def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, progress=None) -> PhaseMetrics:
+    """Metrics of ``gains`` at slope sensitivity ``k`` on the run's own turbulence and noise: a
+    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k set, settled for
+    EVALUATION_SETTLE_S, measured for ``measure_s``; no auxiliary loop.  *before* and *after*
+    so measured differ by the gains and k alone - a paired comparison: measured in the run's
+    own phases, 0.5 s apart in time, they differ by the turbulence too, by up to +-0.05 in
+    Strehl at 1.0" (docs/physics.md).  Raises LoopDiverged."""
+    r = request.run
+    loop = _new_loop(r, cal, design, sampled_structure(r.structure, r.observation.frame_rate_hz))
+    loop.set_gains(gains)
+    loop.run(closing_frames(r.observation.frame_rate_hz), progress=progress)
+    loop.rtc_parameters.set_sensitivity(k)
+    loop.run(request.frames(EVALUATION_SETTLE_S), progress=progress)
+    n_measure = request.frames(request.measure_s)
+    skip = min(n_measure // 2, request.frames(0.05))
+    psf = PsfAccumulator(loop.pupil, band_wavelength(r.band))
+    start = loop.frame
+    loop.run(n_measure, psf=psf, skip=skip, progress=progress)
+    return _phase_metrics(loop, psf, start + skip, loop.frame)
+
+
 def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int) -> PhaseMetrics:
     tm = loop.telemetry
     rms = np.asarray(tm.residual_rms_nm[start:stop])
@@ -429,7 +465,7 @@ def _settled(records: list[dict]) -> bool:
 def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayCache, chi: np.ndarray, forgetting: float,
                ogtl: OgtlTask | None, initial: np.ndarray) -> tuple[MgmTask | TrialAndErrorTask, int]:
     """The optimisation phase's task and its length in frames.  Trial-and-error scans each
-    group's initial gain too, so that it keeps it when no scanned gain does better."""
+    group's initial gain too, and keeps it unless a scanned gain does significantly better."""
     obs = request.run.observation
     if request.method == "mgm":
         machine = mgm_machine(obs, request.run.structure, chi, request.settings_for_rate(obs.frame_rate_hz), forgetting)
@@ -437,9 +473,8 @@ def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayC
         return MgmTask(request.frames(request.period_s), machine, ogtl, gamma), request.frames(request.duration_s)
     sequence = request.frames(request.trial_sequence_s)
     settle = max(1, sequence // 5)
-    scans = [np.unique(np.append(scan, np.mean(initial[modes])))
-             for scan, (_, modes) in zip(trial_scans(request, chi, initial), gain_groups(len(chi)))]
-    trial = TrialAndErrorTask(calibration.basis.n_modes, scans, settle, sequence - settle)
+    incumbents = [float(np.mean(initial[modes])) for _, modes in gain_groups(len(chi))]
+    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi, initial), settle, sequence - settle, incumbents)
     return trial, sequence * sum(len(s) for s in trial.scans)
 
 
@@ -455,8 +490,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)
     chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
-    atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
-    loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
+    loop = _new_loop(r, cal, gains, structure)
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
     loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
     period = request.frames(request.period_s)
@@ -473,7 +507,8 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
     n_close = closing_frames(obs.frame_rate_hz)
     n_close += (-(n_close + n_settle + n_measure)) % period
     skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
-    total = n_close + n_settle + 2 * n_measure + n_opt
+    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + n_measure)
+    total = n_close + n_settle + 2 * n_measure + n_opt + n_evaluation
     check_memory(total, cal, "--duration")
     wavelength = band_wavelength(r.band)
     psf_before, psf_after = PsfAccumulator(loop.pupil, wavelength), PsfAccumulator(loop.pupil, wavelength)
@@ -500,8 +535,9 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
             result.phases["settling"] = (n_close, loop.frame)
         start = loop.frame
         loop.run(n_measure, psf=psf_before, skip=skip, progress=tick)
-        result.before = _phase_metrics(loop, psf_before, start + skip, loop.frame)
+        result.during_run["before"] = _phase_metrics(loop, psf_before, start + skip, loop.frame)
         result.phases["before"] = (start, loop.frame)
+        k_before = loop.rtc_parameters.sensitivity
         start = loop.frame
         loop.remove_aux_loop(net)  # the net acts after the optimiser in an update
         loop.add_aux_loop(optimiser)
@@ -512,11 +548,18 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         result.gains = loop.rtc_parameters.gains
         start = loop.frame
         loop.run(n_measure, psf=psf_after, skip=skip, progress=tick)
-        result.after = _phase_metrics(loop, psf_after, start + skip, loop.frame)
+        result.during_run["after"] = _phase_metrics(loop, psf_after, start + skip, loop.frame)
         result.phases["after"] = (start, loop.frame)
+        result.sensitivities = (k_before, loop.rtc_parameters.sensitivity)
     except LoopDiverged as e:
         result.diverged_at = e.frame
         result.gains = loop.rtc_parameters.gains
+    if result.diverged_at is None:
+        try:
+            result.before = evaluate(request, cal, gains, initial, result.sensitivities[0], tick)
+            result.after = evaluate(request, cal, gains, result.gains, result.sensitivities[1], tick)
+        except LoopDiverged as e:
+            result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = net.events
     result.seconds = time.perf_counter() - t0
     return result

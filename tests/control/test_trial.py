@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from soulctl.control.trial import best_gain, gain_groups, scan_gains
+from soulctl.control.trial import best_gain, chosen_gain, gain_groups, merit_scatter, scan_around, scan_gains
 from soulctl.errors import InputError
 
 
@@ -36,3 +36,32 @@ def test_bad_scans_are_input_errors():
         best_gain([0.1, 0.2], [1.0, 2.0])
     with pytest.raises(InputError):
         best_gain([0.1, 0.2, 0.3], [np.nan] * 3)
+
+
+def test_scan_around_is_geometric_and_holds_the_centre():
+    g = scan_around(0.3, 2.0, 3.0, 8)
+    assert g[0] == pytest.approx(0.1) and g[-1] == pytest.approx(0.9) and 0.3 in g and len(g) == 9
+    assert np.allclose(np.diff(np.log(np.delete(g, np.flatnonzero(g == 0.3)))), np.log(9) / 7)
+    capped = scan_around(0.3, 0.5, 3.0, 8)
+    assert capped.max() == pytest.approx(0.5) and 0.3 in capped
+    with pytest.raises(InputError):
+        scan_around(0.0, 1.0)
+
+
+def test_merit_scatter_ignores_a_trend_and_measures_the_noise():
+    rng = np.random.default_rng(3)
+    g = np.linspace(0.1, 1.0, 2000)
+    m = 50 + 40 * g + rng.normal(0, 2.0, g.size)  # the trend moves the merit by 40, the noise by 2
+    assert merit_scatter(m) == pytest.approx(2.0 * np.sqrt(2), rel=0.05)  # of a difference of two sequences
+    assert merit_scatter([1.0, np.inf, 2.0]) == 0.0
+
+
+def test_the_incumbent_stays_unless_beaten_by_more_than_the_scatter():
+    g = scan_around(0.5, 2.0, 3.0, 8)
+    rng = np.random.default_rng(0)
+    flat = 80 + rng.normal(0, 4.0, g.size)  # a trendless scan: its minimum is a fluctuation
+    assert chosen_gain(g, flat, 0.5) == 0.5
+    assert chosen_gain(g, flat, None) == best_gain(g, flat) != 0.5
+    bowl = 80 + 200 * (g - 1.1) ** 2 + rng.normal(0, 1.0, g.size)  # a real optimum far from 0.5
+    assert chosen_gain(g, bowl, 0.5) == best_gain(g, bowl) > 0.8
+    assert chosen_gain(g, bowl, 0.37) == best_gain(g, bowl)  # an incumbent not in the scan

@@ -108,6 +108,19 @@ def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_cali
     assert rec["merit"][0] > rec["merit"][1:4].min()
 
 
+def test_trial_and_error_scores_only_whole_sequences(small_calibration):
+    """Started between two updates, the first sequence is scored at the update after a whole
+    sequence, not on the few frames since the start (which scored the first gain of a scan by
+    a residual that had not grown yet: R14.5's Tip/Tilt chose the lowest gain)."""
+    task = TrialAndErrorTask(54, [scan_gains(0.6, 3), scan_gains(0.6, 3)], settle=20, measure=80)
+    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.3, 0.3), noise=True, seed=1)
+    loop.run(57)
+    loop.add_aux_loop(task)
+    loop.run(800)
+    frames = loop.telemetry.aux_arrays("trial")["frame"]
+    assert frames[0] == 200 and np.all(np.diff(frames) == 100), frames
+
+
 class Saboteur(AuxLoop):
     """Sets every gain to ``factor`` x its value at its first update (an optimiser gone wrong)
     and counts the safety net's ``damp`` calls."""
