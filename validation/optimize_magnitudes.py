@@ -4,7 +4,9 @@ the loop unstable).  Not in CI: the 40x40 cases cost minutes each.
 For every R magnitude x seeing x seed x variant, `optimize gains` with default options except
 the short run lengths (``--duration`` 5 update periods, ``--measure`` 0.5 s): the configuration
 of the look-up table, its default period, initial gains, probe and safety net.  Variants:
-mgm+ogtl (the default), trial+ogtl, mgm, trial.  Checks per point:
+mgm+ogtl (the default), trial+ogtl, mgm, trial.  "before" and "after" are `optimize`'s
+paired evaluation (the initial and the optimised gains on the run's own turbulence and noise);
+the run's own phases are recorded beside them (``during_run``).  Checks per point:
 
 * no divergence (exit 3);
 * Strehl after >= Strehl before - 0.01;
@@ -54,8 +56,9 @@ def run_case(mag: float, seeing: float, seed: int, variant: str, cache_dir: str)
     r = optimize(request, ArrayCache(cache_dir))
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
     return {"mag": mag, "seeing": seeing, "seed": seed, "variant": variant, "period_s": request.period_s,
-            "diverged_at": r.diverged_at, "before": r.before.strehl if r.before else None,
+            "diverged_at": r.diverged_at, "diverged_in": r.diverged_in, "before": r.before.strehl if r.before else None,
             "after": r.after.strehl if r.after else None, "safety_restores": r.safety_events,
+            "during_run": {k: v.strehl for k, v in r.during_run.items()}, "sensitivities": list(r.sensitivities),
             "k": r.loop.rtc_parameters.sensitivity, "aux": summary(records), "seconds": time.perf_counter() - t0}
 
 

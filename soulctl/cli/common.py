@@ -40,8 +40,8 @@ NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrat
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(ranges.OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
 PERIOD = typer.Option(None, "--period", parser=number(ranges.PERIOD_S), metavar="S",
-                      help="Update period of MGM and OGTL (default: the paper's 1 s, longer where the frame rate needs it: "
-                           "MGM needs 4 Welch segments of >= 64 frames).")
+                      help="Update period of MGM and OGTL (default: 1 s, longer where the frame rate needs it for MGM's 4 Welch "
+                           "segments with bins of at most 1 Hz, up to 512 frames: 2.6 s at 250 Hz, 3.3 s at 100 Hz).")
 PROBE_MODE = typer.Option(30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes).")
 PROBE_AMPLITUDE = typer.Option(None, "--probe-amplitude", parser=number(ranges.PROBE_AMPLITUDE_NM), metavar="NM",
                                help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}; default: 20 nm, more where the "

@@ -132,21 +132,24 @@ class MgmTask(AuxLoop):
 class TrialAndErrorTask(AuxLoop):
     """Scans the groups in order; each sequence is ``settle`` frames (not scored, the loop
     settling at the new gain) plus ``measure`` frames scored by the group's measured-mode RMS;
-    an update whose window is shorter than a sequence (the task started between two updates)
-    waits for the next.  A group's ``incumbents`` gain (one of its scan) is kept unless another
-    is significantly better (``trial.chosen_gain``).
+    an update whose window is shorter than a sequence (the task started between two updates, or
+    OGTL changed k during it) scores nothing and the sequence runs again.  A group's ``incumbents`` gain (one of its scan) is kept unless another
+    is significantly better (``trial.chosen_gain``).  A scanned gain g sets the group's modes to
+    g x its ``shapes`` (per mode, mean 1; uniform by default, the paper's one gain per group).
     When a group is done its best gain is set and kept; after the last group the task is idle."""
 
     name = "trial"
 
     def __init__(self, n_modes: int, scans: Sequence[np.ndarray], settle: int, measure: int,
-                 incumbents: Sequence[float | None] | None = None):
+                 incumbents: Sequence[float | None] | None = None, shapes: Sequence[np.ndarray] | None = None):
         super().__init__(settle + measure)
         self.groups = trial.gain_groups(n_modes)
         if len(scans) != len(self.groups):
             raise InputError(f"trial-and-error needs one gain scan per group ({len(self.groups)}), got {len(scans)}")
         self.scans = [np.asarray(s, dtype=float) for s in scans]
         self.incumbents = list(incumbents) if incumbents is not None else [None] * len(scans)  # kept unless beaten (``trial.chosen_gain``)
+        # a scanned value g sets the group's modes to g x shape (mean 1): the paper's one gain per group when uniform
+        self.shapes = [np.ones(m.stop - m.start) for _, m in self.groups] if shapes is None else [np.asarray(x, dtype=float) for x in shapes]
         self.measure = measure
         self._group, self._index = 0, 0
         self._merits: list[float] = []
@@ -164,14 +167,14 @@ class TrialAndErrorTask(AuxLoop):
 
     def _set_trial(self, rtc: RtcParameters) -> None:
         g = self._with_best(rtc.gains)
-        g[self.groups[self._group][1]] = self.scans[self._group][self._index]
+        g[self.groups[self._group][1]] = self.scans[self._group][self._index] * self.shapes[self._group]
         rtc.set_gains(g)
 
     def _with_best(self, gains: np.ndarray) -> np.ndarray:
         """``gains`` with the groups already scanned at their best (a restore by the safety net
         may have set older gains)."""
-        for (_, modes), best in zip(self.groups, self.best):
-            gains[modes] = best
+        for (_, modes), best, shape in zip(self.groups, self.best, self.shapes):
+            gains[modes] = best * shape
         return gains
 
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
@@ -181,7 +184,7 @@ class TrialAndErrorTask(AuxLoop):
         if self.done:
             return {}
         if not self._failed and window.frames < self.period_frames:
-            return {}  # the sequence began after the last update (the task started off the period): not complete yet
+            return {}  # the window began after the sequence (the task started off its period, or k changed): run it again
         name, modes = self.groups[self._group]
         measured = window.measured_modes[-self.measure :, modes]
         scan = self.scans[self._group]

@@ -28,9 +28,10 @@ closed the open-loop residual is far outside the PWFS's linear range.)  The init
 come from the operating point (``initial_gains``), the update period from the frame rate
 (``default_period_s``), and a safety net guards every phase after the closing (``SafetyNet``).
 
-Trial-and-error scans each group geometrically from 1/3 to 3 x its initial gain (and that gain
-itself), below 0.8 x the nominal maximum stable gain divided by the largest chi_i of the group
-(the same table).
+Trial-and-error scans each group's mean gain geometrically from 1/3 to 3 x its initial value
+(and that value itself, kept unless beaten by more than the merit's scatter), the modes keeping
+the shape of their initial gains, no mode beyond 0.8 x the nominal maximum stable gain over
+its chi_i (the same table).
 """
 
 from __future__ import annotations
@@ -62,7 +63,11 @@ from .run import (RunRequest, calibration_for, check_memory, check_stability, cl
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
 
 METHODS = ("trial", "mgm")
-MIN_SEGMENT = 64  # frames: the shortest Welch segment MGM accepts
+MIN_SEGMENT = 64  # frames: the shortest Welch segment MGM accepts ...
+MAX_SEGMENT = 512  # ... and the longest it takes from a window
+MGM_RESOLUTION_HZ = 1.0  # the default period holds 4 segments with bins at most this wide (``resolving_segment``)
+DEFAULT_DURATION_S = 5.0  # MGM's default optimisation phase: at least this ...
+DEFAULT_UPDATES = 5  # ... and this many update periods
 MIN_SEQUENCE = 10  # frames of one trial-and-error sequence (a fifth of them settling)
 DEFAULT_SEQUENCE_S = 0.25  # the default trial-and-error sequence, at least DEFAULT_SEQUENCE_FRAMES
 DEFAULT_SEQUENCE_FRAMES = 100
@@ -73,7 +78,7 @@ INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plan
 OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at least ...
 OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
 SETTLED_LOG_STEP = 0.1  # k has settled when its last update changed log k by less than this
-DEFAULT_PERIOD_S = 1.0  # the paper's update period, where the frame rate allows it (``default_period_s``)
+DEFAULT_PERIOD_S = 1.0  # the shortest default update period (``default_period_s``)
 SAFETY_CHECK_S = 0.1  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
 SAFETY_CHECK_MIN_FRAMES = 10
 SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts within them
@@ -84,7 +89,7 @@ EVALUATION_SETTLE_S = 0.2  # the paired evaluation's settling at k after the clo
 class OptimizeRequest:
     run: RunRequest  # observation, conditions, initial gains, band, seed, ...
     method: str = "mgm"
-    duration_s: float = 5.0  # MGM's optimisation phase
+    duration_s: float | None = None  # MGM's optimisation phase; None: ``default_duration_s``
     period_s: float | None = None  # MGM's and OGTL's update period; None: ``default_period_s``
     ogtl: bool = True
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
@@ -96,6 +101,8 @@ class OptimizeRequest:
     def __post_init__(self):
         if self.period_s is None:
             object.__setattr__(self, "period_s", default_period_s(self.run.observation, self.ogtl_settings))
+        if self.duration_s is None:
+            object.__setattr__(self, "duration_s", default_duration_s(self.period_s))
         if self.trial_sequence_s is None:
             object.__setattr__(self, "trial_sequence_s", default_sequence_s(self.run.observation))
         if self.chi_seeing_arcsec is None:
@@ -127,15 +134,34 @@ class OptimizeRequest:
         return self.mgm_settings or period_settings(self.frames(self.period_s), self.run.observation)
 
 
+def resolving_segment(rate_hz: float) -> int:
+    """The shortest power-of-two Welch segment, from MIN_SEGMENT to MAX_SEGMENT, whose bins are
+    at most MGM_RESOLUTION_HZ wide (MAX_SEGMENT where none is).  Coarser bins hide the
+    low-frequency disturbance a slow, noisy loop must reject in the DC bin MGM leaves out:
+    at R16.5, 250 Hz, 1.0", 64-frame segments (3.9 Hz) put the Tip/Tilt optimum at 0.23, 128
+    and 256 frames at 0.55 and 0.58, by the same telemetry (docs/physics.md)."""
+    segment = MIN_SEGMENT
+    while segment < MAX_SEGMENT and rate_hz / segment > MGM_RESOLUTION_HZ:
+        segment *= 2
+    return segment
+
+
 def default_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> float:
-    """The default update period of MGM and OGTL: the paper's 1 s, lengthened (to a whole 0.1 s)
-    where the frame rate needs more for MGM's 4 Welch segments of 64 frames after the frames
-    the delay leaves without commands, or for the probe's PROBE_MIN_CYCLES cycles."""
+    """The default update period of MGM and OGTL: 1 s, lengthened (to a whole 0.1 s) where the
+    frame rate needs more for MGM's 4 Welch segments of ``resolving_segment`` frames after the
+    frames the delay leaves without commands, or for the probe's PROBE_MIN_CYCLES cycles: 1 s
+    at 1361-1700 Hz, 1.2 s at 1148 Hz, 1.7 s at 750 Hz, 2.6 s at 250-500 Hz, 3.3 s at 100 Hz
+    (the paper: an optimisation step takes 5-10 s, updates about every 5 s on sky)."""
     rate = observation.frame_rate_hz
     n, _ = fractional_taps(observation.delay_frames)
-    need = mgm.min_frames(mgm.MgmSettings(segment=MIN_SEGMENT)) + n + 1
+    need = mgm.min_frames(mgm.MgmSettings(segment=resolving_segment(rate))) + n + 1
     seconds = max(DEFAULT_PERIOD_S, need / rate, PROBE_MIN_CYCLES / settings.probe_frequency(rate))
     return math.ceil(round(seconds * 10, 9)) / 10
+
+
+def default_duration_s(period_s: float) -> float:
+    """MGM's default optimisation phase: DEFAULT_UPDATES update periods, at least DEFAULT_DURATION_S."""
+    return max(DEFAULT_DURATION_S, round(DEFAULT_UPDATES * period_s, 9))
 
 
 def default_sequence_s(observation) -> float:
@@ -163,12 +189,12 @@ def period_settings(period_frames: int, observation) -> mgm.MgmSettings:
 
 
 def welch_settings(frames: int, rate_hz: float, what: str, dropped: int = 0) -> mgm.MgmSettings:
-    """MGM settings with the longest power-of-two Welch segment (<= 512) that gives MGM's 4
+    """MGM settings with the longest power-of-two Welch segment (<= MAX_SEGMENT) that gives MGM's 4
     segments in ``frames`` less the ``dropped`` first ones (the loop delay leaves n + 1 frames
     of a window without their commands); InputError naming ``what`` and its minimum when even
     64-frame segments do not fit."""
     usable = frames - dropped
-    segment = 512
+    segment = MAX_SEGMENT
     while segment > MIN_SEGMENT and mgm.min_frames(mgm.MgmSettings(segment=segment)) > usable:
         segment //= 2
     settings = mgm.MgmSettings(segment=segment)
@@ -234,20 +260,34 @@ def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettin
     return mgm.ModalGainMachine(tuple(unit), chi, d, observation.frame_rate_hz, settings, ba)
 
 
+def trial_shapes(initial: np.ndarray) -> list[np.ndarray]:
+    """Per group, the initial gains over their mean: trial-and-error scans the group's mean gain
+    and keeps this shape (the noise-aware initial gains lower the noise-dominated modes of a
+    group; one gain for all of them raised those fourfold at R17.5), uniform where the initial
+    gains are (the paper's one gain per group)."""
+    out = []
+    for _, modes in gain_groups(len(initial)):
+        mean = float(np.mean(initial[modes]))
+        out.append(initial[modes] / mean if mean > 0 else np.ones(modes.stop - modes.start))
+    return out
+
+
 def trial_scans(request: OptimizeRequest, chi: np.ndarray, initial: np.ndarray | None = None) -> list[np.ndarray]:
-    """Per group, the gains trial-and-error scans, below TRIAL_TOP x the nominal maximum stable
-    gain over the group's largest chi.  With ``initial`` gains, a scan around the group's mean
-    initial gain (``scan_around``: TRIAL_VALUES gains from 1/TRIAL_SPAN to TRIAL_SPAN x, and the
-    initial gain itself, so that the group keeps it when no other gain does better): a scan from
-    near zero chose a Tip/Tilt gain of 0.05 at R14.5, 1.0" (Strehl 0.42 -> 0.28 on the same
-    turbulence), and one to 0.8 g_max ran noise-dominated R16.5-17.5 loops at k ~ 3 away.
-    Without, TRIAL_VALUES gains from 5 % of that top to the top (``scan_gains``)."""
+    """Per group, the mean gains trial-and-error scans, such that no mode of the group goes
+    beyond TRIAL_TOP x the nominal maximum stable gain over its chi (the group's ``trial_shapes``
+    applied).  With ``initial`` gains, a scan around the group's mean initial gain
+    (``scan_around``: TRIAL_VALUES gains from 1/TRIAL_SPAN to TRIAL_SPAN x, and the initial gain
+    itself, so that the group keeps it when no other gain does better): a scan from near zero
+    chose a Tip/Tilt gain of 0.05 at R14.5, 1.0" (Strehl 0.42 -> 0.28 on the same turbulence),
+    and one to 0.8 g_max ran noise-dominated R16.5-17.5 loops at k ~ 3 away.  Without,
+    TRIAL_VALUES gains from 5 % of that top to the top (``scan_gains``)."""
     obs = request.run.observation
     structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
+    shapes = trial_shapes(initial) if initial is not None else [np.ones(m.stop - m.start) for _, m in gain_groups(len(chi))]
     scans = []
-    for _, modes in gain_groups(len(chi)):
+    for (_, modes), shape in zip(gain_groups(len(chi)), shapes):
         g_max = max_stable_gain(nominal_loop(obs, 1.0, modes.start == 0, structure))
-        top = TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(chi[modes])))
+        top = TRIAL_TOP * min(g_max, 2.0) / max(1.0, float(np.max(shape * chi[modes])))
         centre = 0.0 if initial is None else float(np.mean(initial[modes]))
         scans.append(scan_around(centre, top, TRIAL_SPAN, TRIAL_VALUES) if centre > 0 else scan_gains(top, TRIAL_VALUES))
     return scans
@@ -474,8 +514,24 @@ def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayC
     sequence = request.frames(request.trial_sequence_s)
     settle = max(1, sequence // 5)
     incumbents = [float(np.mean(initial[modes])) for _, modes in gain_groups(len(chi))]
-    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi, initial), settle, sequence - settle, incumbents)
-    return trial, sequence * sum(len(s) for s in trial.scans)
+    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi, initial), settle, sequence - settle, incumbents,
+                              trial_shapes(initial))
+    # one sequence more: the task starts on an update boundary of OGTL's period, its first
+    # update after a partial sequence waits for the next (``TrialAndErrorTask.update``)
+    return trial, sequence * (sum(len(s) for s in trial.scans) + 1)
+
+
+def _run_optimiser(loop: ClosedLoop, optimiser: MgmTask | TrialAndErrorTask, frames: int, tick) -> None:
+    """MGM for ``frames``; trial-and-error until its scan is done: a sequence that OGTL's k
+    changed part-way is run again (``TrialAndErrorTask.update``), so the scan may take a few
+    sequences more than ``frames``; at most twice as long."""
+    if isinstance(optimiser, MgmTask):
+        loop.run(frames, progress=tick)
+        return
+    ran = 0
+    while not optimiser.done and ran < 2 * frames:
+        loop.run(optimiser.period_frames, progress=tick)
+        ran += optimiser.period_frames
 
 
 def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None,
@@ -542,7 +598,7 @@ def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), pro
         loop.remove_aux_loop(net)  # the net acts after the optimiser in an update
         loop.add_aux_loop(optimiser)
         loop.add_aux_loop(net)
-        loop.run(n_opt, progress=tick)
+        _run_optimiser(loop, optimiser, n_opt, tick)
         loop.remove_aux_loop(optimiser)
         result.phases["optimisation"] = (start, loop.frame)
         result.gains = loop.rtc_parameters.gains

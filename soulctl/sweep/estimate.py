@@ -25,7 +25,7 @@ from functools import lru_cache
 
 from ..control.trial import gain_groups
 from ..errors import InputError
-from ..loop.optimize import OGTL_SETTLING_PERIODS, TRIAL_VALUES, default_sequence_s
+from ..loop.optimize import EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS, TRIAL_VALUES, default_sequence_s
 from ..loop.run import closing_frames
 from .case import DEFAULTS, observation_for, optimisation_period_s
 
@@ -102,11 +102,12 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
     if p["gain_method"] != "default":
         period = max(1, round(optimisation_period_s(p["duration"], obs) * rate))
         n_close = closing_frames(rate) + period // 2  # stretched to an update boundary: half a period on average
+        evaluation = 2 * (closing_frames(rate) + round(EVALUATION_SETTLE_S * rate) + n)  # before and after, paired
         if p["gain_method"] == "mgm":
-            n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n
+            n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n + evaluation
         else:
-            scan = len(gain_groups(obs.modes)) * (TRIAL_VALUES + 1) * max(1, round(default_sequence_s(obs) * rate))
-            n = n_close + OGTL_SETTLING_PERIODS * period + 2 * n + scan
+            scan = (len(gain_groups(obs.modes)) * (TRIAL_VALUES + 1) + 1) * max(1, round(default_sequence_s(obs) * rate))
+            n = n_close + OGTL_SETTLING_PERIODS * period + 2 * n + scan + evaluation
     return n, CASE_FIXED_S[key] + n * FRAME_MS[key] / 1e3, (obs.binning, obs.modes, obs.modulation_lambda_over_d, p["oversampling"])
 
 
