@@ -125,7 +125,8 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
     for g_prev, g in zip(group_summary(result.previous_gains), group_summary(result.gains)):
         t.add_row(f"gains {g['group']}: recorded → MGM", f"{_group_text(g_prev)} → {_group_text(g)}")
     t.add_row("gains Tip / Tilt", f"{result.gains[0]:.3f} / {result.gains[1]:.3f}")
-    t.add_row("chi model", "gamma_i / gamma_30 (OGTL recorded)" if result.ogtl else f"gamma_i x k (k = {result.sensitivity:.3f})")
+    t.add_row("chi model", f"gamma_i / gamma_{result.probe_mode} (OGTL recorded, probe mode {result.probe_mode})" if result.ogtl
+              else f"gamma_i x k (k = {result.sensitivity:.3f})")
     if result.capped:
         t.add_row("capped at the nominal stability limit", f"{len(result.capped)} mode(s), first mode {result.capped[0]}")
     console.print(t)

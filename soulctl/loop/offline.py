@@ -8,8 +8,9 @@ since the last change of the gains (``/gain_history``) or of the slope sensitivi
 (``/sensitivity``), as live: MGM's model holds for fixed gains and k; at most the last
 ``MAX_WINDOW_S`` (600 s, the longest period of live MGM).  chi_i comes from the optical-gain
 table of the configuration's calibration at the reference correction level, as live:
-gamma_i / gamma_30 when the file records OGTL (``/aux/ogtl``: k tracked the optical gain of
-mode 30), gamma_i times the file's k otherwise.
+gamma_i / gamma_p when the file records OGTL (``/aux/ogtl``: k tracked the optical gain of the
+probed mode p, ``/aux/ogtl/mode``; 30 in files that do not record it), gamma_i times the file's
+k otherwise.
 
 The gains returned are always a vector `loop run --gains` accepts: MGM's update (Eq.
 gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
@@ -34,6 +35,7 @@ given).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +73,7 @@ class OfflineMgmResult:
     frames: int  # frames of the window
     segment: int  # Welch segment (frames)
     capped: tuple[int, ...] = ()  # modes (1-based) whose MGM gain was capped at the nominal limit
+    probe_mode: int | None = None  # the mode OGTL probed (chi_i = gamma_i / gamma_probe), None without OGTL
 
     def to_dict(self) -> dict:
         return {
@@ -78,6 +81,7 @@ class OfflineMgmResult:
             "window": {"first_frame": self.first_frame, "frames": self.frames,
                        "seconds": self.frames / self.observation.frame_rate_hz, "welch_segment": self.segment},
             "ogtl": self.ogtl,
+            "probe_mode": self.probe_mode,
             "sensitivity": self.sensitivity,
             "previous_gains": self.previous_gains.tolist(),
             "optimum": self.optimum.tolist(),
@@ -152,6 +156,20 @@ def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bo
     return kept if keep else None
 
 
+def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
+    """The mode OGTL probed (``/aux/ogtl/mode`` at its last update; 1-based), or PROBE_MODE in
+    files written before it was recorded: MGM's chi_i = gamma_i / gamma_probe needs it (a run
+    made with --probe-mode 10 read as mode 30 got the wrong chi for every mode)."""
+    ds = tm.dataset("aux/ogtl/mode")
+    if ds is None or ds.shape[:1] == (0,):
+        return PROBE_MODE
+    last = np.asarray(ds[-1], dtype=float) if np.issubdtype(ds.dtype, np.number) else np.array([math.nan])
+    mode = float(last.reshape(-1)[0]) if last.size == 1 else math.nan
+    if not (math.isfinite(mode) and mode == round(mode) and 1 <= mode <= n_modes):
+        raise InputError(f"telemetry file {path}: /aux/ogtl/mode must hold the probed mode, an integer in 1..{n_modes}, got {mode:g}")
+    return int(mode)
+
+
 def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache = ArrayCache(None),
                 settings: mgm.MgmSettings | None = None, chi_seeing_arcsec: float = 0.8) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
@@ -191,10 +209,11 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
         rows = slice(start, frames)
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
+        probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
         run = RunRequest(observation, oversampling=oversampling)
         calibration = calibration_for(run, cache)
         gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
-        chi = mgm_chi(gamma, ogtl, PROBE_MODE) if ogtl else gamma * sensitivity
+        chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
         machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
         psd = []
         for i, cols in enumerate(blocks):
@@ -206,4 +225,5 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
     limits = nominal_limits(observation, structure, settings.margin)
     capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
     gains = np.minimum(gains, limits)
-    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped)
+    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped,
+                            probe_mode)

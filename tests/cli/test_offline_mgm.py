@@ -287,3 +287,29 @@ def test_any_corruption_exits_2_with_one_line_or_0_with_gains_loop_run_accepts(e
     else:
         g = accepted_by_loop_run(out_file)
         np.testing.assert_allclose(g, json.loads(out)["gains"], atol=1e-5)
+
+
+def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
+    """A run made with --probe-mode 10: offline MGM takes chi_i = gamma_i / gamma_10 (it assumed
+    mode 30, the default, whatever the run had probed); a file whose probe mode is not a mode
+    is refused."""
+    h5 = tmp_path / "probe10.h5"
+    status = main(["loop", "run", "--config", str(env["config"]), "--oversampling", "1", "--seeing", "0.6", "--duration", "2.5",
+                   "--ogtl", "--probe-mode", "10", "--period", "1", "--telemetry", str(h5), "--cache-dir", str(env["cache"]), "--json"])
+    assert status == 0
+    capsys.readouterr()
+    status, out, err, _ = offline(h5, env, capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["ogtl"] and d["probe_mode"] == 10
+    as_30 = tmp_path / "probe30.h5"
+    as_30.write_bytes(h5.read_bytes())
+    with h5py.File(as_30, "r+") as f:
+        f["aux/ogtl/mode"][...] = 30
+    status, out, err, _ = offline(as_30, env, capsys)
+    d30 = json.loads(out)
+    assert d30["probe_mode"] == 30 and not np.allclose(d30["optimum"], d["optimum"])
+    with h5py.File(as_30, "r+") as f:
+        f["aux/ogtl/mode"][-1] = 0  # not a mode
+    status, _, err, out_file = offline(as_30, env, capsys)
+    assert status == 2 and not out_file.exists() and "/aux/ogtl/mode must hold the probed mode, an integer in 1..54" in err and err.count("\n") == 1
