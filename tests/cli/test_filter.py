@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from soulctl.cli.app import main
@@ -50,7 +51,12 @@ def test_analyze_leaky(capsys):
     status, out, _ = run(["filter", "analyze", "--rate", "500", "--control", "leaky", "--forgetting", "0.9",
                           "--gain", "0.5", "--delay-frames", "1.5", "--json"], capsys)
     c = json.loads(out)["controllers"][0]
-    assert status == 0 and c["poles"] == [0.9] and c["rejection_13hz"] > 0.1  # no integral action
+    assert status == 0 and c["poles"] == [0.9]
+    # |S| at 13 Hz from the loop written out: C(z) = g / (1 - a z^-1), P(z) = z^-1.5 as the delay
+    # line's interpolation 0.5 z^-1 + 0.5 z^-2
+    z1 = np.exp(-2j * np.pi * 13.0 / 500.0)
+    loop_13 = 0.5 / (1 - 0.9 * z1) * (0.5 * z1 + 0.5 * z1**2)
+    assert c["rejection_13hz"] == pytest.approx(abs(1 / (1 + loop_13)), rel=1e-9)
 
 
 def test_unstable_loop_exit_3_with_figures(capsys):
