@@ -48,16 +48,31 @@ def main() -> None:
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
             r = design_tt_filter(rate, seed=seed)
-            runs.append({"seed": seed, "wall_s": time.perf_counter() - t0, "evaluations": r.evaluations,
-                         "cost_mas2": r.iir.cost_mas2, "rejection_ratio": r.rejection_ratio,
-                         "zeros": [z.real for z in r.iir.filter.zeros], "poles": [q.real for q in r.iir.filter.poles],
-                         "gain": r.iir.filter.gain})
+            runs.append(
+                {
+                    "seed": seed,
+                    "wall_s": time.perf_counter() - t0,
+                    "evaluations": r.evaluations,
+                    "cost_mas2": r.iir.cost_mas2,
+                    "rejection_ratio": r.rejection_ratio,
+                    "zeros": [z.real for z in r.iir.filter.zeros],
+                    "poles": [q.real for q in r.iir.filter.poles],
+                    "gain": r.iir.filter.gain,
+                }
+            )
         walls = np.array([x["wall_s"] for x in runs])
         costs = np.array([x["cost_mas2"] for x in runs])
-        rows.append({"rate_hz": rate, "runs": runs, "median_s": float(np.median(walls)), "max_s": float(walls.max()),
-                     "evaluations_per_s": float(np.median([x["evaluations"] / x["wall_s"] for x in runs])),
-                     "cost_spread": float((costs.max() - costs.min()) / costs.min()),
-                     "meets_target": bool(walls.max() <= TARGET_S)})
+        rows.append(
+            {
+                "rate_hz": rate,
+                "runs": runs,
+                "median_s": float(np.median(walls)),
+                "max_s": float(walls.max()),
+                "evaluations_per_s": float(np.median([x["evaluations"] / x["wall_s"] for x in runs])),
+                "cost_spread": float((costs.max() - costs.min()) / costs.min()),
+                "meets_target": bool(walls.max() <= TARGET_S),
+            }
+        )
 
     roots = {r.frame_rate_hz: r for r in tables.tt_iir_table()}[1700]
     loop = Loop(Filter.iir(roots.zeros, roots.poles, 0.69), Plant(DelayModel.from_table().frames(1700)), 1700.0)
@@ -73,15 +88,26 @@ def main() -> None:
     for c in ("rate", "median s", "max s", "evals/s", "cost spread over seeds", "target"):
         t.add_column(c, justify="right")
     for r in rows:
-        t.add_row(f"{r['rate_hz']:g} Hz", f"{r['median_s']:.1f}", f"{r['max_s']:.1f}", f"{r['evaluations_per_s']:.0f}",
-                  f"{100 * r['cost_spread']:.2f} %", "met" if r["meets_target"] else "MISSED")
+        t.add_row(
+            f"{r['rate_hz']:g} Hz",
+            f"{r['median_s']:.1f}",
+            f"{r['max_s']:.1f}",
+            f"{r['evaluations_per_s']:.0f}",
+            f"{100 * r['cost_spread']:.2f} %",
+            "met" if r["meets_target"] else "MISSED",
+        )
     console = Console()
     console.print(t)
-    console.print(f"analyze(): median {analysis['median_ms']:.2f} ms, p99 {analysis['p99_ms']:.2f} ms "
-                  f"(p99/median {analysis['p99_ms'] / analysis['median_ms']:.2f}) over {args.repeat} calls")
-    result = {"soulctl": __version__, "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                                                 "processor": platform.processor()},
-              "design": rows, "analyze": analysis}
+    console.print(
+        f"analyze(): median {analysis['median_ms']:.2f} ms, p99 {analysis['p99_ms']:.2f} ms "
+        f"(p99/median {analysis['p99_ms'] / analysis['median_ms']:.2f}) over {args.repeat} calls"
+    )
+    result = {
+        "soulctl": __version__,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": platform.processor()},
+        "design": rows,
+        "analyze": analysis,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1))
     console.print(f"written {args.out}")

@@ -63,18 +63,39 @@ def main() -> None:
                         assert row["status"] == "ok", row["reason"]
                     times[frames] = min(runs)
                 per_frame = (times[long] - times[short]) / (long - short)
-                rows.append({"binning": binning, "oversampling": o, "modes": obs.modes, "frame_rate_hz": obs.frame_rate_hz,
-                             "frame_ms": 1e3 * per_frame, "case_fixed_s": max(0.0, times[short] - short * per_frame),
-                             "calibration_cold_s": cold, "run_s": times})
+                rows.append(
+                    {
+                        "binning": binning,
+                        "oversampling": o,
+                        "modes": obs.modes,
+                        "frame_rate_hz": obs.frame_rate_hz,
+                        "frame_ms": 1e3 * per_frame,
+                        "case_fixed_s": max(0.0, times[short] - short * per_frame),
+                        "calibration_cold_s": cold,
+                        "run_s": times,
+                    }
+                )
     t = Table(title="CPU cost of a sweep case per frame (one thread)")
     for col in ("binning", "oversampling", "modes", "ms/frame", "fixed s/case", "calibration cold [s]"):
         t.add_column(col, justify="right")
     for r in rows:
-        t.add_row(str(r["binning"]), str(r["oversampling"]), str(r["modes"]), f"{r['frame_ms']:.2f}", f"{r['case_fixed_s']:.2f}",
-                  f"{r['calibration_cold_s']:.1f}")
+        t.add_row(
+            str(r["binning"]),
+            str(r["oversampling"]),
+            str(r["modes"]),
+            f"{r['frame_ms']:.2f}",
+            f"{r['case_fixed_s']:.2f}",
+            f"{r['calibration_cold_s']:.1f}",
+        )
     Console().print(t)
-    result = {"benchmark": "frame_cost", "soulctl_version": __version__, "machine": platform.machine(), "cpus": os.cpu_count(),
-              "frames": [short, long], "rows": rows}
+    result = {
+        "benchmark": "frame_cost",
+        "soulctl_version": __version__,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "frames": [short, long],
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
 

@@ -32,20 +32,24 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl import __version__
+from soulctl.control.structure import StructuralResonance
+from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.files import atomic_write_text
 from soulctl.loop.metrics import PsfAccumulator
 from soulctl.loop.run import default_gains, sampled_structure
 from soulctl.loop.simulation import STAGES, ClosedLoop
-from soulctl.control.structure import StructuralResonance
-from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
 
-CASES = [("40x40", 1, 500, 1700.0, None), ("20x20", 2, 250, 1148.0, None), ("10x10", 4, 54, 390.0, None),
-         ("40x40 20 pts", 1, 500, 1700.0, 20)]  # the peer's 20 modulation points (at o = 4 only)
+CASES = [
+    ("40x40", 1, 500, 1700.0, None),
+    ("20x20", 2, 250, 1148.0, None),
+    ("10x10", 4, 54, 390.0, None),
+    ("40x40 20 pts", 1, 500, 1700.0, 20),
+]  # the peer's 20 modulation points (at o = 4 only)
 
 
 def main() -> None:
@@ -70,37 +74,68 @@ def main() -> None:
                 calibrate(setup, cache)
                 cached = time.perf_counter() - t0
             structure = sampled_structure(StructuralResonance(), rate)
-            loop = ClosedLoop(obs, cal, AtmosphereConfig.lbt_default(1.0), default_gains(obs, structure),
-                              vibrations=VibrationSpectrum.lbt_default(), seed=1, structure=structure)
+            loop = ClosedLoop(
+                obs,
+                cal,
+                AtmosphereConfig.lbt_default(1.0),
+                default_gains(obs, structure),
+                vibrations=VibrationSpectrum.lbt_default(),
+                seed=1,
+                structure=structure,
+            )
             psf = PsfAccumulator(loop.pupil, 1.65e-6)
             loop.run(20, psf=psf)  # warm-up
             for k in loop.stage_seconds:
                 loop.stage_seconds[k] = 0.0
             ends = []
             t0 = time.perf_counter()
-            loop.run(args.frames, psf=psf, progress=lambda _: ends.append(time.perf_counter()))
+            loop.run(args.frames, psf=psf, progress=lambda _, e=ends: e.append(time.perf_counter()))
             wall = time.perf_counter() - t0
             frame_ms = np.diff([t0] + ends) * 1e3
             stages = {k: v / args.frames * 1e3 for k, v in loop.stage_seconds.items()}
-            rows.append({"case": label, "oversampling": o, "pupil_pixels": loop.pupil.n_pixels,
-                         "fft_size": setup.pyramid.fft_size, "modulation_points": setup.pyramid.points,
-                         "valid_subapertures": loop.sensor.n_subapertures, "modes": modes,
-                         "iterations_per_s": args.frames / wall, "ms_per_iteration": wall / args.frames * 1e3,
-                         "frame_ms_median": float(np.median(frame_ms)), "frame_ms_p99": float(np.percentile(frame_ms, 99)),
-                         "stage_ms": stages, "calibration_cold_s": cold, "calibration_cached_s": cached})
+            rows.append(
+                {
+                    "case": label,
+                    "oversampling": o,
+                    "pupil_pixels": loop.pupil.n_pixels,
+                    "fft_size": setup.pyramid.fft_size,
+                    "modulation_points": setup.pyramid.points,
+                    "valid_subapertures": loop.sensor.n_subapertures,
+                    "modes": modes,
+                    "iterations_per_s": args.frames / wall,
+                    "ms_per_iteration": wall / args.frames * 1e3,
+                    "frame_ms_median": float(np.median(frame_ms)),
+                    "frame_ms_p99": float(np.percentile(frame_ms, 99)),
+                    "stage_ms": stages,
+                    "calibration_cold_s": cold,
+                    "calibration_cached_s": cached,
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     t = Table(title=f"Closed loop per iteration ({args.frames} frames per case), ms and share", title_justify="left")
     for col in ("case", "pupil/FFT/points", "it/s", "ms med/p99", *STAGES, "metrics", "cal. cold s", "cached s"):
         t.add_column(col, justify="right" if col != "case" else "left")
     for r in rows:
         total = r["ms_per_iteration"]
-        t.add_row(r["case"], f"{r['pupil_pixels']}/{r['fft_size']}/{r['modulation_points']}", f"{r['iterations_per_s']:.1f}",
-                  f"{r['frame_ms_median']:.1f}/{r['frame_ms_p99']:.1f}",
-                  *[f"{r['stage_ms'][s]:.2f} ({100 * r['stage_ms'][s] / total:.0f}%)" for s in (*STAGES, "metrics")],
-                  f"{r['calibration_cold_s']:.1f}", f"{r['calibration_cached_s']:.2f}")
+        t.add_row(
+            r["case"],
+            f"{r['pupil_pixels']}/{r['fft_size']}/{r['modulation_points']}",
+            f"{r['iterations_per_s']:.1f}",
+            f"{r['frame_ms_median']:.1f}/{r['frame_ms_p99']:.1f}",
+            *[f"{r['stage_ms'][s]:.2f} ({100 * r['stage_ms'][s] / total:.0f}%)" for s in (*STAGES, "metrics")],
+            f"{r['calibration_cold_s']:.1f}",
+            f"{r['calibration_cached_s']:.2f}",
+        )
     Console(width=200).print(t)
-    result = {"benchmark": "loop", "soulctl": __version__, "machine": platform.machine(), "cpus": os.cpu_count(),
-              "numpy": np.__version__, "frames": args.frames, "rows": rows}
+    result = {
+        "benchmark": "loop",
+        "soulctl": __version__,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "numpy": np.__version__,
+        "frames": args.frames,
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
     print(f"written {args.out}")

@@ -53,8 +53,12 @@ def naive_gains(psd: np.ndarray, L1: np.ndarray, upper: np.ndarray) -> np.ndarra
     out = np.empty(psd.shape[0])
     for i in range(psd.shape[0]):
         p, L = psd[i], L1[i]
-        res = minimize_scalar(lambda g: float(np.sum(p / np.abs(1.0 + g * L) ** 2)), bounds=(0.0, upper[i]),
-                              method="bounded", options={"xatol": 1e-4 * upper[i]})
+        res = minimize_scalar(
+            lambda g, p=p, L=L: float(np.sum(p / np.abs(1.0 + g * L) ** 2)),
+            bounds=(0.0, upper[i]),
+            method="bounded",
+            options={"xatol": 1e-4 * upper[i]},
+        )
         out[i] = res.x
     return out
 
@@ -110,7 +114,8 @@ def main() -> None:
         "max_abs_gain_diff_over_upper": float(np.max(np.abs(g_mgm - g_naive) / machine.upper)),
         "modes_mgm_cost_higher_by_1e-6": int(np.sum(J_mgm > J_naive * (1 + 1e-6))),
         "max_rel_cost_excess": float(np.max(J_mgm / J_naive - 1.0)),
-        "tt_gains": [float(g) for g in g_mgm[:2]], "tt_upper": [float(u) for u in machine.upper[:2]],
+        "tt_gains": [float(g) for g in g_mgm[:2]],
+        "tt_upper": [float(u) for u in machine.upper[:2]],
         "gain_quartiles_over_upper": [float(q) for q in np.percentile(g_mgm / machine.upper, [25, 50, 75])],
     }
     mgm, naive = stats(update), stats(naive_t)
@@ -118,34 +123,70 @@ def main() -> None:
     naive_min = stats(naive_min_t)
     split = psd_s["median_s"] / (psd_s["median_s"] + min_s["median_s"])
 
-    t = Table(title=f"One MGM update: {MODES} modes, {FRAMES} frames at {RATE_HZ:g} Hz, d = {DELAY_FRAMES:g}, "
-                    f"{args.repeats} repeats", title_justify="left")
+    t = Table(
+        title=f"One MGM update: {MODES} modes, {FRAMES} frames at {RATE_HZ:g} Hz, d = {DELAY_FRAMES:g}, {args.repeats} repeats",
+        title_justify="left",
+    )
     for col in ("method", "median ms", "p99 ms", "PSD ms (share)", "minimisation ms (share)", "naive / MGM"):
         t.add_column(col, justify="right" if col != "method" else "left")
-    t.add_row("MGM (vectorised)", f"{mgm['median_s'] * 1e3:.1f}", f"{mgm['p99_s'] * 1e3:.1f}",
-              f"{psd_s['median_s'] * 1e3:.1f} ({100 * split:.0f}%)", f"{min_s['median_s'] * 1e3:.1f} ({100 * (1 - split):.0f}%)",
-              "1.0")
+    t.add_row(
+        "MGM (vectorised)",
+        f"{mgm['median_s'] * 1e3:.1f}",
+        f"{mgm['p99_s'] * 1e3:.1f}",
+        f"{psd_s['median_s'] * 1e3:.1f} ({100 * split:.0f}%)",
+        f"{min_s['median_s'] * 1e3:.1f} ({100 * (1 - split):.0f}%)",
+        "1.0",
+    )
     naive_split = psd_s["median_s"] / naive["median_s"]
-    t.add_row("naive (minimize_scalar per mode)", f"{naive['median_s'] * 1e3:.1f}", f"{naive['p99_s'] * 1e3:.1f}",
-              f"{psd_s['median_s'] * 1e3:.1f} ({100 * naive_split:.0f}%)",
-              f"{naive_min['median_s'] * 1e3:.1f} ({100 * (1 - naive_split):.0f}%)",
-              f"{naive['median_s'] / mgm['median_s']:.1f}")
+    t.add_row(
+        "naive (minimize_scalar per mode)",
+        f"{naive['median_s'] * 1e3:.1f}",
+        f"{naive['p99_s'] * 1e3:.1f}",
+        f"{psd_s['median_s'] * 1e3:.1f} ({100 * naive_split:.0f}%)",
+        f"{naive_min['median_s'] * 1e3:.1f} ({100 * (1 - naive_split):.0f}%)",
+        f"{naive['median_s'] / mgm['median_s']:.1f}",
+    )
     Console(width=160).print(t)
-    print(f"setup (gain limits, open loops): {setup_s * 1e3:.0f} ms; minimisation alone naive / MGM: "
-          f"{naive_min['median_s'] / min_s['median_s']:.1f}; target <= 200 ms per update: "
-          f"{'met' if mgm['median_s'] <= 0.2 else 'NOT met'}")
-    print(f"agreement: max |g_MGM - g_naive| / upper = {agreement['max_abs_gain_diff_over_upper']:.2e}, "
-          f"modes where MGM's cost is higher (> 1e-6 rel.): {agreement['modes_mgm_cost_higher_by_1e-6']}")
+    print(
+        f"setup (gain limits, open loops): {setup_s * 1e3:.0f} ms; minimisation alone naive / MGM: "
+        f"{naive_min['median_s'] / min_s['median_s']:.1f}; target <= 200 ms per update: "
+        f"{'met' if mgm['median_s'] <= 0.2 else 'NOT met'}"
+    )
+    print(
+        f"agreement: max |g_MGM - g_naive| / upper = {agreement['max_abs_gain_diff_over_upper']:.2e}, "
+        f"modes where MGM's cost is higher (> 1e-6 rel.): {agreement['modes_mgm_cost_higher_by_1e-6']}"
+    )
 
-    result = {"benchmark": "mgm", "soulctl": __version__, "machine": platform.machine(), "processor": platform.processor(),
-              "cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
-              "modes": MODES, "frames": FRAMES, "rate_hz": RATE_HZ, "delay_frames": DELAY_FRAMES, "repeats": args.repeats,
-              "settings": settings.__dict__, "tt_zeros": list(obs.tt_zeros), "tt_poles": list(obs.tt_poles),
-              "setup_s": setup_s, "mgm_update": mgm, "mgm_psd": psd_s, "mgm_minimisation": min_s,
-              "psd_share": split, "naive_update": naive, "naive_minimisation": naive_min,
-              "ratio_naive_over_mgm": naive["median_s"] / mgm["median_s"],
-              "ratio_minimisation": naive_min["median_s"] / min_s["median_s"],
-              "target_s": 0.2, "target_met": mgm["median_s"] <= 0.2, "agreement": agreement}
+    result = {
+        "benchmark": "mgm",
+        "soulctl": __version__,
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "modes": MODES,
+        "frames": FRAMES,
+        "rate_hz": RATE_HZ,
+        "delay_frames": DELAY_FRAMES,
+        "repeats": args.repeats,
+        "settings": settings.__dict__,
+        "tt_zeros": list(obs.tt_zeros),
+        "tt_poles": list(obs.tt_poles),
+        "setup_s": setup_s,
+        "mgm_update": mgm,
+        "mgm_psd": psd_s,
+        "mgm_minimisation": min_s,
+        "psd_share": split,
+        "naive_update": naive,
+        "naive_minimisation": naive_min,
+        "ratio_naive_over_mgm": naive["median_s"] / mgm["median_s"],
+        "ratio_minimisation": naive_min["median_s"] / min_s["median_s"],
+        "target_s": 0.2,
+        "target_met": mgm["median_s"] <= 0.2,
+        "agreement": agreement,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
     print(f"written {args.out}")

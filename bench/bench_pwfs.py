@@ -31,11 +31,11 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl import __version__
+from soulctl.files import atomic_write_text
 from soulctl.optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
 from soulctl.optics.detector import Detector
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
 from soulctl.optics.sensor import WavefrontSensor
-from soulctl.files import atomic_write_text
 
 
 def screens(pupil, n: int, seed: int = 1) -> np.ndarray:
@@ -51,11 +51,15 @@ def tilt_in_pupil(pyr: Pyramid):
     o = (N - n_pup) // 2
     f = np.fft.fftfreq(N, 1.0 / N)
     shift = 1.2 * n_pup / 2
-    mask = np.exp(1j * (-2 * np.pi * np.abs(f[:, None] + 0.5) * shift / N - 2 * np.pi * np.abs(f[None, :] + 0.5) * shift / N)).astype(np.complex64)
+    mask = np.exp(1j * (-2 * np.pi * np.abs(f[:, None] + 0.5) * shift / N - 2 * np.pi * np.abs(f[None, :] + 0.5) * shift / N)).astype(
+        np.complex64
+    )
     x = np.arange(N)
     r = c.modulation_lambda_over_d * N / n_pup
     angles = 2 * np.pi * np.arange(c.points) / c.points
-    tilts = np.stack([np.exp(2j * np.pi * (r * np.cos(a) * x[None, :] + r * np.sin(a) * x[:, None]) / N) for a in angles]).astype(np.complex64)
+    tilts = np.stack([np.exp(2j * np.pi * (r * np.cos(a) * x[None, :] + r * np.sin(a) * x[:, None]) / N) for a in angles]).astype(
+        np.complex64
+    )
     amp = np.zeros((N, N), np.complex64)
     amp[o : o + n_pup, o : o + n_pup] = pyr._amplitude
     k = 2 * np.pi / (c.wavelength_m * 1e9)
@@ -100,20 +104,36 @@ def main() -> None:
             cfg = PyramidConfig(binning=b, oversampling=o)
             wfs = WavefrontSensor(Pyramid(cfg), Detector(), photons_per_frame=25000.0)
             opds = screens(wfs.pupil, args.frames)
-            cases.append((f"b{b} o{o}", {"binning": b, "oversampling": o, "subapertures_across": {1: 40, 2: 20, 3: 13, 4: 10}[b],
-                                           "valid_subapertures": wfs.n_subapertures, "pupil_pixels": wfs.pupil.n_pixels,
-                                           "fft_size": cfg.fft_size, "frame": list(cfg.frame_shape), "modulation_points": cfg.points},
-                          wfs, opds))
+            cases.append(
+                (
+                    f"b{b} o{o}",
+                    {
+                        "binning": b,
+                        "oversampling": o,
+                        "subapertures_across": {1: 40, 2: 20, 3: 13, 4: 10}[b],
+                        "valid_subapertures": wfs.n_subapertures,
+                        "pupil_pixels": wfs.pupil.n_pixels,
+                        "fft_size": cfg.fft_size,
+                        "frame": list(cfg.frame_shape),
+                        "modulation_points": cfg.points,
+                    },
+                    wfs,
+                    opds,
+                )
+            )
     base = cases[0][2]
     alt_opds = cases[0][3]
     one_thread = Pyramid(PyramidConfig(binning=1, oversampling=2), workers=1)
-    alternatives = [("b1 o2 workers=1", one_thread.intensity), ("b1 o2 complex128 numpy.fft", numpy128(base.pyramid)),
-                    ("b1 o2 tilt-in-pupil modulation", tilt_in_pupil(base.pyramid))]
+    alternatives = [
+        ("b1 o2 workers=1", one_thread.intensity),
+        ("b1 o2 complex128 numpy.fft", numpy128(base.pyramid)),
+        ("b1 o2 tilt-in-pupil modulation", tilt_in_pupil(base.pyramid)),
+    ]
 
     rng = np.random.default_rng(0)
     times: dict[str, dict[str, list[float]]] = {}
     for _ in range(args.rounds):
-        for name, meta, wfs, opds in cases:
+        for name, _meta, wfs, opds in cases:
             t = times.setdefault(name, {"propagation": [], "detector": [], "slopes": [], "total": []})
             wfs.slopes(opds[0], rng)  # warm
             for opd in opds:
@@ -143,24 +163,64 @@ def main() -> None:
     for name, meta, _, _ in cases:
         rows.append({"case": name, **meta, **{part: stats(v) for part, v in times[name].items()}})
     for name, _ in alternatives:
-        rows.append({"case": name, "propagation": stats(times[name]["propagation"]),
-                     "ratio_to_library": float(np.median(times[name]["propagation"]) / ref)})
+        rows.append(
+            {
+                "case": name,
+                "propagation": stats(times[name]["propagation"]),
+                "ratio_to_library": float(np.median(times[name]["propagation"]) / ref),
+            }
+        )
 
     t = Table(title=f"PWFS measurement per frame, modulation 3 λ/D ({args.rounds}×{args.frames} frames per case)", title_justify="left")
-    for col in ("case", "sub-ap.", "pupil/FFT px", "propagation ms (p99)", "detector ms", "slopes ms", "total ms (p99)", "frames/s", "vs library"):
+    for col in (
+        "case",
+        "sub-ap.",
+        "pupil/FFT px",
+        "propagation ms (p99)",
+        "detector ms",
+        "slopes ms",
+        "total ms (p99)",
+        "frames/s",
+        "vs library",
+    ):
         t.add_column(col, justify="right" if col != "case" else "left")
     for r in rows:
         if "total" in r:
-            t.add_row(r["case"], f"{r['subapertures_across']} ({r['valid_subapertures']})", f"{r['pupil_pixels']}/{r['fft_size']}",
-                      f"{r['propagation']['median_ms']:.2f} ({r['propagation']['p99_ms']:.2f})", f"{r['detector']['median_ms']:.3f}",
-                      f"{r['slopes']['median_ms']:.3f}", f"{r['total']['median_ms']:.2f} ({r['total']['p99_ms']:.2f})",
-                      f"{1e3 / r['total']['median_ms']:.0f}", "")
+            t.add_row(
+                r["case"],
+                f"{r['subapertures_across']} ({r['valid_subapertures']})",
+                f"{r['pupil_pixels']}/{r['fft_size']}",
+                f"{r['propagation']['median_ms']:.2f} ({r['propagation']['p99_ms']:.2f})",
+                f"{r['detector']['median_ms']:.3f}",
+                f"{r['slopes']['median_ms']:.3f}",
+                f"{r['total']['median_ms']:.2f} ({r['total']['p99_ms']:.2f})",
+                f"{1e3 / r['total']['median_ms']:.0f}",
+                "",
+            )
         else:
-            t.add_row(r["case"], "40", "80/192", f"{r['propagation']['median_ms']:.2f} ({r['propagation']['p99_ms']:.2f})", "", "", "", "",
-                      f"{r['ratio_to_library']:.2f}×")
+            t.add_row(
+                r["case"],
+                "40",
+                "80/192",
+                f"{r['propagation']['median_ms']:.2f} ({r['propagation']['p99_ms']:.2f})",
+                "",
+                "",
+                "",
+                "",
+                f"{r['ratio_to_library']:.2f}×",
+            )
     Console(width=160).print(t)
-    result = {"benchmark": "pwfs", "soulctl": __version__, "machine": platform.machine(), "cpus": os.cpu_count(),
-              "numpy": np.__version__, "scipy": scipy.__version__, "frames": args.frames, "rounds": args.rounds, "rows": rows}
+    result = {
+        "benchmark": "pwfs",
+        "soulctl": __version__,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "frames": args.frames,
+        "rounds": args.rounds,
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
     print(f"written {args.out}")

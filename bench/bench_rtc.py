@@ -106,12 +106,21 @@ def machine_info(rtc) -> dict:
         pass
     st = rtc.structure
     return {
-        "cpu_model": model, "cores": os.cpu_count(), "usable_cores": len(os.sched_getaffinity(0)),
-        "python": platform.python_version(), "numpy": np.__version__, "soulctl": soulctl.__file__,
-        "openmp": bool(_core.openmp), "rtc_n_threads": rtc.n_threads,
-        "rtc_structure": {"diagonal_states": st["diagonal_states"], "n_blocks": len(st["block_sizes"]),
-                          "block_sizes": sorted(set(st["block_sizes"])), "input_rows": st["input_rows"],
-                          "output_states": st["output_states"]},
+        "cpu_model": model,
+        "cores": os.cpu_count(),
+        "usable_cores": len(os.sched_getaffinity(0)),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "soulctl": soulctl.__file__,
+        "openmp": bool(_core.openmp),
+        "rtc_n_threads": rtc.n_threads,
+        "rtc_structure": {
+            "diagonal_states": st["diagonal_states"],
+            "n_blocks": len(st["block_sizes"]),
+            "block_sizes": sorted(set(st["block_sizes"])),
+            "input_rows": st["input_rows"],
+            "output_states": st["output_states"],
+        },
     }
 
 
@@ -173,8 +182,10 @@ def main() -> None:
     for k in range(50):
         a, b = core_f2c(frames16[k % POOL]), numpy_f2c(frames16[k % POOL])
         if not np.allclose(a, b, rtol=1e-4, atol=1e-4 * np.max(np.abs(b))):
-            sys.exit(f"MISMATCH at step {k}: core and numpy frame->commands differ "
-                     f"(max |diff| {np.max(np.abs(a - b)):.3g}, max |c| {np.max(np.abs(b)):.3g})")
+            sys.exit(
+                f"MISMATCH at step {k}: core and numpy frame->commands differ "
+                f"(max |diff| {np.max(np.abs(a - b)):.3g}, max |c| {np.max(np.abs(b)):.3g})"
+            )
     console.print(f"check: core == numpy frame->commands over 50 steps (max |c| {np.max(np.abs(b)):.3g})")
 
     A = rng.standard_normal((N_CMD, 2 * N_SUB)).astype(np.float32)
@@ -187,7 +198,7 @@ def main() -> None:
         "numpy frame->commands": (numpy_f2c, frames16),
         "numpy bare matvec": (lambda x: np.dot(A, x, out=y), slopes),
     }
-    for name, (call, inputs) in cases.items():  # warm-up round, untimed
+    for _name, (call, inputs) in cases.items():  # warm-up round, untimed
         timed(call, inputs, 0, warm)
     per_round = max(1, args.steps // args.rounds)
     samples = {name: [] for name in cases}
@@ -200,9 +211,14 @@ def main() -> None:
     res = {}
     for name, parts in samples.items():
         t = np.concatenate(parts)
-        res[name] = {"median_us": float(np.median(t)), "p99_us": float(np.percentile(t, 99)),
-                     "mean_us": float(t.mean()), "min_us": float(t.min()), "max_us": float(t.max()),
-                     "round_medians_us": round_medians[name]}
+        res[name] = {
+            "median_us": float(np.median(t)),
+            "p99_us": float(np.percentile(t, 99)),
+            "mean_us": float(t.mean()),
+            "min_us": float(t.min()),
+            "max_us": float(t.max()),
+            "round_medians_us": round_medians[name],
+        }
 
     ref = res["numpy bare matvec"]["median_us"]
     npf = res["numpy frame->commands"]["median_us"]
@@ -210,8 +226,14 @@ def main() -> None:
     for col in ("case", "median µs", "p99 µs", "mean µs", "median / bare matvec", "speed-up vs numpy f->c"):
         table.add_column(col, justify="left" if col == "case" else "right")
     for name, r in res.items():
-        table.add_row(name, f"{r['median_us']:.1f}", f"{r['p99_us']:.1f}", f"{r['mean_us']:.1f}",
-                      f"{r['median_us'] / ref:.2f}", f"{npf / r['median_us']:.2f}x")
+        table.add_row(
+            name,
+            f"{r['median_us']:.1f}",
+            f"{r['p99_us']:.1f}",
+            f"{r['mean_us']:.1f}",
+            f"{r['median_us'] / ref:.2f}",
+            f"{npf / r['median_us']:.2f}x",
+        )
     console.print(table)
 
     core = res["core frame->commands"]
@@ -229,10 +251,20 @@ def main() -> None:
     info = machine_info(rtc)
     console.print("machine: " + ", ".join(f"{k}={v}" for k, v in info.items()))
 
-    out = {"args": {"steps": args.steps, "rounds": args.rounds, "threads": args.threads, "warmup": warm},
-           "results": res, "targets": tout, "machine": info,
-           "sizes": {"frame": [FRAME, FRAME], "subapertures": N_SUB, "slopes": 2 * N_SUB,
-                     "states": N_STATES, "modes": n_modes, "commands": N_CMD}}
+    out = {
+        "args": {"steps": args.steps, "rounds": args.rounds, "threads": args.threads, "warmup": warm},
+        "results": res,
+        "targets": tout,
+        "machine": info,
+        "sizes": {
+            "frame": [FRAME, FRAME],
+            "subapertures": N_SUB,
+            "slopes": 2 * N_SUB,
+            "states": N_STATES,
+            "modes": n_modes,
+            "commands": N_CMD,
+        },
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=args.out.parent, prefix=".rtc-", suffix=".json.tmp")
     try:

@@ -43,8 +43,7 @@ def main() -> None:
             report = run_sweep(cases, Path(tmp), workers=n, cache_dir=str(Path(tmp) / "cache"))
             wall = time.perf_counter() - t0
         case_seconds = sum(r["run_seconds"] for r in report.rows)
-        rows.append({"workers": n, "cases": len(cases), "wall_s": wall, "case_seconds_sum": case_seconds,
-                     "failed": report.failed})
+        rows.append({"workers": n, "cases": len(cases), "wall_s": wall, "case_seconds_sum": case_seconds, "failed": report.failed})
     base = rows[0]["wall_s"]
     for r in rows:
         r["speedup"] = base / r["wall_s"]
@@ -53,11 +52,23 @@ def main() -> None:
     for col in ("workers", "wall [s]", "sum of case run times [s]", "speed-up", "efficiency", "failed"):
         t.add_column(col, justify="right")
     for r in rows:
-        t.add_row(str(r["workers"]), f"{r['wall_s']:.1f}", f"{r['case_seconds_sum']:.1f}", f"{r['speedup']:.2f}",
-                  f"{r['efficiency']:.2f}", str(r["failed"]))
+        t.add_row(
+            str(r["workers"]),
+            f"{r['wall_s']:.1f}",
+            f"{r['case_seconds_sum']:.1f}",
+            f"{r['speedup']:.2f}",
+            f"{r['efficiency']:.2f}",
+            str(r["failed"]),
+        )
     Console().print(t)
-    result = {"benchmark": "sweep", "soulctl_version": __version__, "machine": platform.machine(), "cpus": os.cpu_count(),
-              "grid": GRID, "rows": rows}
+    result = {
+        "benchmark": "sweep",
+        "soulctl_version": __version__,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "grid": GRID,
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
 

@@ -32,8 +32,13 @@ from .errors import InputError
 
 MAX_TEXT_BYTES = 16 * 2**20  # TOML and CSV inputs
 NEW_FILE_MODE = 0o644  # results are for everyone to read
-_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-          (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"))
+_KINDS = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
 def _kind(mode: int) -> str:
@@ -45,6 +50,7 @@ def _size_text(n: int) -> str:
 
 
 # ----------------------------------------------------------------------------------- inputs
+
 
 def input_file(path: str | Path, what: str, max_bytes: int | None = None) -> Path:
     """``path`` if it names a readable regular file (of at most ``max_bytes``), else InputError."""
@@ -95,6 +101,7 @@ def read_toml(path: str | Path, what: str) -> dict:
 
 
 # ---------------------------------------------------------------------------------- outputs
+
 
 def output_target(path: str | Path) -> Path:
     """Where writing ``path`` lands: a symlink's final target, else the path itself."""

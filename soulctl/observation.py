@@ -39,8 +39,7 @@ def frame_rate(magnitude_r: float, band: tables.MagnitudeBand) -> float:
     return float(round(f_max * (f_min / f_max) ** x))
 
 
-def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...],
-                    where: str = "the roots table") -> tables.IIRRoots | None:
+def tt_filter_roots(frame_rate_hz: float, roots: tuple[tables.IIRRoots, ...], where: str = "the roots table") -> tables.IIRRoots | None:
     """The Tip/Tilt IIR of the roots table at the tabulated rate nearest to ``frame_rate_hz``
     (ties to the higher rate; InputError if it is not within ``ranges.ROOTS_RATE_TOLERANCE``),
     or None below the table's lowest rate (750 Hz for the paper's) where an integrator is used."""
@@ -73,8 +72,7 @@ def _integer(section: dict, key: str, where: str) -> int:
 
 def _numbers(section: dict, key: str, where: str) -> tuple[float, ...]:
     value = section.get(key, [])
-    _require(isinstance(value, list) and all(_is_number(v) for v in value),
-             f"{where}.{key} must be a list of numbers, got {value!r}")
+    _require(isinstance(value, list) and all(_is_number(v) for v in value), f"{where}.{key} must be a list of numbers, got {value!r}")
     return tuple(float(v) for v in value)
 
 
@@ -104,8 +102,10 @@ class Observation:
 
     def __post_init__(self):
         lo, hi = tables.magnitude_range(tables.magnitude_table())
-        _require(_is_number(self.magnitude_r) and math.isfinite(self.magnitude_r) and lo <= self.magnitude_r <= hi,
-                 f"magnitude_r must be in the look-up table's {lo:g}..{hi:g}, got {number_text(self.magnitude_r)}")
+        _require(
+            _is_number(self.magnitude_r) and math.isfinite(self.magnitude_r) and lo <= self.magnitude_r <= hi,
+            f"magnitude_r must be in the look-up table's {lo:g}..{hi:g}, got {number_text(self.magnitude_r)}",
+        )
         _require(self.binning in BINNINGS, f"binning must be one of 1, 2, 3, 4, got {number_text(self.binning)}")
         MODES.check(self.modes, "modes")
         FRAME_RATE_HZ.check(self.frame_rate_hz, "frame_rate_hz")
@@ -113,15 +113,20 @@ class Observation:
         _require(self.tt_control in TT_CONTROLS, f"tt_control must be 'iir' or 'int', got '{self.tt_control}'")
         ZERO_POINT_PH_S.check(self.photometry.zero_point_ph_s, "photometry.zero_point_ph_s_per_subaperture")
         d = self.delay_frames
-        _require(DELAY_FRAMES.contains(d), f"the loop delay ({self.delay_s * 1e3:.4g} ms = {d:.4g} frames at "
-                 f"{self.frame_rate_hz:g} Hz) must be at most {DELAY_FRAMES.hi:g} frames")
+        _require(
+            DELAY_FRAMES.contains(d),
+            f"the loop delay ({self.delay_s * 1e3:.4g} ms = {d:.4g} frames at "
+            f"{self.frame_rate_hz:g} Hz) must be at most {DELAY_FRAMES.hi:g} frames",
+        )
         if self.tt_control == "iir":
             _require(
                 len(self.tt_zeros) == 4 and len(self.tt_poles) == 4,
                 "tt_control 'iir' needs 4 tt_zeros and 4 tt_poles",
             )
-            _require(all(math.isfinite(z) and abs(z) <= ROOT_MODULUS for z in self.tt_zeros),
-                     f"tt_zeros must be in -{ROOT_MODULUS:g}..{ROOT_MODULUS:g}, got {list(self.tt_zeros)}")
+            _require(
+                all(math.isfinite(z) and abs(z) <= ROOT_MODULUS for z in self.tt_zeros),
+                f"tt_zeros must be in -{ROOT_MODULUS:g}..{ROOT_MODULUS:g}, got {list(self.tt_zeros)}",
+            )
             _require(
                 all(math.isfinite(p) and abs(p) <= 1.0 for p in self.tt_poles),
                 f"tt_poles must be finite and in -1..1, got {list(self.tt_poles)}",
@@ -178,7 +183,7 @@ class Observation:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Observation":
+    def from_dict(cls, d: dict) -> Observation:
         """Inverse of to_dict; 'derived' is ignored and recomputed."""
         try:
             star, wfs, control = _section(d, "star"), _section(d, "wfs"), _section(d, "control")
@@ -224,7 +229,7 @@ class Observation:
         atomic_write_text(Path(path), self.to_toml())
 
     @classmethod
-    def read_toml(cls, path: str | Path) -> "Observation":
+    def read_toml(cls, path: str | Path) -> Observation:
         """The observation of a configuration file; InputError naming the file and the field."""
         data = read_toml(path, "configuration file")
         try:
@@ -233,15 +238,18 @@ class Observation:
             raise InputError(f"configuration file {path}: {e}") from None
 
 
-def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None,
-                              roots_source: str | None = None) -> Observation:
+def observation_for_magnitude(
+    magnitude_r: float, roots_table: tuple[tables.IIRRoots, ...] | None = None, roots_source: str | None = None
+) -> Observation:
     """The configuration the look-up table gives for a guide star of R magnitude; the Tip/Tilt
     filter from ``roots_table`` (default: the paper's, tables/tt_iir_roots.csv; ``roots_source``
     names a user's table in messages)."""
     bands = tables.magnitude_table()
     band = tables.band_for_magnitude(magnitude_r, bands)
     rate = frame_rate(magnitude_r, band)
-    roots = tt_filter_roots(rate, roots_table or tables.tt_iir_table(), f"roots table {roots_source}" if roots_source else "the roots table")
+    roots = tt_filter_roots(
+        rate, roots_table or tables.tt_iir_table(), f"roots table {roots_source}" if roots_source else "the roots table"
+    )
     return Observation(
         magnitude_r=float(magnitude_r),
         binning=band.binning,
@@ -253,4 +261,3 @@ def observation_for_magnitude(magnitude_r: float, roots_table: tuple[tables.IIRR
         tt_zeros=roots.zeros if roots else (),
         tt_poles=roots.poles if roots else (),
     )
-

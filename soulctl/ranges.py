@@ -62,8 +62,11 @@ class Range:
     def check(self, value, name: str):
         """``value`` if it is in the range (ints stay ints), else InputError naming ``name``."""
         if not self.contains(value):
-            is_number = isinstance(value, int) and not isinstance(value, bool) or (
-                isinstance(value, float) and (not self.integer or (math.isfinite(value) and value.is_integer())))
+            is_number = (
+                isinstance(value, int)
+                and not isinstance(value, bool)
+                or (isinstance(value, float) and (not self.integer or (math.isfinite(value) and value.is_integer())))
+            )
             kind = "" if is_number else ("an integer " if self.integer else "a number ")
             raise InputError(f"{name} must be {kind}in {self.text()}, got {number_text(value)}")
         return int(value) if self.integer else value + 0.0  # -0.0 -> 0.0

@@ -26,7 +26,7 @@ def tables_dir() -> Path:
     source = Path(__file__).resolve().parent.parent / "tables"
     if source.is_dir():
         return source
-    raise FileNotFoundError("soulctl tables not found (looked in %s and %s)" % (installed, source))
+    raise FileNotFoundError(f"soulctl tables not found (looked in {installed} and {source})")
 
 
 def _csv_rows(text: str) -> list[dict[str, str]]:
@@ -120,15 +120,16 @@ def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]
         raise InputError(f"{where}: the roots table has no rows (columns: {', '.join(ROOT_COLUMNS)})")
     missing = [c for c in ROOT_COLUMNS if c not in rows[0]]
     if missing:
-        raise InputError(f"{where}: the roots table lacks the columns {', '.join(missing)} "
-                         f"(columns: {', '.join(ROOT_COLUMNS)})")
+        raise InputError(f"{where}: the roots table lacks the columns {', '.join(missing)} (columns: {', '.join(ROOT_COLUMNS)})")
     out = []
     for i, r in enumerate(rows):
         try:
             values = [float(r[c]) for c in ROOT_COLUMNS]
         except (TypeError, ValueError):
-            raise InputError(f"{where}: row {i + 1} of the roots table must hold 9 numbers "
-                             f"({', '.join(ROOT_COLUMNS)}), got {[r.get(c) for c in ROOT_COLUMNS]}") from None
+            raise InputError(
+                f"{where}: row {i + 1} of the roots table must hold 9 numbers "
+                f"({', '.join(ROOT_COLUMNS)}), got {[r.get(c) for c in ROOT_COLUMNS]}"
+            ) from None
         rate, zeros, poles = values[0], tuple(values[1:5]), tuple(values[5:9])
         if not (FRAME_RATE_HZ.contains(rate) and all(map(math.isfinite, values))):
             raise InputError(f"{where}: row {i + 1}: the frame rate must be in {FRAME_RATE_HZ.text()} and all roots finite")
@@ -155,8 +156,10 @@ def nearest_roots(frame_rate_hz: float, roots: tuple[IIRRoots, ...], where: str 
     row = min(roots, key=lambda r: (abs(r.frame_rate_hz - frame_rate_hz), -r.frame_rate_hz))
     if abs(row.frame_rate_hz - frame_rate_hz) > ROOTS_RATE_TOLERANCE * frame_rate_hz:
         rates = ", ".join(f"{r.frame_rate_hz:g}" for r in roots)
-        raise InputError(f"{where} has no row within {ROOTS_RATE_TOLERANCE:.0%} of {frame_rate_hz:g} Hz "
-                         f"(rows at {rates} Hz): give a table with a row for this rate")
+        raise InputError(
+            f"{where} has no row within {ROOTS_RATE_TOLERANCE:.0%} of {frame_rate_hz:g} Hz "
+            f"(rows at {rates} Hz): give a table with a row for this rate"
+        )
     return row
 
 

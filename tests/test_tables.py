@@ -11,9 +11,7 @@ def test_magnitude_rows_are_contiguous_and_match_the_paper():
     bands = tables.magnitude_table()
     assert [b.r_max for b in bands] == [10.5, 12.7, 14.5, 16.5, 18.5]
     assert all(a.r_max == b.r_min for a, b in zip(bands, bands[1:]))
-    assert [(b.binning, b.subapertures, b.modes) for b in bands] == [
-        (1, 40, 500), (1, 40, 500), (2, 20, 250), (3, 13, 90), (4, 10, 54)
-    ]
+    assert [(b.binning, b.subapertures, b.modes) for b in bands] == [(1, 40, 500), (1, 40, 500), (2, 20, 250), (3, 13, 90), (4, 10, 54)]
     assert all(b.modulation_lambda_over_d == 3 for b in bands)
     assert all(b.frame_rate_max_hz >= b.frame_rate_min_hz for b in bands)
     assert all(BINNINGS[b.binning] == b.subapertures for b in bands)

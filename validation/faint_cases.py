@@ -48,23 +48,39 @@ def r165_observation():
     integrator (the roots table starts at 750 Hz)."""
     obs = observation_for_magnitude(16.5)
     b4 = next(row for row in tables.magnitude_table() if row.binning == 4)
-    return dataclasses.replace(obs, binning=4, modes=b4.modes, frame_rate_hz=390.0, tt_control="int", tt_zeros=(), tt_poles=(),
-                               tt_filter_rate_hz=None)
+    return dataclasses.replace(
+        obs, binning=4, modes=b4.modes, frame_rate_hz=390.0, tt_control="int", tt_zeros=(), tt_poles=(), tt_filter_rate_hz=None
+    )
 
 
 def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
     rows = []
     for seed in seeds:
         r = optimize(OptimizeRequest(RunRequest(obs, 1.0, band=band, seed=seed), "mgm", measure_s=1.0), cache)
-        rows.append({"seed": seed, "diverged_at": r.diverged_at, "before": r.before.strehl if r.before else None,
-                     "after": r.after.strehl if r.after else None, "k": r.loop.rtc_parameters.sensitivity,
-                     "safety_restores": r.safety_events})
+        rows.append(
+            {
+                "seed": seed,
+                "diverged_at": r.diverged_at,
+                "before": r.before.strehl if r.before else None,
+                "after": r.after.strehl if r.after else None,
+                "k": r.loop.rtc_parameters.sensitivity,
+                "safety_restores": r.safety_events,
+            }
+        )
         print(label, rows[-1], flush=True)
     after = [x["after"] for x in rows if x["after"] is not None]
     sim, sky = PAPER[label]
     mean, scatter = float(np.mean(after)), float(np.std(after)) if len(after) > 1 else 0.0
-    return {"case": label, "band": band, "runs": rows, "after_mean": mean, "after_scatter": scatter, "paper_simulation": sim,
-            "paper_on_sky": sky, "ok": bool(len(after) == len(rows) and mean >= sim - scatter)}
+    return {
+        "case": label,
+        "band": band,
+        "runs": rows,
+        "after_mean": mean,
+        "after_scatter": scatter,
+        "paper_simulation": sim,
+        "paper_on_sky": sky,
+        "ok": bool(len(after) == len(rows) and mean >= sim - scatter),
+    }
 
 
 def transient(obs, seconds: float, cache) -> dict:
@@ -74,9 +90,15 @@ def transient(obs, seconds: float, cache) -> dict:
     (RESULTS / "transient_r13").mkdir(parents=True, exist_ok=True)
     write_gain_figures(RESULTS / "transient_r13", {"mgm": r})
     settled = settling_time(r)
-    return {"case": "R13 transient from 0.1x gains, MGM every 5 s", "diverged_at": r.diverged_at,
-            "before": r.before.strehl if r.before else None, "after": r.after.strehl if r.after else None,
-            "settling_s": settled, "ok": bool(r.diverged_at is None and settled <= 60.0), "figures": str(RESULTS / "transient_r13")}
+    return {
+        "case": "R13 transient from 0.1x gains, MGM every 5 s",
+        "diverged_at": r.diverged_at,
+        "before": r.before.strehl if r.before else None,
+        "after": r.after.strehl if r.after else None,
+        "settling_s": settled,
+        "ok": bool(r.diverged_at is None and settled <= 60.0),
+        "figures": str(RESULTS / "transient_r13"),
+    }
 
 
 def ogtl_alone(seconds: float, cache) -> dict:
@@ -86,9 +108,16 @@ def ogtl_alone(seconds: float, cache) -> dict:
     k = og.get("sensitivity", np.array([1.0]))
     s = aux_summary({name: result.telemetry.aux_arrays(name) for name in result.telemetry.aux})
     k_max = s["ogtl"]["k_max"]
-    return {"case": f"OGTL alone, R17.5, {seconds:g} s", "diverged_at": result.diverged_at, "k_min": float(k.min()), "k_max_seen": float(k.max()),
-            "k_bound": k_max, "statuses": s["ogtl"]["statuses"], "strehl": result.metrics.strehl if result.metrics else None,
-            "ok": bool(result.diverged_at is None and 1.0 <= k.min() and k.max() <= k_max)}
+    return {
+        "case": f"OGTL alone, R17.5, {seconds:g} s",
+        "diverged_at": result.diverged_at,
+        "k_min": float(k.min()),
+        "k_max_seen": float(k.max()),
+        "k_bound": k_max,
+        "statuses": s["ogtl"]["statuses"],
+        "strehl": result.metrics.strehl if result.metrics else None,
+        "ok": bool(result.diverged_at is None and 1.0 <= k.min() and k.max() <= k_max),
+    }
 
 
 def main() -> None:
@@ -101,10 +130,12 @@ def main() -> None:
     cache = ArrayCache(default_cache_dir())
     seeds = [int(s) for s in a.seeds.split(",")]
     t0 = time.perf_counter()
-    out = {"R13": paper_case("R13", observation(13.0, 980.0), "FeII", seeds, cache),
-           "R16.5": paper_case("R16.5", r165_observation(), "Ks", seeds, cache),
-           "ogtl": ogtl_alone(a.ogtl_s, cache),
-           "transient": transient(observation(13.0, 980.0), a.transient_s, cache)}
+    out = {
+        "R13": paper_case("R13", observation(13.0, 980.0), "FeII", seeds, cache),
+        "R16.5": paper_case("R16.5", r165_observation(), "Ks", seeds, cache),
+        "ogtl": ogtl_alone(a.ogtl_s, cache),
+        "transient": transient(observation(13.0, 980.0), a.transient_s, cache),
+    }
     out["wall_s"] = time.perf_counter() - t0
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(a.out, json.dumps(out, indent=1, default=float))
@@ -113,12 +144,26 @@ def main() -> None:
         t.add_column(c)
     for key in ("R13", "R16.5"):
         c = out[key]
-        t.add_row(f"{key} ({c['band']})", f"SR {c['after_mean']:.3f} ± {c['after_scatter']:.3f} ({len(c['runs'])} seeds)",
-                  f"sim {c['paper_simulation']}, sky {c['paper_on_sky']}", "ok" if c["ok"] else "MISSED")
+        t.add_row(
+            f"{key} ({c['band']})",
+            f"SR {c['after_mean']:.3f} ± {c['after_scatter']:.3f} ({len(c['runs'])} seeds)",
+            f"sim {c['paper_simulation']}, sky {c['paper_on_sky']}",
+            "ok" if c["ok"] else "MISSED",
+        )
     tr = out["transient"]
-    t.add_row(tr["case"], f"settled in {tr['settling_s']:.0f} s, SR {tr['before']} -> {tr['after']}", "about a minute", "ok" if tr["ok"] else "MISSED")
+    t.add_row(
+        tr["case"],
+        f"settled in {tr['settling_s']:.0f} s, SR {tr['before']} -> {tr['after']}",
+        "about a minute",
+        "ok" if tr["ok"] else "MISSED",
+    )
     og = out["ogtl"]
-    t.add_row(og["case"], f"k {og['k_min']:.2f}..{og['k_max_seen']:.2f} (bound {og['k_bound']:.1f}), {og['statuses']}", "-", "ok" if og["ok"] else "MISSED")
+    t.add_row(
+        og["case"],
+        f"k {og['k_min']:.2f}..{og['k_max_seen']:.2f} (bound {og['k_bound']:.1f}), {og['statuses']}",
+        "-",
+        "ok" if og["ok"] else "MISSED",
+    )
     Console(width=200).print(t)
 
 

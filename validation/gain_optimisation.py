@@ -35,8 +35,8 @@ from soulctl.optics.cache import ArrayCache
 
 CASES = [
     # label, magnitude, rate, seeing, wind, paper
-    ("daytime-like R11.9 990 Hz 0.6\"", 11.9, 990.0, 0.6, 15.0, "trial 0.60, MGM 0.66 (LUCI, NCPA ~100 nm)"),
-    ("on-sky-like R10.9 1212 Hz 1.0\"", 10.9, 1212.0, 1.0, 13.0, "trial 0.61, MGM 0.65 (sim. 0.73)"),
+    ('daytime-like R11.9 990 Hz 0.6"', 11.9, 990.0, 0.6, 15.0, "trial 0.60, MGM 0.66 (LUCI, NCPA ~100 nm)"),
+    ('on-sky-like R10.9 1212 Hz 1.0"', 10.9, 1212.0, 1.0, 13.0, "trial 0.61, MGM 0.65 (sim. 0.73)"),
 ]
 
 
@@ -107,7 +107,19 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(rows, indent=1, default=float))
     t = Table(title="Gain optimisation: trial-and-error vs MGM (FeII Strehl, after the optimisation)")
-    for col in ("case", "method", "SR before", "SR after", "residual nm", "TT jitter mas", "gains TT", "mean 3-120", "mean 121-", "k", "paper"):
+    for col in (
+        "case",
+        "method",
+        "SR before",
+        "SR after",
+        "residual nm",
+        "TT jitter mas",
+        "gains TT",
+        "mean 3-120",
+        "mean 121-",
+        "k",
+        "paper",
+    ):
         t.add_column(col)
     for row in rows:
         for method in ("trial", "mgm", "mgm_from_low_gains"):
@@ -116,9 +128,19 @@ def main() -> None:
                 t.add_row(row["case"], method, "diverged", "", "", "", "", "", "", "", "")
                 continue
             name = method + (f" (settled in {s['settling_s']:.0f} s)" if "settling_s" in s else "")
-            t.add_row(row["case"], name, f"{s['before']['strehl']:.3f}", f"{s['after']['strehl']:.3f}", f"{s['after']['residual_nm']:.0f}",
-                      f"{s['after']['tt_jitter_mas']:.2f}", "/".join(f"{g:.2f}" for g in s["gains_tip_tilt"]),
-                      f"{s['gains_3_120_mean']:.3f}", f"{s['gains_121_last_mean']:.3f}", f"{s['sensitivity']:.2f}", row["paper"])
+            t.add_row(
+                row["case"],
+                name,
+                f"{s['before']['strehl']:.3f}",
+                f"{s['after']['strehl']:.3f}",
+                f"{s['after']['residual_nm']:.0f}",
+                f"{s['after']['tt_jitter_mas']:.2f}",
+                "/".join(f"{g:.2f}" for g in s["gains_tip_tilt"]),
+                f"{s['gains_3_120_mean']:.3f}",
+                f"{s['gains_121_last_mean']:.3f}",
+                f"{s['sensitivity']:.2f}",
+                row["paper"],
+            )
     Console(width=220).print(t)
 
 

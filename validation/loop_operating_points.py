@@ -21,20 +21,20 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
 from soulctl.loop.run import RunRequest, default_gains, run
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
-from soulctl.cli.common import default_cache_dir
 
 CASES = [
     # label, magnitude, rate, binning, modes, tt_control, tt_gain (None: default), seeing, band, paper
-    ("R9.7 IIR 1.0\"", 9.7, 1700, 1, 500, "iir", None, 1.0, "H", "SR 0.58-0.79, jitter 7-11 mas"),
-    ("R9.7 IIR 1.6\"", 9.7, 1700, 1, 500, "iir", None, 1.6, "H", "SR 0.58-0.79, jitter 7-11 mas"),
-    ("R9.7 INT 1.0\"", 9.7, 1700, 1, 500, "int", 0.2, 1.0, "H", "SR 0.36-0.60, jitter 10-16 mas"),
-    ("R10.9 1.0\"", 10.9, 1212, 1, 500, "iir", None, 1.0, "FeII", "SR 0.47-0.64 (sim 0.48-0.67)"),
-    ("R13 1.0\"", 13.0, 980, 2, 250, "iir", None, 1.0, "FeII", "SR ~0.55-0.67"),
-    ("R16.5 1.0\"", 16.5, 390, 4, 54, "int", None, 1.0, "Ks", "SR 0.19-0.23"),
+    ('R9.7 IIR 1.0"', 9.7, 1700, 1, 500, "iir", None, 1.0, "H", "SR 0.58-0.79, jitter 7-11 mas"),
+    ('R9.7 IIR 1.6"', 9.7, 1700, 1, 500, "iir", None, 1.6, "H", "SR 0.58-0.79, jitter 7-11 mas"),
+    ('R9.7 INT 1.0"', 9.7, 1700, 1, 500, "int", 0.2, 1.0, "H", "SR 0.36-0.60, jitter 10-16 mas"),
+    ('R10.9 1.0"', 10.9, 1212, 1, 500, "iir", None, 1.0, "FeII", "SR 0.47-0.64 (sim 0.48-0.67)"),
+    ('R13 1.0"', 13.0, 980, 2, 250, "iir", None, 1.0, "FeII", "SR ~0.55-0.67"),
+    ('R16.5 1.0"', 16.5, 390, 4, 54, "int", None, 1.0, "Ks", "SR 0.19-0.23"),
 ]
 
 
@@ -69,10 +69,19 @@ def main() -> None:
             t0 = time.perf_counter()
             r = run(RunRequest(obs, seeing_arcsec=seeing, duration_s=args.duration, gains=gains, band=band, seed=seed), cache)
             m = r.metrics
-            rows.append({"case": label, "seed": seed, "band": band, "paper": paper, "gains": dataclasses.asdict(gains),
-                         "photons_per_subaperture": obs.photons_per_subaperture_per_frame,
-                         "diverged_at": r.diverged_at, "wall_s": time.perf_counter() - t0,
-                         **({} if m is None else m.to_dict())})
+            rows.append(
+                {
+                    "case": label,
+                    "seed": seed,
+                    "band": band,
+                    "paper": paper,
+                    "gains": dataclasses.asdict(gains),
+                    "photons_per_subaperture": obs.photons_per_subaperture_per_frame,
+                    "diverged_at": r.diverged_at,
+                    "wall_s": time.perf_counter() - t0,
+                    **({} if m is None else m.to_dict()),
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     t = Table(title=f"loop run at the paper's operating points ({args.duration:g} s each)", title_justify="left")
     for col in ("case", "seed", "band", "SR", "TT jitter mas", "POL jitter mas", "residual nm", "rej. 13 Hz", "paper"):
@@ -81,8 +90,17 @@ def main() -> None:
         if r.get("strehl") is None:
             t.add_row(r["case"], str(r["seed"]), r["band"], "diverged", "", "", "", "", r["paper"])
             continue
-        t.add_row(r["case"], str(r["seed"]), r["band"], f"{r['strehl']:.2f}", f"{r['tt_jitter_mas']:.1f}",
-                  f"{r['tt_jitter_pol_mas']:.1f}", f"{r['residual_nm']:.0f}", f"{r['rejection_13hz']:.2f}", r["paper"])
+        t.add_row(
+            r["case"],
+            str(r["seed"]),
+            r["band"],
+            f"{r['strehl']:.2f}",
+            f"{r['tt_jitter_mas']:.1f}",
+            f"{r['tt_jitter_pol_mas']:.1f}",
+            f"{r['residual_nm']:.0f}",
+            f"{r['rejection_13hz']:.2f}",
+            r["paper"],
+        )
     Console().print(t)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps({"duration_s": args.duration, "rows": rows}, indent=1) + "\n")

@@ -51,15 +51,26 @@ def run_case(mag: float, seeing: float, seed: int, variant: str, cache_dir: str)
     t0 = time.perf_counter()
     obs = observation_for_magnitude(mag)
     duration = DURATION_PERIODS * default_period_s(obs)
-    request = OptimizeRequest(RunRequest(obs, seeing, seed=seed), method, duration, None, ogtl,
-                              measure_s=MEASURE_S)
+    request = OptimizeRequest(RunRequest(obs, seeing, seed=seed), method, duration, None, ogtl, measure_s=MEASURE_S)
     r = optimize(request, ArrayCache(cache_dir))
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
-    return {"mag": mag, "seeing": seeing, "seed": seed, "variant": variant, "period_s": request.period_s,
-            "diverged_at": r.diverged_at, "diverged_in": r.diverged_in, "before": r.before.strehl if r.before else None,
-            "after": r.after.strehl if r.after else None, "safety_restores": r.safety_events,
-            "during_run": {k: v.strehl for k, v in r.during_run.items()}, "sensitivities": list(r.sensitivities),
-            "k": r.loop.rtc_parameters.sensitivity, "aux": summary(records), "seconds": time.perf_counter() - t0}
+    return {
+        "mag": mag,
+        "seeing": seeing,
+        "seed": seed,
+        "variant": variant,
+        "period_s": request.period_s,
+        "diverged_at": r.diverged_at,
+        "diverged_in": r.diverged_in,
+        "before": r.before.strehl if r.before else None,
+        "after": r.after.strehl if r.after else None,
+        "safety_restores": r.safety_events,
+        "during_run": {k: v.strehl for k, v in r.during_run.items()},
+        "sensitivities": list(r.sensitivities),
+        "k": r.loop.rtc_parameters.sensitivity,
+        "aux": summary(records),
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _key(row: dict) -> tuple:
@@ -92,9 +103,15 @@ def render(rows: list[dict], console: Console) -> None:
         sel = [r for r in rows if r["mag"] == mag and r["variant"] == variant]
         for s in SEEINGS:
             pts = [r for r in sel if r["seeing"] == s]
-            cells.append("  ".join("div" if r["diverged_at"] is not None else
-                                   f"{r['before']:.3f}->{r['after']:.3f}" + ("" if r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False else "!")
-                                   for r in pts))
+            cells.append(
+                "  ".join(
+                    "div"
+                    if r["diverged_at"] is not None
+                    else f"{r['before']:.3f}->{r['after']:.3f}"
+                    + ("" if r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False else "!")
+                    for r in pts
+                )
+            )
         failed = sum(1 for r in sel if not (r["ok_divergence"] and r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False))
         t.add_row(f"{mag:g}", variant, *cells, str(sum(r["safety_restores"] for r in sel)), f"{len(sel) - failed}/{len(sel)}")
     console.print(t)
@@ -109,8 +126,13 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=OUT)
     a = p.parse_args()
-    todo = [(float(m), float(s), int(seed), v) for m in a.mags.split(",") for s in a.seeings.split(",")
-            for seed in a.seeds.split(",") for v in a.variants.split(",")]
+    todo = [
+        (float(m), float(s), int(seed), v)
+        for m in a.mags.split(",")
+        for s in a.seeings.split(",")
+        for seed in a.seeds.split(",")
+        for v in a.variants.split(",")
+    ]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     done = [json.loads(line) for line in a.out.read_text().splitlines()] if a.out.exists() else []
     have = {_key(r) for r in done}
@@ -123,10 +145,18 @@ def main() -> None:
             row = fut.result()
             f.write(json.dumps(row) + "\n")
             f.flush()
-            print(f"R{row['mag']:g} {row['seeing']:g}\" seed {row['seed']} {row['variant']}: "
-                  f"{row['before']} -> {row['after']} (diverged at {row['diverged_at']}), {row['seconds']:.0f} s", flush=True)
-    wanted = {(float(m), float(s), int(seed), v) for m in a.mags.split(",") for s in a.seeings.split(",")
-              for seed in a.seeds.split(",") for v in a.variants.split(",")}
+            print(
+                f'R{row["mag"]:g} {row["seeing"]:g}" seed {row["seed"]} {row["variant"]}: '
+                f"{row['before']} -> {row['after']} (diverged at {row['diverged_at']}), {row['seconds']:.0f} s",
+                flush=True,
+            )
+    wanted = {
+        (float(m), float(s), int(seed), v)
+        for m in a.mags.split(",")
+        for s in a.seeings.split(",")
+        for seed in a.seeds.split(",")
+        for v in a.variants.split(",")
+    }
     rows = checks([r for r in (json.loads(line) for line in a.out.read_text().splitlines()) if _key(r) in wanted])
     render(rows, Console())
 

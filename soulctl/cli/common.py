@@ -14,9 +14,9 @@ from rich.table import Table
 from .. import ranges
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
+from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
 from ..observation import Observation, observation_for_magnitude
-from ..loop.auxloops import summary as aux_summary
 from ..optics.cache import ArrayCache
 from .configure import parse_magnitude
 from .numbers import number
@@ -28,9 +28,23 @@ CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder 
 
 
 # Options of a simulated loop, shared by `loop run` and `optimize gains`.
-SEEING = typer.Option(1.0, "--seeing", parser=number(ranges.SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).")
-WIND = typer.Option(8.0, "--wind", parser=number(ranges.WIND_M_S), metavar="M/S", help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).")
-OUTER_SCALE = typer.Option(25.0, "--L0", parser=number(ranges.OUTER_SCALE_M), metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).")
+SEEING = typer.Option(
+    1.0,
+    "--seeing",
+    parser=number(ranges.SEEING_ARCSEC),
+    metavar="ARCSEC",
+    help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).",
+)
+WIND = typer.Option(
+    8.0,
+    "--wind",
+    parser=number(ranges.WIND_M_S),
+    metavar="M/S",
+    help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).",
+)
+OUTER_SCALE = typer.Option(
+    25.0, "--L0", parser=number(ranges.OUTER_SCALE_M), metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()})."
+)
 TT_CONTROL = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one).")
 BAND = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
 SEED = typer.Option(1, "--seed", parser=number(ranges.SEED), help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).")
@@ -38,16 +52,38 @@ NO_NOISE = typer.Option(False, "--no-noise", help="Noiseless detector.")
 VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml).")
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
-OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(ranges.OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).")
-PERIOD = typer.Option(None, "--period", parser=number(ranges.PERIOD_S), metavar="S",
-                      help="Update period of MGM and OGTL (default: 1 s, longer where the frame rate needs it for MGM's 4 Welch "
-                           "segments with bins of at most 1 Hz, up to 512 frames: 2.6 s at 250 Hz, 3.3 s at 100 Hz).")
-PROBE_MODE = typer.Option(30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes).")
-PROBE_AMPLITUDE = typer.Option(None, "--probe-amplitude", parser=number(ranges.PROBE_AMPLITUDE_NM), metavar="NM",
-                               help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}; default: 20 nm, more where the "
-                                    "WFS noise needs it for a reliable estimate, at most 80 nm).")
-PROBE_FREQUENCY = typer.Option(None, "--probe-frequency", parser=number(ranges.PROBE_FREQUENCY_HZ), metavar="HZ",
-                               help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).")
+OVERSAMPLING = typer.Option(
+    2,
+    "--oversampling",
+    parser=number(ranges.OVERSAMPLING),
+    help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).",
+)
+PERIOD = typer.Option(
+    None,
+    "--period",
+    parser=number(ranges.PERIOD_S),
+    metavar="S",
+    help="Update period of MGM and OGTL (default: 1 s, longer where the frame rate needs it for MGM's 4 Welch "
+    "segments with bins of at most 1 Hz, up to 512 frames: 2.6 s at 250 Hz, 3.3 s at 100 Hz).",
+)
+PROBE_MODE = typer.Option(
+    30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes)."
+)
+PROBE_AMPLITUDE = typer.Option(
+    None,
+    "--probe-amplitude",
+    parser=number(ranges.PROBE_AMPLITUDE_NM),
+    metavar="NM",
+    help=f"OGTL probe amplitude, nm peak ({ranges.PROBE_AMPLITUDE_NM.text()}; default: 20 nm, more where the "
+    "WFS noise needs it for a reliable estimate, at most 80 nm).",
+)
+PROBE_FREQUENCY = typer.Option(
+    None,
+    "--probe-frequency",
+    parser=number(ranges.PROBE_FREQUENCY_HZ),
+    metavar="HZ",
+    help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).",
+)
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
 
@@ -72,8 +108,16 @@ def vibration_spectrum(no_vibrations: bool, path: Path | None) -> VibrationSpect
 
 def frames_progress(label: str) -> Progress:
     """A transient progress bar over frames on stderr."""
-    return Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-                    TimeElapsedColumn(), TimeRemainingColumn(), console=make_console(stderr=True), transient=True)
+    return Progress(
+        TextColumn(label),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("frames"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=make_console(stderr=True),
+        transient=True,
+    )
 
 
 def default_cache_dir() -> Path:
@@ -112,12 +156,23 @@ def aux_rows(telemetry) -> list[tuple[str, str]]:
     rows = []
     if "ogtl" in s:
         o = s["ogtl"]
-        rows.append(("OGTL probe (mode, amplitude, frequency)", f"{o['probe_mode']}, {o['probe_amplitude_nm']:.3g} nm, {o['probe_frequency_hz']:.4g} Hz"))
-        rows.append(("OGTL updates (k bounded to 1..k_max)", f"{o['updates']} (k_max {o['k_max']:.3g}): "
-                     + ", ".join(f"{n} {name}" for name, n in o["statuses"].items())))
+        rows.append(
+            (
+                "OGTL probe (mode, amplitude, frequency)",
+                f"{o['probe_mode']}, {o['probe_amplitude_nm']:.3g} nm, {o['probe_frequency_hz']:.4g} Hz",
+            )
+        )
+        rows.append(
+            (
+                "OGTL updates (k bounded to 1..k_max)",
+                f"{o['updates']} (k_max {o['k_max']:.3g}): " + ", ".join(f"{n} {name}" for name, n in o["statuses"].items()),
+            )
+        )
     if "mgm" in s:
         rows.append(("MGM updates (noise-dominated modes, last)", f"{s['mgm']['updates']} ({s['mgm']['noise_dominated_modes_last']})"))
     if "safety" in s:
         f = s["safety"]
-        rows.append(("safety net: restores of the last good gains and k", f"{f['restores']}" + (" (could not recover)" if f["gave_up"] else "")))
+        rows.append(
+            ("safety net: restores of the last good gains and k", f"{f['restores']}" + (" (could not recover)" if f["gave_up"] else ""))
+        )
     return rows

@@ -13,7 +13,8 @@ from .. import tables
 from ..errors import InputError
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
-from .output import console as make_console, print_json
+from .output import console as make_console
+from .output import print_json
 
 
 def parse_magnitude(text: str) -> float:
@@ -32,8 +33,7 @@ def render(obs: Observation, console: Console, roots_source: str = "roots") -> N
     bands = tables.magnitude_table()
     band = tables.band_for_magnitude(obs.magnitude_r, bands)
     t = Table(
-        title=f"SOUL configuration for an R = {obs.magnitude_r:g} guide star\n"
-        f"(look-up table row {band.label(first=band == bands[0])})",
+        title=f"SOUL configuration for an R = {obs.magnitude_r:g} guide star\n(look-up table row {band.label(first=band == bands[0])})",
         title_justify="left",
     )
     t.add_column("parameter")
@@ -65,8 +65,12 @@ def render(obs: Observation, console: Console, roots_source: str = "roots") -> N
 def configure(
     mag: str = typer.Option(..., "--mag", metavar="R", help="Guide star R magnitude (0 to 18.5)."),
     out: Path | None = typer.Option(None, "--out", help="Write the configuration as TOML (for --config of later commands)."),
-    roots: Path | None = typer.Option(None, "--roots", metavar="FILE",
-                                      help="Tip/Tilt IIR roots table to use instead of the paper's (e.g. from 'soulctl filter design --out')."),
+    roots: Path | None = typer.Option(
+        None,
+        "--roots",
+        metavar="FILE",
+        help="Tip/Tilt IIR roots table to use instead of the paper's (e.g. from 'soulctl filter design --out').",
+    ),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Set up an observation for a guide star of R magnitude from the SOUL look-up table:

@@ -22,13 +22,30 @@ from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_path, same_file
-from ..ranges import (ANALYSIS_GAIN, ANALYSIS_RATE_HZ, DELAY_FRAMES, DESIGN_DELAY_FRAMES, DESIGN_RATE_HZ, EPSILON, FORGETTING, MAX_CONTROLLERS,
-                      MAX_DESIGN_RATES, NOISE_MAS, OPTICAL_GAIN, OUTER_SCALE_M, ROOT_MODULUS, SEED, SEEING_ARCSEC, WIND_M_S, Range)
+from ..ranges import (
+    ANALYSIS_GAIN,
+    ANALYSIS_RATE_HZ,
+    DELAY_FRAMES,
+    DESIGN_DELAY_FRAMES,
+    DESIGN_RATE_HZ,
+    EPSILON,
+    FORGETTING,
+    MAX_CONTROLLERS,
+    MAX_DESIGN_RATES,
+    NOISE_MAS,
+    OPTICAL_GAIN,
+    OUTER_SCALE_M,
+    ROOT_MODULUS,
+    SEED,
+    SEEING_ARCSEC,
+    WIND_M_S,
+    Range,
+)
 from .numbers import number
-from .output import console as make_console, print_json, styled
+from .output import console as make_console
+from .output import print_json, styled
 
-app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).",
-                  no_args_is_help=True)
+app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).", no_args_is_help=True)
 
 UNSTABLE_EXIT = 3  # an analysed loop is unstable (its figures are still printed)
 N_ROOTS_MAX = 8  # zeros or poles of a controller given by its roots
@@ -38,6 +55,7 @@ SYSTEMS = ("soul", "flao")
 
 
 # ---------------------------------------------------------------- argument parsing
+
 
 def _values(text: str, option: str, kind: str, limit: int = MAX_CONTROLLERS) -> list[str]:
     items = [t.strip() for t in str(text).split(",")]
@@ -84,6 +102,7 @@ def _pick(values: list, i: int):
 
 # ---------------------------------------------------------------- analyze
 
+
 @dataclass(frozen=True)
 class AnalyzedLoop:
     label: str
@@ -111,8 +130,7 @@ def _json_root(r: complex):
     return r.real if r.imag == 0 else [r.real, r.imag]
 
 
-def _controller(control: str, gain: float, rate: float, forgetting: float,
-                zeros: tuple, poles: tuple) -> tuple[Filter, str]:
+def _controller(control: str, gain: float, rate: float, forgetting: float, zeros: tuple, poles: tuple) -> tuple[Filter, str]:
     if control == "int":
         return Filter.integrator(gain), "integrator"
     if control == "leaky":
@@ -161,18 +179,26 @@ def analyze_command(
     rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()})."),
     control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s)."),
     gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help=f"Loop gain(s) ({ANALYSIS_GAIN.text()})."),
-    delay_frames: str | None = typer.Option(None, "--delay-frames", metavar="D[,D…]",
-                                            help=f"Loop delay in frames ({DELAY_FRAMES.text()}, fractional allowed)."),
-    delay_ms: str | None = typer.Option(None, "--delay-ms", metavar="T[,T…]",
-                                        help=f"Loop delay in ms (>= 0; at most {DELAY_FRAMES.hi:g} frames at the rate)."),
-    system: str = typer.Option("soul", "--system", metavar="soul|flao[,…]",
-                               help="Delay model when no delay is given (tables/delay_model.toml)."),
+    delay_frames: str | None = typer.Option(
+        None, "--delay-frames", metavar="D[,D…]", help=f"Loop delay in frames ({DELAY_FRAMES.text()}, fractional allowed)."
+    ),
+    delay_ms: str | None = typer.Option(
+        None, "--delay-ms", metavar="T[,T…]", help=f"Loop delay in ms (>= 0; at most {DELAY_FRAMES.hi:g} frames at the rate)."
+    ),
+    system: str = typer.Option(
+        "soul", "--system", metavar="soul|flao[,…]", help="Delay model when no delay is given (tables/delay_model.toml)."
+    ),
     chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()})."),
     forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1)."),
-    zeros: str | None = typer.Option(None, "--zeros", metavar="B1,B2,…",
-                                     help=f"IIR zeros (default: the roots table; modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."),
-    poles: str | None = typer.Option(None, "--poles", metavar="A1,A2,…",
-                                     help=f"IIR poles, at least one (modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."),
+    zeros: str | None = typer.Option(
+        None,
+        "--zeros",
+        metavar="B1,B2,…",
+        help=f"IIR zeros (default: the roots table; modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX}).",
+    ),
+    poles: str | None = typer.Option(
+        None, "--poles", metavar="A1,A2,…", help=f"IIR poles, at least one (modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."
+    ),
     label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot."),
@@ -231,8 +257,9 @@ def analyze_command(
         save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), plot)
     all_stable = all(a.analysis.stable for a in loops)
     if json_output:
-        print_json({"controllers": [a.to_dict() for a in loops], "stable": all_stable,
-                    "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ})
+        print_json(
+            {"controllers": [a.to_dict() for a in loops], "stable": all_stable, "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ}
+        )
     else:
         console = make_console()
         _render_analysis(loops, console)
@@ -253,8 +280,10 @@ def _delay(lists: dict, i: int, rate: float) -> float:
         system = _pick(lists["--system"], i)
         d, what = DelayModel.from_table(system).frames(rate), f"the {system.upper()} delay model"
     if not DELAY_FRAMES.contains(d):
-        raise InputError(f"{what} at {rate:g} Hz is {d:.4g} frames: accepted {DELAY_FRAMES.text()} "
-                         "(the analysis' cost grows with the delay's polynomial degree)")
+        raise InputError(
+            f"{what} at {rate:g} Hz is {d:.4g} frames: accepted {DELAY_FRAMES.text()} "
+            "(the analysis' cost grows with the delay's polynomial degree)"
+        )
     return d
 
 
@@ -269,14 +298,17 @@ def _analyzed(lists: dict, i: int, zeros: tuple, poles: tuple) -> AnalyzedLoop:
 
 # ---------------------------------------------------------------- design
 
+
 def _render_design(results: list[DesignResult], disturbance: Disturbance, console: Console) -> None:
-    roots = Table(title="Roots (H = g ∏(1 − β z⁻¹) / ∏(1 − α z⁻¹)), designed and the paper's", title_justify="left",
-                  box=box.SIMPLE_HEAD)
+    roots = Table(title="Roots (H = g ∏(1 − β z⁻¹) / ∏(1 − α z⁻¹)), designed and the paper's", title_justify="left", box=box.SIMPLE_HEAD)
     for name in ("rate", "", "zeros β", "poles α"):
         roots.add_column(name, justify="right" if name == "rate" else "left")
-    perf = Table(title=f"Performance under the design cost, |1 + HP| > ε = {results[0].epsilon:g} "
-                       "(the paper's filter and the integrator at their best gains)",
-                 title_justify="left", box=box.SIMPLE_HEAD)
+    perf = Table(
+        title=f"Performance under the design cost, |1 + HP| > ε = {results[0].epsilon:g} "
+        "(the paper's filter and the integrator at their best gains)",
+        title_justify="left",
+        box=box.SIMPLE_HEAD,
+    )
     for name in ("rate", "", "gain", "GM", "PM", "min|1+L|", "|S(13)|", "|T(127)|", "jitter"):
         perf.add_column(name, justify="left" if name == "" else "right")
     for r in results:
@@ -287,38 +319,86 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
             a = c.analysis
             first = f"{r.rate_hz:g}" if name == "designed" else ""
             if name != "integrator":
-                roots.add_row(first, name, " ".join(f"{z.real:+.3f}" for z in c.filter.zeros),
-                              " ".join(f"{p.real:+.3f}" for p in c.filter.poles), style=style)
-            perf.add_row(first, name, f"{c.filter.gain:.3f}", _fmt(a.gain_margin, ".2f"),
-                         _fmt(a.phase_margin_deg, ".0f") + "°", f"{a.modulus_margin:.3f}", f"{a.rejection_13hz:.3f}",
-                         _fmt(a.noise_127hz, ".3f"), f"{c.jitter_mas:.2f}", style=style)
+                roots.add_row(
+                    first,
+                    name,
+                    " ".join(f"{z.real:+.3f}" for z in c.filter.zeros),
+                    " ".join(f"{p.real:+.3f}" for p in c.filter.poles),
+                    style=style,
+                )
+            perf.add_row(
+                first,
+                name,
+                f"{c.filter.gain:.3f}",
+                _fmt(a.gain_margin, ".2f"),
+                _fmt(a.phase_margin_deg, ".0f") + "°",
+                f"{a.modulus_margin:.3f}",
+                f"{a.rejection_13hz:.3f}",
+                _fmt(a.noise_127hz, ".3f"),
+                f"{c.jitter_mas:.2f}",
+                style=style,
+            )
     console.print(roots)
     console.print(perf)
     for r in results:
-        console.print(f"{r.rate_hz:g} Hz: the designed filter rejects the 13 Hz line {r.rejection_ratio:.2f}x better than "
-                      f"the integrator; delay {r.delay_frames:.2f} frames; designed in {r.runtime_s:.1f} s")
+        console.print(
+            f"{r.rate_hz:g} Hz: the designed filter rejects the 13 Hz line {r.rejection_ratio:.2f}x better than "
+            f"the integrator; delay {r.delay_frames:.2f} frames; designed in {r.runtime_s:.1f} s"
+        )
     turb = disturbance.turbulence
-    console.print(f"jitter: residual Tip/Tilt RMS per axis (mas). Disturbance: von Kármán Tip/Tilt, seeing "
-                  f"{turb.seeing_arcsec:g}\", L0 {turb.outer_scale_m:g} m, wind {turb.wind_speed_m_s:g} m/s; "
-                  f"vibrations: {disturbance.vibrations.source}; noise {disturbance.noise_mas:g} mas/frame; "
-                  f"{disturbance.resonance_mas:g} mas line at {disturbance.resonance_hz:g} Hz weighted by |T|².",
-                  style="dim")
+    console.print(
+        f"jitter: residual Tip/Tilt RMS per axis (mas). Disturbance: von Kármán Tip/Tilt, seeing "
+        f'{turb.seeing_arcsec:g}", L0 {turb.outer_scale_m:g} m, wind {turb.wind_speed_m_s:g} m/s; '
+        f"vibrations: {disturbance.vibrations.source}; noise {disturbance.noise_mas:g} mas/frame; "
+        f"{disturbance.resonance_mas:g} mas line at {disturbance.resonance_hz:g} Hz weighted by |T|².",
+        style="dim",
+    )
 
 
 def design_command(
-    rate: str = typer.Option("1700,1350,1000,750", "--rate", metavar="HZ[,HZ…]",
-                             help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four."),
+    rate: str = typer.Option(
+        "1700,1350,1000,750",
+        "--rate",
+        metavar="HZ[,HZ…]",
+        help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four.",
+    ),
     epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
-    seeing: float = typer.Option(1.0, "--seeing", parser=number(SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
-    wind: float = typer.Option(8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."),
-    outer_scale: float = typer.Option(25.0, "--L0", parser=number(OUTER_SCALE_M), metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."),
-    vibrations: Path | None = typer.Option(None, "--vibrations", metavar="FILE",
-                                           help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."),
-    noise: float = typer.Option(1.0, "--noise", parser=number(NOISE_MAS), metavar="MAS", help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()})."),
-    resonance_line: float = typer.Option(2.0, "--resonance-line", parser=number(NOISE_MAS), metavar="MAS",
-                                         help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()})."),
-    delay_ms: float | None = typer.Option(None, "--delay-ms", parser=number(Range(0.0, math.inf, "ms")),
-                                          help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames)."),
+    seeing: float = typer.Option(
+        1.0,
+        "--seeing",
+        parser=number(SEEING_ARCSEC),
+        metavar="ARCSEC",
+        help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
+    ),
+    wind: float = typer.Option(
+        8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."
+    ),
+    outer_scale: float = typer.Option(
+        25.0, "--L0", parser=number(OUTER_SCALE_M), metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."
+    ),
+    vibrations: Path | None = typer.Option(
+        None, "--vibrations", metavar="FILE", help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."
+    ),
+    noise: float = typer.Option(
+        1.0,
+        "--noise",
+        parser=number(NOISE_MAS),
+        metavar="MAS",
+        help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()}).",
+    ),
+    resonance_line: float = typer.Option(
+        2.0,
+        "--resonance-line",
+        parser=number(NOISE_MAS),
+        metavar="MAS",
+        help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()}).",
+    ),
+    delay_ms: float | None = typer.Option(
+        None,
+        "--delay-ms",
+        parser=number(Range(0.0, math.inf, "ms")),
+        help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames).",
+    ),
     seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
@@ -335,8 +415,14 @@ def design_command(
     if len(set(rates)) != len(rates):
         raise InputError(f"--rate lists a frame rate twice: {rate}")
     EPSILON.check(epsilon, "--epsilon")
-    for value, name, accepted in ((seeing, "--seeing", SEEING_ARCSEC), (wind, "--wind", WIND_M_S), (outer_scale, "--L0", OUTER_SCALE_M),
-                                  (noise, "--noise", NOISE_MAS), (resonance_line, "--resonance-line", NOISE_MAS), (seed, "--seed", SEED)):
+    for value, name, accepted in (
+        (seeing, "--seeing", SEEING_ARCSEC),
+        (wind, "--wind", WIND_M_S),
+        (outer_scale, "--L0", OUTER_SCALE_M),
+        (noise, "--noise", NOISE_MAS),
+        (resonance_line, "--resonance-line", NOISE_MAS),
+        (seed, "--seed", SEED),
+    ):
         accepted.check(value, name)
     delays = [None if delay_ms is None else _design_delay(delay_ms, r) for r in rates]
     for path, option in ((out, "--out"), (plot, "--plot")):
@@ -361,13 +447,15 @@ def design_command(
             results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
 
     if out is not None:
-        header = (f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
-                  f"epsilon {epsilon:g}, seeing {seeing:g} arcsec, wind {wind:g} m/s, L0 {outer_scale:g} m, "
-                  f"noise {noise:g} mas/frame, {resonance_line:g} mas line at {RESONANCE_HZ:g} Hz, seed {seed};\n"
-                  f"vibrations: {disturbance.vibrations.source};\n"
-                  f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"
-                  "H(z) = g * prod(1 - zero_k z^-1) / prod(1 - pole_l z^-1); gains at design: "
-                  + ", ".join(f"{x.rate_hz:g} Hz {x.iir.filter.gain:.3f}" for x in results))
+        header = (
+            f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
+            f"epsilon {epsilon:g}, seeing {seeing:g} arcsec, wind {wind:g} m/s, L0 {outer_scale:g} m, "
+            f"noise {noise:g} mas/frame, {resonance_line:g} mas line at {RESONANCE_HZ:g} Hz, seed {seed};\n"
+            f"vibrations: {disturbance.vibrations.source};\n"
+            f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"
+            "H(z) = g * prod(1 - zero_k z^-1) / prod(1 - pole_l z^-1); gains at design: "
+            + ", ".join(f"{x.rate_hz:g} Hz {x.iir.filter.gain:.3f}" for x in results)
+        )
         atomic_write_text(out, roots_table_csv(results, header))
     if plot is not None:
         from ..plots.transfer import Curve, save_figure, transfer_figure
@@ -376,20 +464,37 @@ def design_command(
         curves = []
         for i, x in enumerate(results):
             col = colors[i % len(colors)]
-            curves.append(Curve(f"IIR {x.rate_hz:g} Hz g={x.iir.filter.gain:.2f}", Loop(x.iir.filter, Plant(x.delay_frames), x.rate_hz), col))
-            curves.append(Curve(f"INT {x.rate_hz:g} Hz g={x.integrator.filter.gain:.2f}",
-                                Loop(x.integrator.filter, Plant(x.delay_frames), x.rate_hz), col, "--"))
-        save_figure(transfer_figure(curves, "Designed Tip/Tilt IIR filters (solid) and the best integrators (dashed)",
-                                    epsilon=epsilon), plot)
+            curves.append(
+                Curve(f"IIR {x.rate_hz:g} Hz g={x.iir.filter.gain:.2f}", Loop(x.iir.filter, Plant(x.delay_frames), x.rate_hz), col)
+            )
+            curves.append(
+                Curve(
+                    f"INT {x.rate_hz:g} Hz g={x.integrator.filter.gain:.2f}",
+                    Loop(x.integrator.filter, Plant(x.delay_frames), x.rate_hz),
+                    col,
+                    "--",
+                )
+            )
+        save_figure(
+            transfer_figure(curves, "Designed Tip/Tilt IIR filters (solid) and the best integrators (dashed)", epsilon=epsilon), plot
+        )
     if json_output:
         turb = disturbance.turbulence
-        print_json({
-            "designs": [x.to_dict() for x in results],
-            "disturbance": {"seeing_arcsec": turb.seeing_arcsec, "wind_m_s": turb.wind_speed_m_s,
-                            "outer_scale_m": turb.outer_scale_m, "vibrations": disturbance.vibrations.source,
-                            "noise_mas": noise, "resonance_line_mas": resonance_line, "resonance_hz": RESONANCE_HZ},
-            "seed": seed,
-        })
+        print_json(
+            {
+                "designs": [x.to_dict() for x in results],
+                "disturbance": {
+                    "seeing_arcsec": turb.seeing_arcsec,
+                    "wind_m_s": turb.wind_speed_m_s,
+                    "outer_scale_m": turb.outer_scale_m,
+                    "vibrations": disturbance.vibrations.source,
+                    "noise_mas": noise,
+                    "resonance_line_mas": resonance_line,
+                    "resonance_hz": RESONANCE_HZ,
+                },
+                "seed": seed,
+            }
+        )
     else:
         console = make_console()
         _render_design(results, disturbance, console)

@@ -10,27 +10,53 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
+from ..control.gain_file import SUFFIXES, read_gain_file
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
-from ..control.gain_file import SUFFIXES, read_gain_file
 from ..control.trial import MID_GROUP_END
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
+from ..loop.optimize import LiveOptimisers
 from ..loop.run import RunRequest, run
 from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
-from ..loop.optimize import LiveOptimisers
 from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..observation import Observation, observation_for_magnitude
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
 from ..ranges import DURATION_S, LOOP_GAIN, OVERSAMPLING
-from .configure import parse_magnitude
 from . import common
-from .common import (aux_rows, aux_summary, BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE, PERIOD,
-                     PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
-                     check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
+from .common import (
+    BAND,
+    CACHE_DIR,
+    CONFIG,
+    JSON_OUTPUT,
+    NO_CACHE,
+    NO_NOISE,
+    NO_RESONANCE,
+    NO_VIBRATIONS,
+    OUTER_SCALE,
+    PERIOD,
+    PROBE_AMPLITUDE,
+    PROBE_FREQUENCY,
+    PROBE_MODE,
+    SEED,
+    SEEING,
+    TT_CONTROL,
+    VIBRATIONS,
+    WIND,
+    array_cache,
+    aux_rows,
+    aux_summary,
+    check_run_options,
+    frames_progress,
+    observation_option,
+    quantity_table,
+    vibration_spectrum,
+)
+from .configure import parse_magnitude
 from .numbers import number
-from .output import console as make_console, print_json, styled
+from .output import console as make_console
+from .output import print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -82,9 +108,12 @@ def _result_dict(result) -> dict:
     m = result.metrics
     d = {
         "configuration": result.configuration(),
-        "calibration": {"valid_subapertures": result.calibration.interaction_matrix.shape[0] // 2,
-                        "modes": result.calibration.basis.n_modes, "from_cache": result.calibration.from_cache,
-                        "seconds": result.calibration_seconds},
+        "calibration": {
+            "valid_subapertures": result.calibration.interaction_matrix.shape[0] // 2,
+            "modes": result.calibration.basis.n_modes,
+            "from_cache": result.calibration.from_cache,
+            "seconds": result.calibration_seconds,
+        },
         "seconds": result.seconds,
         "frames_per_second": len(result.telemetry.residual_rms_nm) / result.seconds if result.seconds > 0 else None,
         "diverged_at_frame": result.diverged_at,
@@ -107,26 +136,34 @@ def _value(x, spec: str, unit: str = "") -> str:
 def _render(result, console: Console) -> None:
     r, m = result.request, result.metrics
     obs = r.observation
-    t = quantity_table(f"Closed loop: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
-                       f"{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\", {r.duration_s:g} s")
+    t = quantity_table(
+        f"Closed loop: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
+        f'{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}", {r.duration_s:g} s'
+    )
     g = result.gains
     t.add_row("Tip/Tilt control", f"{'IIR' if obs.tt_control == 'iir' else 'integrator'}, gain {g.tip_tilt:.3g}")
     if obs.modes > MID_GROUP_END:
-        t.add_row(f"gains modes 3-{MID_GROUP_END} / {MID_GROUP_END + 1}-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else ""))
+        t.add_row(
+            f"gains modes 3-{MID_GROUP_END} / {MID_GROUP_END + 1}-last", f"{g.mid:.3g} / {g.high:.3g}" + (" (gain file)" if g.modes else "")
+        )
     else:
         t.add_row(f"gains modes 3-{obs.modes}", f"{g.mid:.3g}" + (" (gain file)" if g.modes else ""))
     t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", _value(m.strehl, ".3f"))
     t.add_row("Tip/Tilt jitter, residual (per axis)", _value(m.tt_jitter_mas, ".2f", " mas"))
-    t.add_row("Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
-              f"{_value(m.tt_jitter_pol_mas, '.2f', ' mas')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f', ' mas')}")
+    t.add_row(
+        "Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
+        f"{_value(m.tt_jitter_pol_mas, '.2f', ' mas')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f', ' mas')}",
+    )
     t.add_row("residual wavefront error", _value(m.residual_nm, ".0f", " nm RMS"))
     t.add_row("rejection at 13 Hz (telemetry)", _value(m.rejection_13hz, ".3f"))
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")
     if result.telemetry.aux:
         fg = result.final_gains
         t.add_row("auxiliary loops", ", ".join(sorted(result.telemetry.aux)))
-        t.add_row("final gains Tip / Tilt / 3-120 / 121-last", f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / "
-                  + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"))
+        t.add_row(
+            "final gains Tip / Tilt / 3-120 / 121-last",
+            f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / " + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"),
+        )
         t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
         for label, text in aux_rows(result.telemetry):
             t.add_row(label, text)
@@ -139,13 +176,19 @@ def _render(result, console: Console) -> None:
 @app.command("run")
 def run_cmd(
     config: Path | None = CONFIG,
-    mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {DEFAULT_MAGNITUDE}, the paper's bright star)."),
+    mag: str | None = typer.Option(
+        None, "--mag", metavar="R", help=f"Guide star R magnitude (default {DEFAULT_MAGNITUDE}, the paper's bright star)."
+    ),
     seeing: float = SEEING,
     wind: float = WIND,
     L0: float = OUTER_SCALE,
-    duration: float = typer.Option(0.2, "--duration", parser=number(DURATION_S), metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."),
+    duration: float = typer.Option(
+        0.2, "--duration", parser=number(DURATION_S), metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."
+    ),
     tt_control: str | None = TT_CONTROL,
-    gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."),
+    gains: str | None = typer.Option(
+        None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."
+    ),
     band: str = BAND,
     seed: int = SEED,
     no_noise: bool = NO_NOISE,
@@ -160,7 +203,9 @@ def run_cmd(
     probe_mode: int = PROBE_MODE,
     probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
-    telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."),
+    telemetry: Path | None = typer.Option(
+        None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."
+    ),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
@@ -186,8 +231,21 @@ def run_cmd(
     obs = observation_from(config, mag, tt_control)
     loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
     vib = vibration_spectrum(no_vibrations, vibrations)
-    request = RunRequest(obs, seeing, wind, L0, duration, loop_gains, band, seed, not no_noise, vib, oversampling,
-                         None if no_resonance else StructuralResonance(), allow_unstable)
+    request = RunRequest(
+        obs,
+        seeing,
+        wind,
+        L0,
+        duration,
+        loop_gains,
+        band,
+        seed,
+        not no_noise,
+        vib,
+        oversampling,
+        None if no_resonance else StructuralResonance(),
+        allow_unstable,
+    )
     aux = None
     if mgm or ogtl:
         aux = LiveOptimisers(mgm, ogtl, period, OgtlSettings(probe_mode, probe_amplitude, probe_frequency))
@@ -201,10 +259,17 @@ def run_cmd(
     if telemetry is not None:
         tm = telemetry_arrays(result.telemetry)
         tm["gains"] = result.final_gains
-        write_telemetry(telemetry, tm, {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames,
-                                        "n_modes": result.calibration.basis.n_modes,
-                                        "diverged_at": -1 if result.diverged_at is None else result.diverged_at},
-                        result.configuration())
+        write_telemetry(
+            telemetry,
+            tm,
+            {
+                "rate_hz": obs.frame_rate_hz,
+                "delay_frames": obs.delay_frames,
+                "n_modes": result.calibration.basis.n_modes,
+                "diverged_at": -1 if result.diverged_at is None else result.diverged_at,
+            },
+            result.configuration(),
+        )
     if result.diverged_at is not None:
         message = f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
         if json_output:

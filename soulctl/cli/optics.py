@@ -13,7 +13,6 @@ from rich.table import Table
 from .. import tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
-from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from ..files import check_output_path
 from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
@@ -21,9 +20,11 @@ from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..optics.pwfs import PyramidConfig
+from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
 from .numbers import number
-from .output import console as make_console, print_json
+from .output import console as make_console
+from .output import print_json
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
 
@@ -52,18 +53,38 @@ def sensing_setup(
 
 _MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
 _BINNING = typer.Option(None, "--binning", parser=number(BINNING), help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
-_MODES = typer.Option(None, "--modes", parser=number(MODES),
-                      help=f"Controlled modes ({MODES.text()}; default: the look-up table's for the binning).")
-_MODULATION = typer.Option(None, "--modulation", metavar="LAMBDA/D", parser=number(MODULATION_LAMBDA_OVER_D),
-                           help=f"Modulation radius in lambda/D ({MODULATION_LAMBDA_OVER_D.text()}; default 3).")
-_OVERSAMPLING = typer.Option(2, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4).")
+_MODES = typer.Option(
+    None, "--modes", parser=number(MODES), help=f"Controlled modes ({MODES.text()}; default: the look-up table's for the binning)."
+)
+_MODULATION = typer.Option(
+    None,
+    "--modulation",
+    metavar="LAMBDA/D",
+    parser=number(MODULATION_LAMBDA_OVER_D),
+    help=f"Modulation radius in lambda/D ({MODULATION_LAMBDA_OVER_D.text()}; default 3).",
+)
+_OVERSAMPLING = typer.Option(
+    2, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4)."
+)
 _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
 
 @app.command("atmosphere")
 def atmosphere(
-    seeing: float = typer.Option(1.0, "--seeing", parser=number(SEEING_ARCSEC), metavar="ARCSEC", help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()})."),
-    wind: float = typer.Option(8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()})."),
+    seeing: float = typer.Option(
+        1.0,
+        "--seeing",
+        parser=number(SEEING_ARCSEC),
+        metavar="ARCSEC",
+        help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
+    ),
+    wind: float = typer.Option(
+        8.0,
+        "--wind",
+        parser=number(WIND_M_S),
+        metavar="M/S",
+        help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()}).",
+    ),
     L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
     json_output: bool = _JSON,
 ) -> None:
@@ -96,13 +117,16 @@ def atmosphere(
     if json_output:
         print_json(result)
         return
-    t = quantity_table(f"Turbulence: seeing {seeing:g}\" at 500 nm, L0 {L0:g} m, LBT profile")
+    t = quantity_table(f'Turbulence: seeing {seeing:g}" at 500 nm, L0 {L0:g} m, LBT profile')
     t.add_row("r0 at 500 / 750 / 1650 nm", f"{r0 * 100:.1f} / {result['r0_750nm_m'] * 100:.1f} / {result['r0_1650nm_m'] * 100:.1f} cm")
     t.add_row("effective wind", f"{result['effective_wind_m_s']:.1f} m/s")
     t.add_row("tau0 at 500 nm", f"{result['tau0_500nm_ms']:.2f} ms")
     t.add_row("Tip/Tilt per axis (von Kármán)", f"{tilt_mas:.0f} mas RMS")
     for i, layer in enumerate(result["layers"], 1):
-        t.add_row(f"layer {i}", f"{layer['altitude_m']:g} m, {layer['weight'] * 100:.0f}% Cn², {layer['wind_m_s']:.1f} m/s at {layer['direction_deg']:g}°")
+        t.add_row(
+            f"layer {i}",
+            f"{layer['altitude_m']:g} m, {layer['weight'] * 100:.0f}% Cn², {layer['wind_m_s']:.1f} m/s at {layer['direction_deg']:g}°",
+        )
     make_console().print(t)
 
 
@@ -170,16 +194,26 @@ def calibrate_cmd(
 
 @app.command("gains")
 def gains_cmd(
-    seeing: float = typer.Option(0.8, "--seeing", metavar="ARCSEC", parser=number(SEEING_ARCSEC), help=f"Seeing of the correction level (the paper's table: 0.8; {SEEING_ARCSEC.text()})."),
+    seeing: float = typer.Option(
+        0.8,
+        "--seeing",
+        metavar="ARCSEC",
+        parser=number(SEEING_ARCSEC),
+        help=f"Seeing of the correction level (the paper's table: 0.8; {SEEING_ARCSEC.text()}).",
+    ),
     L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
-    controlled_fraction: float = typer.Option(0.1, "--controlled-fraction", parser=number(FRACTION), help="Amplitude of the controlled modes left in the residual (0..1)."),
+    controlled_fraction: float = typer.Option(
+        0.1, "--controlled-fraction", parser=number(FRACTION), help="Amplitude of the controlled modes left in the residual (0..1)."
+    ),
     config: Path | None = CONFIG,
     mag: str | None = _MAG,
     binning: int | None = _BINNING,
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
-    screens: int = typer.Option(4, "--screens", parser=number(SCREENS), help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."),
+    screens: int = typer.Option(
+        4, "--screens", parser=number(SCREENS), help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."
+    ),
     seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
     no_cache: bool = NO_CACHE,
@@ -199,8 +233,10 @@ def gains_cmd(
         check_output_path(out, "--out", [("--config", config)])
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
     cache = array_cache(no_cache, cache_dir)
-    with nullcontext() if json_output else make_console(stderr=True).status(
-        f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
+    with (
+        nullcontext()
+        if json_output
+        else make_console(stderr=True).status(f"optical gains of {setup.n_modes} modes on {screens} residual screens…")
     ):
         cal = calibrate(setup, cache)
         table = optical_gains(cal, level, n_screens=screens, seed=seed)
@@ -211,7 +247,7 @@ def gains_cmd(
         return
     g = table.gains
     t = Table(
-        title=f"Optical gains at seeing {seeing:g}\" (residual {table.residual_nm:.0f} nm RMS), "
+        title=f'Optical gains at seeing {seeing:g}" (residual {table.residual_nm:.0f} nm RMS), '
         f"binning {setup.pyramid.binning}, modulation {setup.pyramid.modulation_lambda_over_d:g} λ/D",
         title_justify="left",
     )
@@ -227,4 +263,3 @@ def gains_cmd(
     make_console().print(t)
     if out is not None:
         make_console(stderr=True).print(f"wrote {out}")
-

@@ -13,26 +13,52 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from ..control.gain_file import gains_toml
 from ..control.ogtl import OgtlSettings
 from ..control.structure import StructuralResonance
 from ..control.trial import gain_groups
-from ..control.gain_file import gains_toml
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path, input_file
 from ..loop.offline import offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
 from ..loop.run import RunRequest
 from ..loop.simulation import DEFAULT_FORGETTING
-from ..plots.gains import gain_figure_names, write_gain_figures
 from ..observation import TT_CONTROLS
+from ..plots.gains import gain_figure_names, write_gain_figures
 from ..ranges import MEASURE_S, OPTIMISATION_S, OVERSAMPLING, PERIOD_S, SEQUENCE_S
 from . import common
-from .common import (aux_rows, aux_summary, BAND, CACHE_DIR, CONFIG, JSON_OUTPUT, NO_CACHE, NO_NOISE, NO_RESONANCE, NO_VIBRATIONS, OUTER_SCALE,
-                     PERIOD, PROBE_AMPLITUDE, PROBE_FREQUENCY, PROBE_MODE, SEED, SEEING, TT_CONTROL, VIBRATIONS, WIND, array_cache,
-                     check_run_options, frames_progress, observation_option, quantity_table, vibration_spectrum)
+from .common import (
+    BAND,
+    CACHE_DIR,
+    CONFIG,
+    JSON_OUTPUT,
+    NO_CACHE,
+    NO_NOISE,
+    NO_RESONANCE,
+    NO_VIBRATIONS,
+    OUTER_SCALE,
+    PERIOD,
+    PROBE_AMPLITUDE,
+    PROBE_FREQUENCY,
+    PROBE_MODE,
+    SEED,
+    SEEING,
+    TT_CONTROL,
+    VIBRATIONS,
+    WIND,
+    array_cache,
+    aux_rows,
+    aux_summary,
+    check_run_options,
+    frames_progress,
+    observation_option,
+    quantity_table,
+    vibration_spectrum,
+)
 from .loop import gain_file_input, observation_from, parse_gains
 from .numbers import number
-from .output import console as make_console, print_json
+from .output import console as make_console
+from .output import print_json
 
 app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
 
@@ -46,9 +72,17 @@ def probe_settings(mode: int, amplitude: float | None, frequency: float | None) 
 
 def group_summary(gains: np.ndarray) -> list[dict]:
     """Per paper group: name, mean, min, max of the gains."""
-    return [{"group": name, "modes": f"{m.start + 1}-{min(m.stop, len(gains)) if m.stop else len(gains)}",
-             "mean": float(np.mean(gains[m])), "min": float(np.min(gains[m])), "max": float(np.max(gains[m]))}
-            for name, m in gain_groups(len(gains)) if len(gains[m])]
+    return [
+        {
+            "group": name,
+            "modes": f"{m.start + 1}-{min(m.stop, len(gains)) if m.stop else len(gains)}",
+            "mean": float(np.mean(gains[m])),
+            "min": float(np.min(gains[m])),
+            "max": float(np.max(gains[m])),
+        }
+        for name, m in gain_groups(len(gains))
+        if len(gains[m])
+    ]
 
 
 def _result_dict(result: OptimizeResult) -> dict:
@@ -83,23 +117,29 @@ def _render(results: dict[str, OptimizeResult], console: Console) -> None:
     first = next(iter(results.values()))
     rr = first.request.run
     obs = rr.observation
-    t = Table(title=f"Gain optimisation: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
-                    f"{obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}\", wind {rr.wind_m_s:g} m/s", title_justify="left")
+    t = Table(
+        title=f"Gain optimisation: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
+        f'{obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}", wind {rr.wind_m_s:g} m/s',
+        title_justify="left",
+    )
     t.add_column("quantity")
     for method in results:
         t.add_column("trial-and-error" if method == "trial" else "MGM", justify="right")
-    rows = [("Strehl ratio (" + rr.band + ") before → after", lambda x: f"{x.before.strehl:.3f} → {x.after.strehl:.3f}"),
-            ("  during the run (other turbulence)", lambda x: f"{x.during_run['before'].strehl:.3f} → {x.during_run['after'].strehl:.3f}"),
-            ("residual before → after [nm]", lambda x: f"{x.before.residual_nm:.0f} → {x.after.residual_nm:.0f}"),
-            ("Tip/Tilt jitter before → after [mas]", lambda x: f"{x.before.tt_jitter_mas:.2f} → {x.after.tt_jitter_mas:.2f}")]
+    rows = [
+        ("Strehl ratio (" + rr.band + ") before → after", lambda x: f"{x.before.strehl:.3f} → {x.after.strehl:.3f}"),
+        ("  during the run (other turbulence)", lambda x: f"{x.during_run['before'].strehl:.3f} → {x.during_run['after'].strehl:.3f}"),
+        ("residual before → after [nm]", lambda x: f"{x.before.residual_nm:.0f} → {x.after.residual_nm:.0f}"),
+        ("Tip/Tilt jitter before → after [mas]", lambda x: f"{x.before.tt_jitter_mas:.2f} → {x.after.tt_jitter_mas:.2f}"),
+    ]
     ok = {m: x for m, x in results.items() if x.diverged_at is None}
     for label, fmt in rows:
         t.add_row(label, *[fmt(x) if m in ok else "diverged" for m, x in results.items()])
     for i, g in enumerate(group_summary(first.gains)):
-        t.add_row(f"gains {g['group']} (mean, min-max)",
-                  *[_group_text(group_summary(x.gains)[i]) for x in results.values()])
+        t.add_row(f"gains {g['group']} (mean, min-max)", *[_group_text(group_summary(x.gains)[i]) for x in results.values()])
     t.add_row("gains Tip / Tilt", *[f"{x.gains[0]:.3f} / {x.gains[1]:.3f}" for x in results.values()])
-    t.add_row("slope sensitivity k", *[f"{x.loop.rtc_parameters.sensitivity:.3f}" if x.request.ogtl else "1 (no OGTL)" for x in results.values()])
+    t.add_row(
+        "slope sensitivity k", *[f"{x.loop.rtc_parameters.sensitivity:.3f}" if x.request.ogtl else "1 (no OGTL)" for x in results.values()]
+    )
     for label, _ in aux_rows(first.loop.telemetry):
         t.add_row(label, *[dict(aux_rows(x.loop.telemetry)).get(label, "-") for x in results.values()])
     t.add_row("simulated / wall time [s]", *[f"{x.loop.frame / obs.frame_rate_hz:.1f} / {x.seconds:.0f}" for x in results.values()])
@@ -120,13 +160,19 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
         return 0
     console = make_console()
     obs = result.observation
-    t = quantity_table(f"MGM on {telemetry.name}: {obs.modes} modes, {obs.frame_rate_hz:g} Hz, window of {result.frames} frames "
-                       f"({result.frames / obs.frame_rate_hz:.2f} s, Welch segment {result.segment})")
+    t = quantity_table(
+        f"MGM on {telemetry.name}: {obs.modes} modes, {obs.frame_rate_hz:g} Hz, window of {result.frames} frames "
+        f"({result.frames / obs.frame_rate_hz:.2f} s, Welch segment {result.segment})"
+    )
     for g_prev, g in zip(group_summary(result.previous_gains), group_summary(result.gains)):
         t.add_row(f"gains {g['group']}: recorded → MGM", f"{_group_text(g_prev)} → {_group_text(g)}")
     t.add_row("gains Tip / Tilt", f"{result.gains[0]:.3f} / {result.gains[1]:.3f}")
-    t.add_row("chi model", f"gamma_i / gamma_{result.probe_mode} (OGTL recorded, probe mode {result.probe_mode})" if result.ogtl
-              else f"gamma_i x k (k = {result.sensitivity:.3f})")
+    t.add_row(
+        "chi model",
+        f"gamma_i / gamma_{result.probe_mode} (OGTL recorded, probe mode {result.probe_mode})"
+        if result.ogtl
+        else f"gamma_i x k (k = {result.sensitivity:.3f})",
+    )
     if result.capped:
         t.add_row("capped at the nominal stability limit", f"{len(result.capped)} mode(s), first mode {result.capped[0]}")
     console.print(t)
@@ -140,23 +186,43 @@ def gains_cmd(
     method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side)."),
     config: Path | None = CONFIG,
     mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude (default 9.7)."),
-    telemetry: Path | None = typer.Option(None, "--telemetry", metavar="FILE.h5",
-                                          help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."),
+    telemetry: Path | None = typer.Option(
+        None, "--telemetry", metavar="FILE.h5", help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."
+    ),
     seeing: float = SEEING,
     wind: float = WIND,
     L0: float = OUTER_SCALE,
-    duration: float | None = typer.Option(None, "--duration", metavar="S", parser=number(OPTIMISATION_S), show_default="5 update periods, at least 5 s",
-                                          help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()})."),
+    duration: float | None = typer.Option(
+        None,
+        "--duration",
+        metavar="S",
+        parser=number(OPTIMISATION_S),
+        show_default="5 update periods, at least 5 s",
+        help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()}).",
+    ),
     period: float | None = PERIOD,
-    measure: float = typer.Option(0.5, "--measure", metavar="S", parser=number(MEASURE_S), help="Simulated time measured before and after the optimisation (in the run and in the paired evaluation)."),
-    sequence: float | None = typer.Option(None, "--sequence", metavar="S", parser=number(SEQUENCE_S),
-                                          help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames)."),
+    measure: float = typer.Option(
+        0.5,
+        "--measure",
+        metavar="S",
+        parser=number(MEASURE_S),
+        help="Simulated time measured before and after the optimisation (in the run and in the paired evaluation).",
+    ),
+    sequence: float | None = typer.Option(
+        None,
+        "--sequence",
+        metavar="S",
+        parser=number(SEQUENCE_S),
+        help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames).",
+    ),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
     probe_mode: int = PROBE_MODE,
     probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
     tt_control: str | None = TT_CONTROL,
-    gains: str | None = typer.Option(None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."),
+    gains: str | None = typer.Option(
+        None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."
+    ),
     band: str = BAND,
     seed: int = SEED,
     no_noise: bool = NO_NOISE,
@@ -164,8 +230,12 @@ def gains_cmd(
     no_vibrations: bool = NO_VIBRATIONS,
     no_resonance: bool = NO_RESONANCE,
     oversampling: int = common.OVERSAMPLING,
-    out: Path | None = typer.Option(None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."),
-    plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."),
+    out: Path | None = typer.Option(
+        None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."
+    ),
+    plot: Path | None = typer.Option(
+        None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."
+    ),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = JSON_OUTPUT,
@@ -177,8 +247,8 @@ def gains_cmd(
     restores the last good gains and k when the loop degrades.  Prints the gains and the
     Strehl ratio and residual before and after, both measured in loops closed afresh on the
     run's own turbulence and noise (a paired comparison; the run's own phases, at other times,
-    are shown beside them); exit status 3 only if the loop diverged all the same.  With --telemetry FILE: MGM offline on a recorded loop, printing the gains it
-    would apply.
+    are shown beside them); exit status 3 only if the loop diverged all the same.  With
+    --telemetry FILE: MGM offline on a recorded loop, printing the gains it would apply.
 
     Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/
     """
@@ -193,8 +263,12 @@ def gains_cmd(
     # Every option is checked in both modes (the offline one ignores the loop's): one range per quantity.
     check_run_options(seeing, wind, L0, band, seed)
     OVERSAMPLING.check(oversampling, "--oversampling")
-    for value, option, accepted in ((duration, "--duration", OPTIMISATION_S), (period, "--period", PERIOD_S),
-                                    (measure, "--measure", MEASURE_S), (sequence, "--sequence", SEQUENCE_S)):
+    for value, option, accepted in (
+        (duration, "--duration", OPTIMISATION_S),
+        (period, "--period", PERIOD_S),
+        (measure, "--measure", MEASURE_S),
+        (sequence, "--sequence", SEQUENCE_S),
+    ):
         if value is not None:
             accepted.check(value, option)
     probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
@@ -210,8 +284,19 @@ def gains_cmd(
         return _offline(telemetry, config, mag, out, json_output, cache)
     obs = observation_from(config, mag, tt_control)
     # the run's own duration is not used: --duration and --measure set the phases
-    run = RunRequest(obs, seeing, wind, L0, gains=loop_gains, band=band, seed=seed, noise=not no_noise,
-                     vibrations=vib, oversampling=oversampling, structure=None if no_resonance else StructuralResonance())
+    run = RunRequest(
+        obs,
+        seeing,
+        wind,
+        L0,
+        gains=loop_gains,
+        band=band,
+        seed=seed,
+        noise=not no_noise,
+        vibrations=vib,
+        oversampling=oversampling,
+        structure=None if no_resonance else StructuralResonance(),
+    )
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}
     show = not json_output and sys.stderr.isatty()
     results: dict[str, OptimizeResult] = {}
@@ -219,12 +304,19 @@ def gains_cmd(
         progress = frames_progress("trial-and-error" if m == "trial" else "MGM")
         with progress if show else nullcontext():
             task = progress.add_task(m, total=None) if show else None
-            results[m] = optimize(request, cache, progress=(lambda done, total: progress.update(task, completed=done, total=total)) if show else None)
+            tick = (lambda done, total, p=progress, t=task: p.update(t, completed=done, total=total)) if show else None
+            results[m] = optimize(request, cache, progress=tick)
     diverged = [m for m, x in results.items() if x.diverged_at is not None]
     final = results["mgm" if "mgm" in results else "trial"]
     if out is not None and not diverged:
-        atomic_write_text(out, gains_toml(final.gains, f"{'MGM' if final.request.method == 'mgm' else 'trial-and-error'} gains, "
-                                                       f"R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {seeing:g}\", seed {seed}"))
+        atomic_write_text(
+            out,
+            gains_toml(
+                final.gains,
+                f"{'MGM' if final.request.method == 'mgm' else 'trial-and-error'} gains, "
+                f'R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {seeing:g}", seed {seed}',
+            ),
+        )
     if plot is not None:
         write_gain_figures(plot, results)
     if json_output:
@@ -237,5 +329,8 @@ def gains_cmd(
         if plot is not None:
             console.print(f"figures written to {plot}/")
     for m in diverged:
-        print(f"soulctl: the loop diverged at frame {results[m].diverged_at} during the {m} optimisation; no gain file written", file=sys.stderr)
+        print(
+            f"soulctl: the loop diverged at frame {results[m].diverged_at} during the {m} optimisation; no gain file written",
+            file=sys.stderr,
+        )
     return 3 if diverged else 0

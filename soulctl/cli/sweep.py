@@ -14,9 +14,9 @@ from rich.table import Table
 
 from ..errors import InputError
 from ..files import atomic_write_text
+from ..observation import BINNINGS, observation_for_magnitude
 from ..plots.sweep import strehl_vs_magnitude
 from ..ranges import LOCAL_WORKERS_PER_CORE, WAIT_WORKERS, WAIT_WORKERS_S, Range
-from ..observation import BINNINGS, observation_for_magnitude
 from ..sweep import scheduler as dask_scheduler
 from ..sweep.derive import best_per_magnitude, derived_table, lut_csv
 from ..sweep.estimate import CONFIRM_ABOVE_S, estimate, needs_confirmation
@@ -24,8 +24,8 @@ from ..sweep.grid import read_grid
 from ..sweep.results import ResultsTable
 from ..sweep.runner import execute, local_workers, plan_sweep
 from . import output
-from .numbers import number
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
+from .numbers import number
 
 DERIVED = "derived_lut.csv"
 FIGURE = "strehl_vs_magnitude.png"
@@ -42,8 +42,14 @@ def _render_derived(rows: list[dict], derived: list[dict], console: Console) -> 
         t.add_column(col, justify="right")
     for pick in best_per_magnitude(rows):
         paper = observation_for_magnitude(float(pick["magnitude"]))
-        t.add_row(f"{pick['magnitude']:g}", str(pick["binning"]), str(BINNINGS[int(pick["binning"])]), f"{pick['frame_rate']:g}",
-                  f"{pick['strehl']:.3f}", f"{paper.binning}, {paper.frame_rate_hz:g}")
+        t.add_row(
+            f"{pick['magnitude']:g}",
+            str(pick["binning"]),
+            str(BINNINGS[int(pick["binning"])]),
+            f"{pick['frame_rate']:g}",
+            f"{pick['strehl']:.3f}",
+            f"{paper.binning}, {paper.frame_rate_hz:g}",
+        )
     console.print(t)
     console.print("Derived look-up table (format of tables/magnitude_lut.csv):")
     print(lut_csv(derived), end="")
@@ -65,17 +71,48 @@ def _confirm(estimate_text: str) -> None:
 
 
 def sweep(
-    grid: Path = typer.Argument(..., metavar="GRID.toml", help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis."),
-    scheduler: str | None = typer.Option(None, "--scheduler", metavar="ADDRESS", help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster)."),
-    workers: int | None = typer.Option(None, "--workers", parser=number(Range(1, 2**31, integer=True)),
-                                       help=f"Processes of the local cluster (1..{LOCAL_WORKERS_PER_CORE} per core; default: one per core)."),
-    out: Path = typer.Option(Path("sweep"), "--out", metavar="DIR", help="Folder of results.csv (and the figures, the derived table); created once everything else is checked."),
-    resume: bool = typer.Option(False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."),
+    grid: Path = typer.Argument(
+        ...,
+        metavar="GRID.toml",
+        help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, "
+        "gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis.",
+    ),
+    scheduler: str | None = typer.Option(
+        None,
+        "--scheduler",
+        metavar="ADDRESS",
+        help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within "
+        f"{dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster).",
+    ),
+    workers: int | None = typer.Option(
+        None,
+        "--workers",
+        parser=number(Range(1, 2**31, integer=True)),
+        help=f"Processes of the local cluster (1..{LOCAL_WORKERS_PER_CORE} per core; default: one per core).",
+    ),
+    out: Path = typer.Option(
+        Path("sweep"),
+        "--out",
+        metavar="DIR",
+        help="Folder of results.csv (and the figures, the derived table); created once everything else is checked.",
+    ),
+    resume: bool = typer.Option(
+        False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."
+    ),
     plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}."),
-    derive_table: bool = typer.Option(False, "--derive-table", help=f"Print (and write DIR/{DERIVED}) the best binning and rate per magnitude."),
-    yes: bool = typer.Option(False, "--yes", "-y", help=f"Start without asking when the estimate exceeds {CONFIRM_TEXT} of CPU (asked on a terminal only)."),
-    wait_workers: float = typer.Option(WAIT_WORKERS_S, "--wait-workers", metavar="S", parser=number(WAIT_WORKERS),
-                                       help=f"With --scheduler: how long to wait for its first worker ({WAIT_WORKERS.text()})."),
+    derive_table: bool = typer.Option(
+        False, "--derive-table", help=f"Print (and write DIR/{DERIVED}) the best binning and rate per magnitude."
+    ),
+    yes: bool = typer.Option(
+        False, "--yes", "-y", help=f"Start without asking when the estimate exceeds {CONFIRM_TEXT} of CPU (asked on a terminal only)."
+    ),
+    wait_workers: float = typer.Option(
+        WAIT_WORKERS_S,
+        "--wait-workers",
+        metavar="S",
+        parser=number(WAIT_WORKERS),
+        help=f"With --scheduler: how long to wait for its first worker ({WAIT_WORKERS.text()}).",
+    ),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = JSON_OUTPUT,
@@ -94,7 +131,9 @@ def sweep(
     """
     cases = read_grid(grid)
     if workers is not None:
-        Range(1, LOCAL_WORKERS_PER_CORE * local_workers(), integer=True).check(workers, f"--workers ({LOCAL_WORKERS_PER_CORE} per core at most)")
+        Range(1, LOCAL_WORKERS_PER_CORE * local_workers(), integer=True).check(
+            workers, f"--workers ({LOCAL_WORKERS_PER_CORE} per core at most)"
+        )
     if scheduler is not None and workers is not None:
         raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
     if scheduler is not None:
@@ -110,8 +149,17 @@ def sweep(
         _confirm(cost.text())
     cache = None if no_cache else str(cache_dir or default_cache_dir())
     show = not json_output and sys.stderr.isatty()
-    progress = Progress(TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TextColumn("cases"), TextColumn("{task.fields[state]}"),
-                        TimeElapsedColumn(), TimeRemainingColumn(), console=output.console(stderr=True), transient=True)
+    progress = Progress(
+        TextColumn("sweep"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("cases"),
+        TextColumn("{task.fields[state]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=output.console(stderr=True),
+        transient=True,
+    )
     with progress if show else nullcontext():
         task = progress.add_task("sweep", total=None, state="") if show else None
 
@@ -126,8 +174,9 @@ def sweep(
         def finished(row, report):
             if show:
                 left = progress.tasks[0].total - report.computed
-                progress.update(task, completed=report.computed,
-                                state=f"failed {report.failed}, diverged {report.diverged}, running {left}")
+                progress.update(
+                    task, completed=report.computed, state=f"failed {report.failed}, diverged {report.diverged}, running {left}"
+                )
 
         report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
     rows = list(ResultsTable.read_rows(report.results).values())
@@ -137,15 +186,28 @@ def sweep(
     if plot:
         strehl_vs_magnitude(rows, out / FIGURE)
     if json_output:
-        output.print_json({"total": report.total, "skipped": report.skipped, "computed": report.computed, "failed": report.failed,
-                           "diverged": report.diverged, "results": str(report.results), "estimate": cost.as_json(),
-                           "notes": report.notes, "rows": [_json_row(r) for r in report.rows], "derived_table": derived})
+        output.print_json(
+            {
+                "total": report.total,
+                "skipped": report.skipped,
+                "computed": report.computed,
+                "failed": report.failed,
+                "diverged": report.diverged,
+                "results": str(report.results),
+                "estimate": cost.as_json(),
+                "notes": report.notes,
+                "rows": [_json_row(r) for r in report.rows],
+                "derived_table": derived,
+            }
+        )
         return 0
     console = output.console()
     for note in report.notes:
         console.print(f"note: {note}")
-    console.print(f"{report.total} cases: {report.computed} run now ({report.failed} failed, {report.diverged} diverged), "
-                  f"{report.skipped} kept from an earlier run; results in {report.results}")
+    console.print(
+        f"{report.total} cases: {report.computed} run now ({report.failed} failed, {report.diverged} diverged), "
+        f"{report.skipped} kept from an earlier run; results in {report.results}"
+    )
     for r in report.rows:
         if r["status"] != "ok":
             console.print(f"  case {r['case_id']} {r['status']}: {r['reason']}")

@@ -30,7 +30,7 @@ class DelayModel:
             DELAY_TERM_MS.check(getattr(self, name), f"delay term {name}")
 
     @classmethod
-    def from_table(cls, system: str = "soul") -> "DelayModel":
+    def from_table(cls, system: str = "soul") -> DelayModel:
         t = tables.delay_terms(system)
         return cls(
             t_readout_ms=float(t["t_readout_ms"]),

@@ -39,7 +39,7 @@ from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from .delay import DelayModel
 from .filters import Filter
-from .transfer import RESONANCE_HZ, LoopAnalysis, Loop, Plant, analyze, frequency_grid, max_stable_gain
+from .transfer import RESONANCE_HZ, Loop, LoopAnalysis, Plant, analyze, frequency_grid, max_stable_gain
 
 ROOT_BOUND = 0.99
 GAIN_BOUNDS = (0.01, 4.0)
@@ -148,8 +148,7 @@ class DesignCost:
         Lr = self._open_loop(num, den, gain, self._line_basis)[:, 0]
         line = self.line_var * np.abs(Lr / (1.0 + Lr)) ** 2
         margin = np.min(np.abs(1.0 + self._open_loop(num, den, gain, self._check_basis)), axis=1)
-        return {"temporal": temporal, "noise": noise, "line": line, "modulus_margin": margin,
-                "stable": self._stable(num, den, gain)}
+        return {"temporal": temporal, "noise": noise, "line": line, "modulus_margin": margin, "stable": self._stable(num, den, gain)}
 
     def _stable(self, num, den, gain) -> np.ndarray:
         """Closed-loop poles (roots of den + g num p) inside the unit circle, by batched
@@ -185,8 +184,7 @@ def filter_theta(f: Filter) -> np.ndarray:
 
 def theta_filter(theta) -> Filter:
     zeros, poles, gain = DesignCost.split(theta)
-    return Filter.iir(tuple(sorted(float(z) for z in zeros[0])), tuple(sorted(float(p) for p in poles[0])) + (1.0,),
-                      float(gain[0]))
+    return Filter.iir(tuple(sorted(float(z) for z in zeros[0])), tuple(sorted(float(p) for p in poles[0])) + (1.0,), float(gain[0]))
 
 
 @dataclass(frozen=True)
@@ -242,13 +240,15 @@ class DesignResult:
 def _controller(cost: DesignCost, f: Filter) -> Controller:
     e = cost.evaluate(filter_theta(f))
     analysis = analyze(Loop(f, cost.plant, cost.rate_hz), resonance_hz=cost.disturbance.resonance_hz)
-    return Controller(f, analysis, float(math.sqrt(e["temporal"][0] + e["noise"][0])),
-                      float(e["temporal"][0] + e["noise"][0] + e["line"][0]))
+    return Controller(
+        f, analysis, float(math.sqrt(e["temporal"][0] + e["noise"][0])), float(e["temporal"][0] + e["noise"][0] + e["line"][0])
+    )
 
 
 def best_gain(cost: DesignCost, shape: Filter) -> Filter:
     """The gain minimising the cost for a filter of fixed zeros and poles, under the same
     modulus margin: the best integrator, or the best gain for a tabulated filter."""
+
     def theta(g):
         return filter_theta(shape.with_gain(g))
 
@@ -264,14 +264,25 @@ def best_gain(cost: DesignCost, shape: Filter) -> Filter:
     j = cost.penalised(np.stack([theta(g) for g in gains], axis=1))
     i = int(np.argmin(j))
     lo_g, hi_g = gains[max(i - 1, 0)], gains[min(i + 1, gains.size - 1)]
-    res = minimize(lambda x: cost.penalised(theta(float(x[0])))[0], [gains[i]], method="Nelder-Mead",
-                   bounds=[(lo_g, hi_g)], options={"xatol": 1e-6, "fatol": 1e-10})
+    res = minimize(
+        lambda x: cost.penalised(theta(float(x[0])))[0],
+        [gains[i]],
+        method="Nelder-Mead",
+        bounds=[(lo_g, hi_g)],
+        options={"xatol": 1e-6, "fatol": 1e-10},
+    )
     return shape.with_gain(float(res.x[0]) if res.fun <= j[i] else float(gains[i]))
 
 
-def design_tt_filter(rate_hz: float, disturbance: Disturbance | None = None, epsilon: float = 0.2,
-                     delay_frames: float | None = None, seed: int = 1, maxiter: int = 400,
-                     popsize: int = 15) -> DesignResult:
+def design_tt_filter(
+    rate_hz: float,
+    disturbance: Disturbance | None = None,
+    epsilon: float = 0.2,
+    delay_frames: float | None = None,
+    seed: int = 1,
+    maxiter: int = 400,
+    popsize: int = 15,
+) -> DesignResult:
     """Design the N_f = 8 Tip/Tilt IIR filter at one frame rate (see the module docstring).
     The delay defaults to SOUL's delay model at that rate."""
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
@@ -284,16 +295,33 @@ def design_tt_filter(rate_hz: float, disturbance: Disturbance | None = None, eps
     bounds = [(-ROOT_BOUND, ROOT_BOUND)] * (N_ZEROS + N_FREE_POLES) + [GAIN_BOUNDS]
     integ = best_gain(cost, Filter.integrator(1.0))
     init = _initial_population(integ, popsize * len(bounds), seed)
-    res = differential_evolution(cost.penalised, bounds, vectorized=True, updating="deferred", seed=seed,
-                                 maxiter=maxiter, popsize=popsize, tol=1e-7, init=init, polish=False)
-    polished = minimize(lambda x: float(cost.penalised(x)[0]), res.x, method="Nelder-Mead", bounds=bounds,
-                        options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 4000})
+    res = differential_evolution(
+        cost.penalised,
+        bounds,
+        vectorized=True,
+        updating="deferred",
+        seed=seed,
+        maxiter=maxiter,
+        popsize=popsize,
+        tol=1e-7,
+        init=init,
+        polish=False,
+    )
+    polished = minimize(
+        lambda x: float(cost.penalised(x)[0]),
+        res.x,
+        method="Nelder-Mead",
+        bounds=bounds,
+        options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 4000},
+    )
     best = polished.x if polished.fun <= res.fun else res.x
     tabulated = [r for r in tables.tt_iir_table() if r.frame_rate_hz == rate_hz]
     table_shape = Filter.iir(tabulated[0].zeros, tabulated[0].poles, 1.0) if tabulated else None
     if cost.penalised(best)[0] >= 1e9:
-        raise InputError(f"no stable filter meets the modulus margin epsilon = {epsilon:g} at {rate_hz:g} Hz "
-                         f"with a {d:.2f}-frame delay: try a smaller epsilon")
+        raise InputError(
+            f"no stable filter meets the modulus margin epsilon = {epsilon:g} at {rate_hz:g} Hz "
+            f"with a {d:.2f}-frame delay: try a smaller epsilon"
+        )
     return DesignResult(
         rate_hz=float(rate_hz),
         delay_frames=float(d),

@@ -58,23 +58,23 @@ class Filter:
         _real_poly(self.poles, "poles")
 
     @classmethod
-    def integrator(cls, gain: float) -> "Filter":
+    def integrator(cls, gain: float) -> Filter:
         """Pure integrator g / (1 - z^-1)."""
         return cls((), (1.0,), float(gain))
 
     @classmethod
-    def leaky(cls, forgetting: float, gain: float) -> "Filter":
+    def leaky(cls, forgetting: float, gain: float) -> Filter:
         """Leaky integrator g / (1 - alpha z^-1), alpha the forgetting factor (paper, Eq. stateINT)."""
         if not 0.0 <= forgetting <= 1.0:
             raise InputError(f"forgetting factor must be in [0, 1], got {forgetting:g}")
         return cls((), (float(forgetting),), float(gain))
 
     @classmethod
-    def iir(cls, zeros, poles, gain: float) -> "Filter":
+    def iir(cls, zeros, poles, gain: float) -> Filter:
         """General IIR filter from its zeros, poles and gain."""
         return cls(tuple(zeros), tuple(poles), float(gain))
 
-    def with_gain(self, gain: float) -> "Filter":
+    def with_gain(self, gain: float) -> Filter:
         return replace(self, gain=float(gain))
 
     @property

@@ -90,8 +90,10 @@ def _mode(text: str, path: Path, line: int) -> int:
 def _by_mode(gains: list[float], modes: list[int], path: Path) -> list[float]:
     """Gains ordered by mode number; every mode 1..n exactly once."""
     if sorted(modes) != list(range(1, len(modes) + 1)):
-        raise InputError(f"gain file {path}: the modes must be 1..{len(modes)}, each once (got {len(set(modes))} distinct, "
-                         f"from {min(modes)} to {max(modes)})")
+        raise InputError(
+            f"gain file {path}: the modes must be 1..{len(modes)}, each once (got {len(set(modes))} distinct, "
+            f"from {min(modes)} to {max(modes)})"
+        )
     out = [0.0] * len(gains)
     for m, g in zip(modes, gains):
         out[m - 1] = g

@@ -111,13 +111,16 @@ def pol_psd(pol, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.
         raise InputError(f"POL telemetry must be a 2-D array (frames, modes), got shape {pol.shape}")
     n, need, s = pol.shape[0], min_frames(settings), settings.segment
     if n < need:
-        raise InputError(f"telemetry window of {n} frames ({n / rate_hz:.3g} s) is shorter than {need} frames "
-                         f"({need / rate_hz:.3g} s): at least {MIN_SEGMENTS} PSD segments of {s} frames with 50 % overlap")
+        raise InputError(
+            f"telemetry window of {n} frames ({n / rate_hz:.3g} s) is shorter than {need} frames "
+            f"({need / rate_hz:.3g} s): at least {MIN_SEGMENTS} PSD segments of {s} frames with 50 % overlap"
+        )
     if not np.isfinite(pol).all():
         bad = np.nonzero(~np.isfinite(pol).all(axis=0))[0]
         raise InputError(f"POL telemetry must be finite: NaN or inf in {bad.size} mode(s), first mode {int(bad[0])}")
-    f, psd = welch(pol, fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant",
-                   return_onesided=True, scaling="density", axis=0)
+    f, psd = welch(
+        pol, fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0
+    )
     return f[1:], np.ascontiguousarray(psd[1:].T)
 
 
@@ -174,8 +177,7 @@ def gain_limits(filters, chi, delay_frames: float, rate_hz: float, margin: float
     if not (0.0 <= margin < 1.0):
         raise InputError(f"MGM gain margin must be in [0, 1), got {margin!r}")
     keys, idx = _distinct(filters, structure)
-    unit = np.array([max_stable_gain(Loop(Filter(z, p, 1.0), _plant(delay_frames, structure, s), rate_hz))
-                     for z, p, s in keys])
+    unit = np.array([max_stable_gain(Loop(Filter(z, p, 1.0), _plant(delay_frames, structure, s), rate_hz)) for z, p, s in keys])
     limit = np.where(np.isfinite(unit), (1.0 - margin) * unit, UNBOUNDED_LOOP_GAIN)
     return limit[idx] / chi
 

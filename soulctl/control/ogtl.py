@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
 from .. import ranges
+from ..errors import InputError
 
 PROBE_MODE = 30  # 1-based, as the paper numbers modes
 PROBE_AMPLITUDE_NM = 20.0  # the default probe's amplitude where the noise allows it
@@ -63,8 +63,15 @@ MAX_STEP = 1.5  # k changes by at most this factor per update
 SPIRAL_RAISE = 1.2  # a raise of k since the last reliable estimate that chi must follow
 REFERENCE_BINS = (-6, -5, -4, -3, 3, 4, 5, 6)  # off-frequency bins (of the window) of the noise reference
 # Why an update moved k less than the integrator asked (recorded per update as ``status``).
-STATUS = ("updated", "held: probe SNR below the threshold", "held: commands growing", "held: no estimate",
-          "step limited", "at a bound", "lowered: raising k lost optical gain")
+STATUS = (
+    "updated",
+    "held: probe SNR below the threshold",
+    "held: commands growing",
+    "held: no estimate",
+    "step limited",
+    "at a bound",
+    "lowered: raising k lost optical gain",
+)
 UPDATED, LOW_SNR, GROWING, NO_ESTIMATE, STEP_LIMITED, AT_BOUND, SPIRAL = range(len(STATUS))
 
 

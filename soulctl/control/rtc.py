@@ -112,8 +112,7 @@ def build_rtc(
     if needed > state_size:
         fit = modes_that_fit(filters, state_size)
         raise InputError(
-            f"the filters need {needed} states but the RTC has {state_size}: "
-            f"with these filters only the first {fit} modes fit"
+            f"the filters need {needed} states but the RTC has {state_size}: with these filters only the first {fit} modes fit"
         )
 
     Lambda = np.zeros((state_size, state_size))

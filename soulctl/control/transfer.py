@@ -43,7 +43,7 @@ class Plant:
             raise InputError(f"optical gain chi must be a finite number > 0, got {self.optical_gain:g}")
 
     @classmethod
-    def with_structure(cls, delay_frames: float, resonance, rate_hz: float, optical_gain: float = 1.0) -> "Plant":
+    def with_structure(cls, delay_frames: float, resonance, rate_hz: float, optical_gain: float = 1.0) -> Plant:
         b, a = resonance.coefficients(rate_hz)
         return cls(delay_frames, optical_gain, (tuple(map(float, b)), tuple(map(float, a))))
 
@@ -97,7 +97,7 @@ class Loop:
     def nyquist_hz(self) -> float:
         return self.rate_hz / 2.0
 
-    def with_gain(self, gain: float) -> "Loop":
+    def with_gain(self, gain: float) -> Loop:
         return replace(self, controller=self.controller.with_gain(gain))
 
     def omega(self, f_hz) -> np.ndarray:
@@ -187,8 +187,10 @@ def check_stabilisable(controller: Filter, delay_frames: float, rate_hz: float, 
     ``what`` when no gain stabilises it (e.g. all poles at z = 1)."""
     g_max = max_stable_gain(Loop(controller.with_gain(1.0), Plant(delay_frames), rate_hz))
     if not g_max > 0:
-        raise InputError(f"{what} (zeros {_roots_text(controller.zeros)}, poles {_roots_text(controller.poles)}) is unstable at every "
-                         f"gain at {rate_hz:g} Hz with a {delay_frames:.3g}-frame delay: no loop can run it")
+        raise InputError(
+            f"{what} (zeros {_roots_text(controller.zeros)}, poles {_roots_text(controller.poles)}) is unstable at every "
+            f"gain at {rate_hz:g} Hz with a {delay_frames:.3g}-frame delay: no loop can run it"
+        )
     return g_max
 
 
@@ -254,8 +256,9 @@ def analyze(loop: Loop, vibration_hz: float = VIBRATION_HZ, resonance_hz: float 
     d = np.abs(1.0 + loop.open_loop(f))
     i = int(np.argmin(d))
     lo, hi = f[max(i - 1, 0)], f[min(i + 1, f.size - 1)]
-    res = minimize_scalar(lambda x: abs(1.0 + loop.open_loop(np.array([x]))[0]), bounds=(lo, hi), method="bounded",
-                          options={"xatol": 1e-9 * loop.rate_hz})
+    res = minimize_scalar(
+        lambda x: abs(1.0 + loop.open_loop(np.array([x]))[0]), bounds=(lo, hi), method="bounded", options={"xatol": 1e-9 * loop.rate_hz}
+    )
     mm, mm_f = (float(res.fun), float(res.x)) if res.fun < d[i] else (float(d[i]), float(f[i]))
 
     s_cross = _crossings(lambda x: np.abs(loop.sensitivity(x)) - MINUS_3DB, f)

@@ -24,8 +24,11 @@ SIGNIFICANCE = 2.0  # a scanned gain replaces the incumbent when better by this 
 
 def gain_groups(n_modes: int) -> list[tuple[str, slice]]:
     """The paper's three groups (0-based slices), without the empty ones."""
-    groups = [("tip-tilt", slice(0, min(2, n_modes))), ("modes 3-120", slice(2, min(MID_GROUP_END, n_modes))),
-              (f"modes 121-{n_modes}", slice(MID_GROUP_END, n_modes))]
+    groups = [
+        ("tip-tilt", slice(0, min(2, n_modes))),
+        ("modes 3-120", slice(2, min(MID_GROUP_END, n_modes))),
+        (f"modes 121-{n_modes}", slice(MID_GROUP_END, n_modes)),
+    ]
     return [(name, s) for name, s in groups if s.stop > s.start]
 
 

@@ -72,7 +72,7 @@ class VibrationSpectrum:
         f = np.asarray(f_hz, dtype=float)
         return sum((line.psd(f, axis) for line in self.lines), np.zeros(f.shape))
 
-    def below_nyquist(self, rate_hz: float) -> tuple["VibrationSpectrum | None", tuple[VibrationLine, ...]]:
+    def below_nyquist(self, rate_hz: float) -> tuple[VibrationSpectrum | None, tuple[VibrationLine, ...]]:
         """(the lines a loop at ``rate_hz`` samples, or None if none; the lines at or above its
         Nyquist frequency, which a real system aliases or filters and the loop leaves out)."""
         kept = tuple(line for line in self.lines if line.frequency_hz < 0.5 * rate_hz)
@@ -87,7 +87,7 @@ class VibrationSpectrum:
         return VibrationSource(self, rate_hz, rng).next(n_frames)
 
     @classmethod
-    def from_dict(cls, data: dict, where: str) -> "VibrationSpectrum":
+    def from_dict(cls, data: dict, where: str) -> VibrationSpectrum:
         unknown = sorted(set(data) - {"source", "line"})
         if unknown:
             raise InputError(f"{where}: unknown key {', '.join(unknown)} (accepted: source, [[line]])")
@@ -104,8 +104,9 @@ class VibrationSpectrum:
             try:
                 values = {k: line[k] for k in LINE_KEYS}
             except KeyError as e:
-                raise InputError(f"{where}: line {i + 1} is missing {e.args[0]!r} "
-                                 "(each line needs frequency_hz, damping, tip_mas, tilt_mas)") from None
+                raise InputError(
+                    f"{where}: line {i + 1} is missing {e.args[0]!r} (each line needs frequency_hz, damping, tip_mas, tilt_mas)"
+                ) from None
             for k, v in values.items():
                 if not isinstance(v, (int, float)) or isinstance(v, bool):
                     raise InputError(f"{where}: line {i + 1} {k} must be a number, got {v!r}")
@@ -116,12 +117,12 @@ class VibrationSpectrum:
         return cls(tuple(out), str(data.get("source", where)))
 
     @classmethod
-    def read(cls, path: str | Path) -> "VibrationSpectrum":
+    def read(cls, path: str | Path) -> VibrationSpectrum:
         """A vibration file in the format of tables/lbt_vibrations.toml."""
         return cls.from_dict(read_toml(path, "vibration file"), str(path))
 
     @classmethod
-    def lbt_default(cls) -> "VibrationSpectrum":
+    def lbt_default(cls) -> VibrationSpectrum:
         return cls.read(tables.tables_dir() / "lbt_vibrations.toml")
 
 

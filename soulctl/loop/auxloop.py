@@ -117,7 +117,7 @@ class AuxLoop(ABC):
             raise InputError(f"an auxiliary loop's period must be at least 1 frame, got {period_frames}")
         self.period_frames = int(period_frames)
 
-    def start(self, rtc: RtcParameters, rate_hz: float) -> None:
+    def start(self, rtc: RtcParameters, rate_hz: float) -> None:  # noqa: B027 - an optional hook, not abstract
         """Called once before the first frame (e.g. to set a probe)."""
 
     @abstractmethod

@@ -34,8 +34,13 @@ class OgtlTask(AuxLoop):
 
     name = "ogtl"
 
-    def __init__(self, period_frames: int, settings: ogtl.OgtlSettings = ogtl.OgtlSettings(),
-                 k_max: float = ogtl.SENSITIVITY_RANGE[1], amplitude_nm: float | None = None):
+    def __init__(
+        self,
+        period_frames: int,
+        settings: ogtl.OgtlSettings = ogtl.OgtlSettings(),
+        k_max: float = ogtl.SENSITIVITY_RANGE[1],
+        amplitude_nm: float | None = None,
+    ):
         super().__init__(period_frames)
         self.settings = settings
         self.k_max = float(min(k_max, ogtl.SENSITIVITY_RANGE[1]))
@@ -56,14 +61,14 @@ class OgtlTask(AuxLoop):
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         m = self.settings.mode - 1
-        est = ogtl.estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz,
-                            window.rate_hz, window.first_frame)
+        est = ogtl.estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz, window.rate_hz, window.first_frame)
         others = np.arange(window.command_modes.shape[1]) != m  # the probe is not the loop's motion
         rms = float(np.sqrt(np.mean(window.command_modes[:, others] ** 2)))
         growing = ogtl.commands_growing(rms, self._commands_rms, self.settings.hold_growth)
         self._commands_rms = rms
-        settings = dataclasses.replace(self.settings, gain=self.settings.gain * self.step_scale,
-                                       max_step=1.0 + (self.settings.max_step - 1.0) * self.step_scale)
+        settings = dataclasses.replace(
+            self.settings, gain=self.settings.gain * self.step_scale, max_step=1.0 + (self.settings.max_step - 1.0) * self.step_scale
+        )
         k, status = ogtl.next_sensitivity(window.sensitivity, est, settings, min(self.k_max, self.ceiling), growing)
         reliable = status not in (ogtl.LOW_SNR, ogtl.NO_ESTIMATE)
         if reliable and ogtl.spiralling(window.sensitivity, est.chi, self._last):
@@ -76,10 +81,20 @@ class OgtlTask(AuxLoop):
         elif self.chi_now is not None:
             self.chi_now *= k / window.sensitivity
         rtc.set_sensitivity(k)
-        return {"chi": est.chi, "chi_sigma": est.sigma, "snr": est.snr, "optical_gain": est.chi / window.sensitivity,
-                "sensitivity": k, "status": status, "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
-                "mode": self.settings.mode, "amplitude_nm": self.amplitude_nm, "frequency_hz": self.frequency_hz, "k_max": self.k_max,
-                "k_ceiling": min(self.k_max, self.ceiling)}
+        return {
+            "chi": est.chi,
+            "chi_sigma": est.sigma,
+            "snr": est.snr,
+            "optical_gain": est.chi / window.sensitivity,
+            "sensitivity": k,
+            "status": status,
+            "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
+            "mode": self.settings.mode,
+            "amplitude_nm": self.amplitude_nm,
+            "frequency_hz": self.frequency_hz,
+            "k_max": self.k_max,
+            "k_ceiling": min(self.k_max, self.ceiling),
+        }
 
 
 class MgmTask(AuxLoop):
@@ -119,8 +134,9 @@ class MgmTask(AuxLoop):
         if usable < mgm.min_frames(self.machine.settings):
             return {}
         scale = self.chi_scale(window.sensitivity, rtc.sensitivity)
-        pol = pseudo_open_loop(window.measured_modes / (self.machine.chi * scale), window.command_modes, window.delay_frames,
-                               self.machine.structure)
+        pol = pseudo_open_loop(
+            window.measured_modes / (self.machine.chi * scale), window.command_modes, window.delay_frames, self.machine.structure
+        )
         optimum, info = self.machine.optimum(pol[n + 1 :])
         optimum = optimum / scale
         settings = dataclasses.replace(self.machine.settings, rho=self.machine.settings.rho * self.rho_scale)
@@ -133,15 +149,23 @@ class TrialAndErrorTask(AuxLoop):
     """Scans the groups in order; each sequence is ``settle`` frames (not scored, the loop
     settling at the new gain) plus ``measure`` frames scored by the group's measured-mode RMS;
     an update whose window is shorter than a sequence (the task started between two updates, or
-    OGTL changed k during it) scores nothing and the sequence runs again.  A group's ``incumbents`` gain (one of its scan) is kept unless another
-    is significantly better (``trial.chosen_gain``).  A scanned gain g sets the group's modes to
-    g x its ``shapes`` (per mode, mean 1; uniform by default, the paper's one gain per group).
+    OGTL changed k during it) scores nothing and the sequence runs again.  A group's
+    ``incumbents`` gain (one of its scan) is kept unless another is significantly better
+    (``trial.chosen_gain``).  A scanned gain g sets the group's modes to g x its ``shapes``
+    (per mode, mean 1; uniform by default, the paper's one gain per group).
     When a group is done its best gain is set and kept; after the last group the task is idle."""
 
     name = "trial"
 
-    def __init__(self, n_modes: int, scans: Sequence[np.ndarray], settle: int, measure: int,
-                 incumbents: Sequence[float | None] | None = None, shapes: Sequence[np.ndarray] | None = None):
+    def __init__(
+        self,
+        n_modes: int,
+        scans: Sequence[np.ndarray],
+        settle: int,
+        measure: int,
+        incumbents: Sequence[float | None] | None = None,
+        shapes: Sequence[np.ndarray] | None = None,
+    ):
         super().__init__(settle + measure)
         self.groups = trial.gain_groups(n_modes)
         if len(scans) != len(self.groups):
@@ -149,7 +173,9 @@ class TrialAndErrorTask(AuxLoop):
         self.scans = [np.asarray(s, dtype=float) for s in scans]
         self.incumbents = list(incumbents) if incumbents is not None else [None] * len(scans)  # kept unless beaten (``trial.chosen_gain``)
         # a scanned value g sets the group's modes to g x shape (mean 1): the paper's one gain per group when uniform
-        self.shapes = [np.ones(m.stop - m.start) for _, m in self.groups] if shapes is None else [np.asarray(x, dtype=float) for x in shapes]
+        self.shapes = (
+            [np.ones(m.stop - m.start) for _, m in self.groups] if shapes is None else [np.asarray(x, dtype=float) for x in shapes]
+        )
         self.measure = measure
         self._group, self._index = 0, 0
         self._merits: list[float] = []
@@ -199,8 +225,11 @@ class TrialAndErrorTask(AuxLoop):
         record = {"group": self._group, "gain": gain, "merit": self._merits[-1], "best": math.nan}
         if self._index == len(scan):
             # no finite merit: every gain failed, the group keeps what the safety net restored
-            best = (trial.chosen_gain(scan, self._merits, self.incumbents[self._group]) if np.isfinite(self._merits).any()
-                    else float(np.mean(rtc.gains[modes])))
+            best = (
+                trial.chosen_gain(scan, self._merits, self.incumbents[self._group])
+                if np.isfinite(self._merits).any()
+                else float(np.mean(rtc.gains[modes]))
+            )
             self.best.append(best)
             record["best"] = best
             rtc.set_gains(self._with_best(rtc.gains))
@@ -234,8 +263,11 @@ class LiveMetricsTask(AuxLoop):
         rms = float(np.sqrt(np.sum(np.mean(residual**2, axis=0))))
         flux = float(np.mean(window.flux))
         magnitude = self.reference_magnitude - 2.5 * math.log10(flux / self.reference_flux) if flux > 0 else math.nan
-        return {"modal_rms_nm": rms, "strehl_estimate": math.exp(-((2 * math.pi * rms / self.wavelength_nm) ** 2)),
-                "magnitude_estimate": magnitude}
+        return {
+            "modal_rms_nm": rms,
+            "strehl_estimate": math.exp(-((2 * math.pi * rms / self.wavelength_nm) ** 2)),
+            "magnitude_estimate": magnitude,
+        }
 
 
 class SafetyNet(AuxLoop):
@@ -333,8 +365,12 @@ class SafetyNet(AuxLoop):
 
     def _trouble(self, x: np.ndarray) -> float:
         """The largest ratio of a measure to its limit (> 1: in trouble)."""
-        ratios = (x[0] / (self.threshold * self.best), x[1] / (self.STEP_JUMP * self._previous[1]),
-                  x[1] / (self.GROWTH * self._start[1]), x[2] / (self.GROWTH * self._start[2]))
+        ratios = (
+            x[0] / (self.threshold * self.best),
+            x[1] / (self.STEP_JUMP * self._previous[1]),
+            x[1] / (self.GROWTH * self._start[1]),
+            x[2] / (self.GROWTH * self._start[2]),
+        )
         finite = [v for v in ratios if math.isfinite(v)]
         return float(max(finite)) if finite else 0.0
 
@@ -361,8 +397,14 @@ class SafetyNet(AuxLoop):
         now = self._rms(sums)
         if not self.gave_up and self.good is not None and now[2] > self.FAST_GROWTH * self._previous[2]:
             self._restore(rtc)
-            return {"residual_nm": now[0], "steps_nm": now[1], "commands_nm": now[2], "trouble": math.nan, "restored": 1,
-                    "gave_up": int(self.gave_up)}
+            return {
+                "residual_nm": now[0],
+                "steps_nm": now[1],
+                "commands_nm": now[2],
+                "trouble": math.nan,
+                "restored": 1,
+                "gave_up": int(self.gave_up),
+            }
         if self._n_runs < self.checks:
             return {}
         x = self._rms(self._runs)
@@ -377,8 +419,14 @@ class SafetyNet(AuxLoop):
             else:
                 self._restore(rtc)
                 restored = 1
-        return {"residual_nm": x[0], "steps_nm": x[1], "commands_nm": x[2], "trouble": trouble, "restored": restored,
-                "gave_up": int(self.gave_up)}
+        return {
+            "residual_nm": x[0],
+            "steps_nm": x[1],
+            "commands_nm": x[2],
+            "trouble": trouble,
+            "restored": restored,
+            "gave_up": int(self.gave_up),
+        }
 
 
 def summary(records: dict) -> dict:
@@ -389,14 +437,22 @@ def summary(records: dict) -> dict:
     og = records.get("ogtl", {})
     if len(og.get("frame", [])):
         status = og["status"].astype(int)
-        out["ogtl"] = {"updates": int(status.size), "probe_mode": int(og["mode"][-1]), "probe_amplitude_nm": float(og["amplitude_nm"][-1]),
-                       "probe_frequency_hz": float(og["frequency_hz"][-1]), "k_max": float(og["k_max"][-1]),
-                       "statuses": {ogtl.STATUS[i]: int(np.sum(status == i)) for i in np.unique(status)}}
+        out["ogtl"] = {
+            "updates": int(status.size),
+            "probe_mode": int(og["mode"][-1]),
+            "probe_amplitude_nm": float(og["amplitude_nm"][-1]),
+            "probe_frequency_hz": float(og["frequency_hz"][-1]),
+            "k_max": float(og["k_max"][-1]),
+            "statuses": {ogtl.STATUS[i]: int(np.sum(status == i)) for i in np.unique(status)},
+        }
     mg = records.get("mgm", {})
     if len(mg.get("frame", [])):
         out["mgm"] = {"updates": int(len(mg["frame"])), "noise_dominated_modes_last": int(mg["noise_dominated"][-1])}
     sf = records.get("safety", {})
     if len(sf.get("frame", [])):
-        out["safety"] = {"restores": int(np.sum(sf["restored"])), "restored_at_frames": sf["frame"][sf["restored"] == 1].tolist(),
-                         "gave_up": bool(sf["gave_up"][-1])}
+        out["safety"] = {
+            "restores": int(np.sum(sf["restored"])),
+            "restored_at_frames": sf["frame"][sf["restored"] == 1].tolist(),
+            "gave_up": bool(sf["gave_up"][-1]),
+        }
     return out

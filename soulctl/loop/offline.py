@@ -78,8 +78,12 @@ class OfflineMgmResult:
     def to_dict(self) -> dict:
         return {
             "telemetry": self.path,
-            "window": {"first_frame": self.first_frame, "frames": self.frames,
-                       "seconds": self.frames / self.observation.frame_rate_hz, "welch_segment": self.segment},
+            "window": {
+                "first_frame": self.first_frame,
+                "frames": self.frames,
+                "seconds": self.frames / self.observation.frame_rate_hz,
+                "welch_segment": self.segment,
+            },
             "ogtl": self.ogtl,
             "probe_mode": self.probe_mode,
             "sensitivity": self.sensitivity,
@@ -151,8 +155,10 @@ def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bo
             kept.append((measured, commands))
     if flat:
         more = f" and {len(flat) - 1} more" if len(flat) > 1 else ""
-        raise InputError(f"telemetry file {path}: field measured_modes has no signal in mode {flat[0]}{more} (constant over "
-                         f"the window of {rows.stop - rows.start} frames): MGM needs the loop's measurements of every mode")
+        raise InputError(
+            f"telemetry file {path}: field measured_modes has no signal in mode {flat[0]}{more} (constant over "
+            f"the window of {rows.stop - rows.start} frames): MGM needs the loop's measurements of every mode"
+        )
     return kept if keep else None
 
 
@@ -170,8 +176,13 @@ def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
     return int(mode)
 
 
-def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache = ArrayCache(None),
-                settings: mgm.MgmSettings | None = None, chi_seeing_arcsec: float = 0.8) -> OfflineMgmResult:
+def offline_mgm(
+    path,
+    observation: Observation | None = None,
+    cache: ArrayCache = ArrayCache(None),
+    settings: mgm.MgmSettings | None = None,
+    chi_seeing_arcsec: float = 0.8,
+) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
     ``observation``: the configuration to check the file against (default: the file's own)."""
     with TelemetryReader(path) as tm:
@@ -182,15 +193,21 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
             raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
         n_modes = observation.modes
         if tm.dim("n_modes") != n_modes:
-            raise InputError(f"telemetry file {path}: field measured_modes has shape {tm.dataset('measured_modes').shape}, expected "
-                             f"(frames, {n_modes}) for the configuration's {n_modes} modes")
+            raise InputError(
+                f"telemetry file {path}: field measured_modes has shape {tm.dataset('measured_modes').shape}, expected "
+                f"(frames, {n_modes}) for the configuration's {n_modes} modes"
+            )
         rate = tm.attribute("rate_hz")
         if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
-            raise InputError(f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz")
+            raise InputError(
+                f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
+            )
         delay = tm.attribute("delay_frames")
         if abs(delay - observation.delay_frames) > 1e-6:
-            raise InputError(f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
-                             f"{observation.delay_frames:g} frames at {rate:g} Hz")
+            raise InputError(
+                f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
+                f"{observation.delay_frames:g} frames at {rate:g} Hz"
+            )
         oversampling = configuration_member(conf, "oversampling", 2, path)
         forgetting = configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)
         structure = configuration_structure(conf, path)
@@ -225,5 +242,6 @@ def offline_mgm(path, observation: Observation | None = None, cache: ArrayCache 
     limits = nominal_limits(observation, structure, settings.margin)
     capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
     gains = np.minimum(gains, limits)
-    return OfflineMgmResult(str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped,
-                            probe_mode)
+    return OfflineMgmResult(
+        str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped, probe_mode
+    )

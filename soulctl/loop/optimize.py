@@ -16,22 +16,22 @@ One continuous closed loop in phases:
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
 result's *before* and *after*: a paired comparison, the two differing by the gains and k alone;
-those of the run's own phases (``during_run``) differ by the turbulence of their time too.  MGM's plant model takes chi_i from the optical-gain table of the calibration at the
-run's seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
-calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1);
-without, gamma_i times the fixed sensitivity k = 1.  OGTL starts from k = 1 once the loop is
-closed and settles (4 to 12 updates, until one moves log k by less than 0.1) before anything is
-measured, so that neither optimiser scans while k is still far from it.  (Starting it at
-1/gamma_30 of the table instead over-drove the loops whose real optical gain was higher than
-the table's - a 0.6" loop has a higher gamma than the 0.8" reference - and before the loop is
-closed the open-loop residual is far outside the PWFS's linear range.)  The initial gains
-come from the operating point (``initial_gains``), the update period from the frame rate
-(``default_period_s``), and a safety net guards every phase after the closing (``SafetyNet``).
+those of the run's own phases (``during_run``) differ by the turbulence of their time too.
 
-Trial-and-error scans each group's mean gain geometrically from 1/3 to 3 x its initial value
-(and that value itself, kept unless beaten by more than the merit's scatter), the modes keeping
-the shape of their initial gains, no mode beyond 0.8 x the nominal maximum stable gain over
-its chi_i (the same table).
+MGM's plant model takes chi_i from the optical-gain table of the calibration at the run's
+seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
+calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1); without, gamma_i times
+the fixed sensitivity k = 1. OGTL starts from k = 1 once the loop is closed and settles (4 to
+12 updates, until one moves log k by less than 0.1) before anything is measured, so that
+neither optimiser scans while k is still far from it. (Starting it at 1/gamma_30 of the table
+instead over-drove the loops whose real optical gain was higher than the table's - a 0.6" loop
+has a higher gamma than the 0.8" reference - and before the loop is closed the open-loop
+residual is far outside the PWFS's linear range.) The initial gains come from the operating
+point (``initial_gains``), the update period from the frame rate (``default_period_s``), and a
+safety net guards every phase after the closing (``SafetyNet``). Trial-and-error scans each
+group's mean gain geometrically from 1/3 to 3 x its initial value (and that value itself, kept
+unless beaten by more than the merit's scatter), the modes keeping the shape of their initial
+gains, no mode beyond 0.8 x the nominal maximum stable gain over its chi_i (the same table).
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..control import mgm
-from ..control.delay import fractional_taps
 from ..control import ogtl as ogtl_model
+from ..control.delay import fractional_taps
 from ..control.ogtl import OgtlSettings
 from ..control.transfer import max_stable_gain
 from ..control.trial import gain_groups, scan_around, scan_gains
@@ -58,8 +58,7 @@ from ..optics.optical_gains import CorrectionLevel, optical_gains
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import (RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop,
-                  sampled_structure)
+from .run import RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop, sampled_structure
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
 
 METHODS = ("trial", "mgm")
@@ -109,20 +108,30 @@ class OptimizeRequest:
             object.__setattr__(self, "chi_seeing_arcsec", self.run.seeing_arcsec)
         if self.method not in METHODS:
             raise InputError(f"--method must be one of {', '.join(METHODS)}, got '{self.method}'")
-        for name, option, accepted in (("duration_s", "--duration", OPTIMISATION_S), ("period_s", "--period", PERIOD_S),
-                                       ("measure_s", "--measure", MEASURE_S), ("trial_sequence_s", "--sequence", SEQUENCE_S)):
+        for name, option, accepted in (
+            ("duration_s", "--duration", OPTIMISATION_S),
+            ("period_s", "--period", PERIOD_S),
+            ("measure_s", "--measure", MEASURE_S),
+            ("trial_sequence_s", "--sequence", SEQUENCE_S),
+        ):
             accepted.check(getattr(self, name), option)
         obs = self.run.observation
         if self.frames(self.measure_s) < MIN_MEASURE_FRAMES:
-            raise InputError(f"--measure must be at least {MIN_MEASURE_FRAMES / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
-                             f"({MIN_MEASURE_FRAMES} frames), got {self.measure_s:.10g} s")
+            raise InputError(
+                f"--measure must be at least {MIN_MEASURE_FRAMES / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
+                f"({MIN_MEASURE_FRAMES} frames), got {self.measure_s:.10g} s"
+            )
         if self.method == "mgm":
             self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
             if self.duration_s < self.period_s:
-                raise InputError(f"--duration ({self.duration_s:g} s) must hold at least one MGM update period (--period {self.period_s:g} s)")
+                raise InputError(
+                    f"--duration ({self.duration_s:g} s) must hold at least one MGM update period (--period {self.period_s:g} s)"
+                )
         if self.method == "trial" and self.frames(self.trial_sequence_s) < MIN_SEQUENCE:
-            raise InputError(f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
-                             f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s")
+            raise InputError(
+                f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
+                f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s"
+            )
         if self.ogtl:
             check_probe(self.ogtl_settings, obs, self.period_s)
 
@@ -175,11 +184,15 @@ def check_probe(settings: OgtlSettings, observation, period_s: float) -> None:
     """InputError for an OGTL probe beyond the controlled modes, above Nyquist, or too slow
     for the lock-in: its period must fit ``PROBE_MIN_CYCLES`` times in an update period."""
     if settings.mode > observation.modes:
-        raise InputError(f"--probe-mode {settings.mode} is beyond the {observation.modes} controlled modes (accepted 1..{observation.modes})")
+        raise InputError(
+            f"--probe-mode {settings.mode} is beyond the {observation.modes} controlled modes (accepted 1..{observation.modes})"
+        )
     f = settings.probe_frequency(observation.frame_rate_hz)
     if f * period_s < PROBE_MIN_CYCLES:
-        raise InputError(f"--probe-frequency {f:.10g} Hz makes {f * period_s:.3g} cycles per --period of {period_s:g} s: the lock-in "
-                         f"needs at least {PROBE_MIN_CYCLES} (a probe frequency of at least {PROBE_MIN_CYCLES / period_s:.4g} Hz)")
+        raise InputError(
+            f"--probe-frequency {f:.10g} Hz makes {f * period_s:.3g} cycles per --period of {period_s:g} s: the lock-in "
+            f"needs at least {PROBE_MIN_CYCLES} (a probe frequency of at least {PROBE_MIN_CYCLES / period_s:.4g} Hz)"
+        )
 
 
 def period_settings(period_frames: int, observation) -> mgm.MgmSettings:
@@ -200,9 +213,11 @@ def welch_settings(frames: int, rate_hz: float, what: str, dropped: int = 0) -> 
     settings = mgm.MgmSettings(segment=segment)
     need = mgm.min_frames(settings) + dropped
     if frames < need:
-        raise InputError(f"{what} must be at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: {mgm.MIN_SEGMENTS} PSD "
-                         f"segments of {segment} frames after the {dropped} the loop delay leaves without commands), "
-                         f"got {frames / rate_hz:.3g} s ({frames} frames)")
+        raise InputError(
+            f"{what} must be at least {need / rate_hz:.3g} s at {rate_hz:g} Hz ({need} frames: {mgm.MIN_SEGMENTS} PSD "
+            f"segments of {segment} frames after the {dropped} the loop delay leaves without commands), "
+            f"got {frames / rate_hz:.3g} s ({frames} frames)"
+        )
     return settings
 
 
@@ -234,7 +249,9 @@ class OptimizeResult:
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
 
 
-def optical_gain_table(calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = 0.8, screens: int = 4, seed: int = 1) -> np.ndarray:
+def optical_gain_table(
+    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = 0.8, screens: int = 4, seed: int = 1
+) -> np.ndarray:
     """gamma_i of the calibration's modes at the reference correction level, cached."""
     key = cache_key("optical-gains", {"calibration": calibration.setup.key(), "seeing": seeing_arcsec, "screens": screens, "seed": seed})
     hit = cache.load(key, EntrySpec({"gains": (calibration.basis.n_modes,)}))
@@ -251,8 +268,14 @@ def mgm_chi(gamma: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
     return gamma / gamma[probe_mode - 1] if ogtl else gamma.copy()
 
 
-def mgm_machine(observation, structure, chi: np.ndarray, settings: mgm.MgmSettings,
-                forgetting: float = DEFAULT_FORGETTING, delay_frames: float | None = None) -> mgm.ModalGainMachine:
+def mgm_machine(
+    observation,
+    structure,
+    chi: np.ndarray,
+    settings: mgm.MgmSettings,
+    forgetting: float = DEFAULT_FORGETTING,
+    delay_frames: float | None = None,
+) -> mgm.ModalGainMachine:
     """MGM for the observation's filters (unit gain), plant chi_i z^-d and, on Tip/Tilt, the
     structural resonance when the frame rate samples it."""
     unit, ba = _unit_loops(observation, structure, forgetting, len(chi))
@@ -315,11 +338,15 @@ class LiveOptimisers:
         rate = observation.frame_rate_hz
         need = closing_frames(rate) + 2 * self._frames(observation)
         if need / rate > DURATION_S.hi:
-            raise InputError(f"--period {period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
-                             f"the {DURATION_S.hi:g} s a run may last; shorten --period")
+            raise InputError(
+                f"--period {period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
+                f"the {DURATION_S.hi:g} s a run may last; shorten --period"
+            )
         if round(duration_s * rate) < need:
-            raise InputError(f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {period_s:g} s "
-                             f"(the loop closes, then two updates), got {duration_s:g} s")
+            raise InputError(
+                f"--duration must be at least {need / rate:.3g} s for --mgm/--ogtl at --period {period_s:g} s "
+                f"(the loop closes, then two updates), got {duration_s:g} s"
+            )
         if self.ogtl:
             check_probe(self.ogtl_settings, observation, period_s)
 
@@ -346,8 +373,9 @@ class LiveOptimisers:
         return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
 
 
-def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float,
-                 fraction: float = INITIAL_GAIN_FRACTION) -> np.ndarray:
+def capped_gains(
+    gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float, fraction: float = INITIAL_GAIN_FRACTION
+) -> np.ndarray:
     """The initial gains, each capped at ``fraction`` of its maximum stable gain for the
     optimisers' plant (chi_i z^-d, the structure on Tip/Tilt): gains chosen for chi = 1 would
     be multiplied by chi_i = gamma_i / gamma_30 once OGTL has converged, several times 1 for
@@ -360,8 +388,17 @@ def capped_gains(gains: np.ndarray, observation, structure, chi: np.ndarray, for
 MODEL_SEGMENT = 8192  # frequency grid of the model PSD: fine enough for the lowest cut-offs (0.1 Hz at 1700 Hz)
 
 
-def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibration, cache: ArrayCache, loop: ClosedLoop,
-                  chi: np.ndarray, noise: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
+def initial_gains(
+    gains: LoopGains,
+    request: RunRequest,
+    calibration: Calibration,
+    cache: ArrayCache,
+    loop: ClosedLoop,
+    chi: np.ndarray,
+    noise: np.ndarray,
+    ogtl: bool,
+    probe_mode: int,
+) -> np.ndarray:
     """The optimisers' starting gains from the operating point: the run's gains capped for
     stability (``capped_gains``) at the larger of each mode's chi in the plant model and its
     chi at the worst seeing (with OGTL, gamma_i / gamma_probe grows as the correction degrades:
@@ -378,13 +415,31 @@ def initial_gains(gains: LoopGains, request: RunRequest, calibration: Calibratio
     gamma = optical_gain_table(calibration, cache, request.seeing_arcsec)
     capped = capped_gains(gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting)
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
-    model = noise_aware_gains(obs, request.structure, gains.forgetting, chi, calibration.basis.variance, atmosphere, noise / gamma,
-                              request.vibrations, 1.0 / loop.mas_per_nm_tt)
+    model = noise_aware_gains(
+        obs,
+        request.structure,
+        gains.forgetting,
+        chi,
+        calibration.basis.variance,
+        atmosphere,
+        noise / gamma,
+        request.vibrations,
+        1.0 / loop.mas_per_nm_tt,
+    )
     return np.minimum(capped, model)
 
 
-def noise_aware_gains(observation, structure, forgetting: float, chi: np.ndarray, basis_variance: np.ndarray,
-                      atmosphere: AtmosphereConfig, pol_noise_nm: np.ndarray, vibrations=None, nm_per_mas: float = 1.0) -> np.ndarray:
+def noise_aware_gains(
+    observation,
+    structure,
+    forgetting: float,
+    chi: np.ndarray,
+    basis_variance: np.ndarray,
+    atmosphere: AtmosphereConfig,
+    pol_noise_nm: np.ndarray,
+    vibrations=None,
+    nm_per_mas: float = 1.0,
+) -> np.ndarray:
     """MGM's optimum (Eq. cost) on the model POL PSD for Tip/Tilt and each noise-dominated mode
     (inf for the others: they keep their design gains), on a MODEL_SEGMENT grid, over the MGM
     range (margin included).  A mode is noise-dominated when its turbulence's variance is below
@@ -425,8 +480,14 @@ def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tupl
     return unit, ba
 
 
-def ogtl_task(settings: OgtlSettings, period_frames: int, calibration: Calibration, cache: ArrayCache, noise: np.ndarray,
-              chi_seeing_arcsec: float = 0.8) -> OgtlTask:
+def ogtl_task(
+    settings: OgtlSettings,
+    period_frames: int,
+    calibration: Calibration,
+    cache: ArrayCache,
+    noise: np.ndarray,
+    chi_seeing_arcsec: float = 0.8,
+) -> OgtlTask:
     """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
     (the optical model's table), the probe's amplitude from the settings or, by default, from
     the probed mode's WFS noise (``noise``: ``sensor.modal_noise_nm``) and its table gamma at
@@ -502,8 +563,15 @@ def _settled(records: list[dict]) -> bool:
     return abs(math.log(records[-1]["sensitivity"] / previous)) < SETTLED_LOG_STEP
 
 
-def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayCache, chi: np.ndarray, forgetting: float,
-               ogtl: OgtlTask | None, initial: np.ndarray) -> tuple[MgmTask | TrialAndErrorTask, int]:
+def _optimiser(
+    request: OptimizeRequest,
+    calibration: Calibration,
+    cache: ArrayCache,
+    chi: np.ndarray,
+    forgetting: float,
+    ogtl: OgtlTask | None,
+    initial: np.ndarray,
+) -> tuple[MgmTask | TrialAndErrorTask, int]:
     """The optimisation phase's task and its length in frames.  Trial-and-error scans each
     group's initial gain too, and keeps it unless a scanned gain does significantly better."""
     obs = request.run.observation
@@ -514,8 +582,9 @@ def _optimiser(request: OptimizeRequest, calibration: Calibration, cache: ArrayC
     sequence = request.frames(request.trial_sequence_s)
     settle = max(1, sequence // 5)
     incumbents = [float(np.mean(initial[modes])) for _, modes in gain_groups(len(chi))]
-    trial = TrialAndErrorTask(calibration.basis.n_modes, trial_scans(request, chi, initial), settle, sequence - settle, incumbents,
-                              trial_shapes(initial))
+    trial = TrialAndErrorTask(
+        calibration.basis.n_modes, trial_scans(request, chi, initial), settle, sequence - settle, incumbents, trial_shapes(initial)
+    )
     # one sequence more: the task starts on an update boundary of OGTL's period, its first
     # update after a partial sequence waits for the next (``TrialAndErrorTask.update``)
     return trial, sequence * (sum(len(s) for s in trial.scans) + 1)
@@ -534,8 +603,9 @@ def _run_optimiser(loop: ClosedLoop, optimiser: MgmTask | TrialAndErrorTask, fra
         ran += optimiser.period_frames
 
 
-def optimize(request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None,
-             calibration: Calibration | None = None) -> OptimizeResult:
+def optimize(
+    request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None, calibration: Calibration | None = None
+) -> OptimizeResult:
     """Run the phases (see the module docstring).  ``progress(done, total)`` per frame;
     ``calibration``: the request's, already computed."""
     r = request.run

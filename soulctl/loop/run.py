@@ -12,16 +12,16 @@ import numpy as np
 from ..control.filters import Filter
 from ..control.structure import StructuralResonance
 from ..control.transfer import Loop, Plant, max_stable_gain
+from ..control.trial import MID_GROUP_END
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
-from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
 from ..optics.pwfs import PyramidConfig
-from .metrics import PsfAccumulator, LoopMetrics, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
-from ..control.trial import MID_GROUP_END
+from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
+from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry, telemetry_bytes
 
 VIBRATION_HZ = 13.0
@@ -112,9 +112,14 @@ def check_stability(observation: Observation, gains: LoopGains, structure: Struc
         groups = [("Tip/Tilt" if tt else f"mode {m}", g, tt) for (tt, g), m in first.items()]
     else:
         n = observation.modes  # the groups this observation has (modes 121-last only beyond 120)
-        groups = [("Tip/Tilt", gains.tip_tilt, True)] + [(name, g, False) for name, g, first in
-                  ((f"modes 3-{min(n, MID_GROUP_END)}", gains.mid, 3), (f"modes {MID_GROUP_END + 1}-last", gains.high, MID_GROUP_END + 1))
-                  if n >= first]
+        groups = [("Tip/Tilt", gains.tip_tilt, True)] + [
+            (name, g, False)
+            for name, g, first in (
+                (f"modes 3-{min(n, MID_GROUP_END)}", gains.mid, 3),
+                (f"modes {MID_GROUP_END + 1}-last", gains.high, MID_GROUP_END + 1),
+            )
+            if n >= first
+        ]
     for name, g, tt in groups:
         if g <= 0:
             continue
@@ -227,8 +232,10 @@ def check_memory(frames: int, calibration: Calibration, option: str) -> None:
     have = available_memory_bytes()
     if need > 0.8 * have:
         fits = int(frames * 0.8 * have / need)
-        raise InputError(f"{option}: the run's telemetry, kept in memory, would need {need / 2**30:.3g} GB, more than the "
-                         f"{have / 2**30:.3g} GB available; at most {fits} frames fit at this configuration")
+        raise InputError(
+            f"{option}: the run's telemetry, kept in memory, would need {need / 2**30:.3g} GB, more than the "
+            f"{have / 2**30:.3g} GB available; at most {fits} frames fit at this configuration"
+        )
 
 
 def calibration_setup(request: RunRequest) -> CalibrationSetup:
@@ -242,8 +249,9 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
     return calibrate(calibration_setup(request), cache)
 
 
-def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None,
-        calibration: Calibration | None = None) -> RunResult:
+def run(
+    request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None, calibration: Calibration | None = None
+) -> RunResult:
     """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
     ``aux`` (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`) adds auxiliary loops once
     the loop has closed; ``calibration``: the request's, already computed (a sweep shares it)."""
@@ -257,8 +265,9 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     check_memory(request.frames, cal, "--duration")
     t_cal = time.perf_counter() - t0
     atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
-    loop = ClosedLoop(obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise,
-                      seed=request.seed, structure=structure)
+    loop = ClosedLoop(
+        obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure
+    )
     n_close, start_aux = 0, None
     if aux is not None:
         tasks, initial = aux(request, gains, cal, cache, loop)
@@ -274,8 +283,12 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
             loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
             for task in start_aux:
                 loop.add_aux_loop(task)
-        loop.run(request.frames - n_close, psf=psf, skip=max(0, request.skip - n_close),
-                 progress=None if progress is None else (lambda k: progress(n_close + k)))
+        loop.run(
+            request.frames - n_close,
+            psf=psf,
+            skip=max(0, request.skip - n_close),
+            progress=None if progress is None else (lambda k: progress(n_close + k)),
+        )
     except LoopDiverged as e:
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1
@@ -284,7 +297,20 @@ def run(request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None
     if diverged_at is None:
         metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
         image = psf.psf
-    return RunResult(request, gains, cal, loop.telemetry, metrics, image, diverged_at, diverged_rms, seconds, t_cal,
-                     loop.mas_per_nm_tt, spectra, loop.rtc_parameters.gains, loop.rtc_parameters.sensitivity, loop.notes)
-
-
+    return RunResult(
+        request,
+        gains,
+        cal,
+        loop.telemetry,
+        metrics,
+        image,
+        diverged_at,
+        diverged_rms,
+        seconds,
+        t_cal,
+        loop.mas_per_nm_tt,
+        spectra,
+        loop.rtc_parameters.gains,
+        loop.rtc_parameters.sensitivity,
+        loop.notes,
+    )

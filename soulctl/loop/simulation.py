@@ -34,8 +34,8 @@ from scipy.signal import lfilter
 from threadpoolctl import threadpool_limits
 
 from ..control.filters import Filter
-from ..control.structure import StructuralResonance
 from ..control.rtc import build_rtc
+from ..control.structure import StructuralResonance
 from ..control.trial import MID_GROUP_END  # the paper's gain groups: 1-2, 3-120, 121-last
 from ..disturbance.turbulence import MAS_PER_RAD
 from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
@@ -48,6 +48,7 @@ from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
+
 
 class LoopDiverged(RuntimeError):
     """The residual grew past ``divergence_ratio`` times the largest disturbance: the loop is
@@ -63,7 +64,15 @@ class LoopDiverged(RuntimeError):
 DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
 VIBRATION_BLOCK = 4096  # frames of vibrations drawn at a time
 # Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
-STAGES = ("atmosphere", "mirror", "wfs_optics", "detector", "slopes", "rtc", "telemetry")  # the paper's gain groups: modes 1-2, 3-120, 121-last
+STAGES = (
+    "atmosphere",
+    "mirror",
+    "wfs_optics",
+    "detector",
+    "slopes",
+    "rtc",
+    "telemetry",
+)  # the paper's gain groups: modes 1-2, 3-120, 121-last
 
 
 @dataclass(frozen=True)
@@ -85,7 +94,7 @@ class LoopGains:
             raise InputError("per-mode gains must be numbers in 0..10")
 
     @classmethod
-    def from_modes(cls, gains, forgetting: float = DEFAULT_FORGETTING) -> "LoopGains":
+    def from_modes(cls, gains, forgetting: float = DEFAULT_FORGETTING) -> LoopGains:
         g = tuple(float(x) for x in gains)
         if len(g) < 2:
             raise InputError(f"a per-mode gain list needs at least the 2 Tip/Tilt gains, got {len(g)}")
@@ -203,7 +212,9 @@ class ClosedLoop:
         # What the loop changed of what it was given, for the run's report.
         self.notes: tuple[str, ...] = tuple(
             f"the {line.frequency_hz:g} Hz vibration line is left out: at or above the {self.rate_hz / 2:g} Hz Nyquist frequency "
-            "of the loop (a real system aliases or filters it)" for line in dropped)
+            "of the loop (a real system aliases or filters it)"
+            for line in dropped
+        )
         basis = calibration.basis
         # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
         # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.

@@ -35,8 +35,22 @@ from ..control.structure import StructuralResonance
 from ..errors import InputError
 from ..files import input_file
 from ..observation import Observation
-from ..ranges import (DELAY_FRAMES, DIVERGED_AT, FORGETTING, FRAME_INDEX, FRAME_RATE_HZ, FRAME_TIME_S, LOOP_GAIN, MODAL_NM, MODES,
-                      OVERSAMPLING, RMS_NM, SENSITIVITY, Range, number_text)
+from ..ranges import (
+    DELAY_FRAMES,
+    DIVERGED_AT,
+    FORGETTING,
+    FRAME_INDEX,
+    FRAME_RATE_HZ,
+    FRAME_TIME_S,
+    LOOP_GAIN,
+    MODAL_NM,
+    MODES,
+    OVERSAMPLING,
+    RMS_NM,
+    SENSITIVITY,
+    Range,
+    number_text,
+)
 
 # Ranges of recorded values (not options a user types; candidates for soulctl.ranges).
 
@@ -97,8 +111,15 @@ DATASETS = (
     _dataset("gain_history/gains", REAL, ("changes", "n_modes"), "float64", LOOP_GAIN, "the gain vectors in force from those frames"),
 )
 # /aux/<task>/<field>: the auxiliary loops' records, rows = updates; NaN marks "no estimate".
-AUX_RECORD = _dataset("aux/<task>/<field>", REAL, ("updates",), "float64", None,
-                      "auxiliary loops' records (e.g. /aux/ogtl/sensitivity, /aux/mgm/gains), (updates, ...)", finite=False)
+AUX_RECORD = _dataset(
+    "aux/<task>/<field>",
+    REAL,
+    ("updates",),
+    "float64",
+    None,
+    "auxiliary loops' records (e.g. /aux/ogtl/sensitivity, /aux/mgm/gains), (updates, ...)",
+    finite=False,
+)
 AUX_FRAME = _dataset("aux/<task>/frame", INTEGER, ("updates",), "int64", FRAME_INDEX, "the first frame after each update")
 ATTRIBUTES = (
     _attribute("rate_hz", REAL, "float64", FRAME_RATE_HZ),
@@ -109,8 +130,14 @@ ATTRIBUTES = (
     _attribute("configuration", TEXT, "str", None, "JSON object: observation, atmosphere, gains, seed, ..."),
 )
 TELEMETRY_SCHEMA: dict[str, Field] = {f.name: f for f in (*DATASETS, AUX_RECORD, AUX_FRAME, *ATTRIBUTES)}
-DIMENSION_LABELS = {"frames": "frames", "n_modes": "modes", "n_slopes": "slopes", "n_actuators": "actuators",
-                    "changes": "entries", "updates": "updates"}
+DIMENSION_LABELS = {
+    "frames": "frames",
+    "n_modes": "modes",
+    "n_slopes": "slopes",
+    "n_actuators": "actuators",
+    "changes": "entries",
+    "updates": "updates",
+}
 RELATIONS = (
     "every dimension name has one size across the fields that use it",
     "gain_history holds both frames and gains, or neither",
@@ -174,8 +201,14 @@ def _values_kind(dtype: np.dtype) -> str:
         return INTEGER
     if kind == "f":
         return REAL
-    return {"c": "complex numbers", "b": "booleans", "S": "text", "U": "text", "O": "text or object references",
-            "V": "compound or opaque values"}.get(kind, f"values of type {dtype}")
+    return {
+        "c": "complex numbers",
+        "b": "booleans",
+        "S": "text",
+        "U": "text",
+        "O": "text or object references",
+        "V": "compound or opaque values",
+    }.get(kind, f"values of type {dtype}")
 
 
 def _attribute_value(raw):
@@ -216,7 +249,7 @@ class TelemetryReader:
             self.file.close()
             raise
 
-    def __enter__(self) -> "TelemetryReader":
+    def __enter__(self) -> TelemetryReader:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -329,13 +362,16 @@ class TelemetryReader:
                 self.attribute(field.name)
         self._configuration = self._decode_configuration()
         if "n_modes" in self.file.attrs and "n_modes" in self.dims and self.attribute("n_modes") != self.dim("n_modes"):
-            raise self._error(f"attribute n_modes is {self.attribute('n_modes')}, {self.dims['n_modes'][1]} has {self.dim('n_modes')} modes")
+            raise self._error(
+                f"attribute n_modes is {self.attribute('n_modes')}, {self.dims['n_modes'][1]} has {self.dim('n_modes')} modes"
+            )
         if self.has("gain_history/frames") != self.has("gain_history/gains"):
             raise self._error("gain_history needs both frames and gains (the gain vectors and the frames they apply from)")
         changes = self.dims.get("changes", (0,))[0]
         if changes > self.dims.get("frames", (0,))[0] + 1:
-            raise self._error(f"field gain_history/frames has {changes} entries for {self.dims.get('frames', (0,))[0]} frames: "
-                              f"at most one per frame")
+            raise self._error(
+                f"field gain_history/frames has {changes} entries for {self.dims.get('frames', (0,))[0]} frames: at most one per frame"
+            )
 
     # ------------------------------------------------------------------------- values
 

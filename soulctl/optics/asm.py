@@ -119,7 +119,7 @@ class ModalBasis:
     def n_modes(self) -> int:
         return self.M.shape[1]
 
-    def truncated(self, n_modes: int) -> "ModalBasis":
+    def truncated(self, n_modes: int) -> ModalBasis:
         if not (1 <= n_modes <= self.n_modes):
             raise InputError(f"modes must be in 1..{self.n_modes} for this mirror, got {n_modes}")
         return ModalBasis(self.M[:, :n_modes], self.M_inv[:n_modes], self.variance[:n_modes], self.geometry, self.L0_m)

@@ -133,7 +133,8 @@ def _tilt_integral(D: float, L0: float) -> float:
         # Weber-Schafheitlin: ∫ J2(x)^2 x^(-14/3) dx, closed form.
         lam = 14.0 / 3.0
         return float(
-            special.gamma(lam) * special.gamma(2 - lam / 2 + 0.5)
+            special.gamma(lam)
+            * special.gamma(2 - lam / 2 + 0.5)
             / (2**lam * special.gamma((lam + 1) / 2) ** 2 * special.gamma(2 + lam / 2 + 0.5))
         )
 
@@ -244,9 +245,7 @@ def _subharmonic_samples(n: int, dx: float, r0: float, L0: float):
     return np.concatenate(kxs), np.concatenate(kys), np.concatenate(vs)
 
 
-def fft_phase_screen(
-    n: int, pixel_scale_m: float, r0_m: float, L0_m: float, rng, subharmonics: bool = True
-) -> np.ndarray:
+def fft_phase_screen(n: int, pixel_scale_m: float, r0_m: float, L0_m: float, rng, subharmonics: bool = True) -> np.ndarray:
     """An n x n von Kármán phase screen, OPD in nm (float64), r0 at 500 nm.
 
     FFT method: complex Gaussian coefficients of variance 2 W(k) df^2 on the FFT grid (none at
@@ -367,7 +366,7 @@ class AtmosphereConfig:
         return effective_wind_speed(self.layers)
 
     @classmethod
-    def lbt_default(cls, seeing_arcsec: float = 1.0, L0_m: float = 25.0, wind_speed_m_s: float = 8.0) -> "AtmosphereConfig":
+    def lbt_default(cls, seeing_arcsec: float = 1.0, L0_m: float = 25.0, wind_speed_m_s: float = 8.0) -> AtmosphereConfig:
         """Four layers for Mt. Graham (a proposal; half the Cn^2 at the ground as Masciadri et
         al. 2010 measured below 80 m), speeds scaled so that v_eff = wind_speed_m_s."""
         WIND_M_S.check(wind_speed_m_s, "the effective wind speed")

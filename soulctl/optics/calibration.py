@@ -71,8 +71,10 @@ MAX_MODES_AT_OVERSAMPLING_1 = 90
 def check_sampling(n_modes: int, oversampling: int) -> None:
     """InputError when the pupil's sampling is too coarse for ``n_modes`` (oversampling 1)."""
     if oversampling == 1 and n_modes > MAX_MODES_AT_OVERSAMPLING_1:
-        raise InputError(f"--oversampling 1 samples the pupil on 40 pixels (1.4 per actuator pitch), too coarse for "
-                         f"{n_modes} modes: accepted up to {MAX_MODES_AT_OVERSAMPLING_1} modes; use 2..4")
+        raise InputError(
+            f"--oversampling 1 samples the pupil on 40 pixels (1.4 per actuator pitch), too coarse for "
+            f"{n_modes} modes: accepted up to {MAX_MODES_AT_OVERSAMPLING_1} modes; use 2..4"
+        )
 
 
 @dataclass(frozen=True)
@@ -164,8 +166,10 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
         return Calibration(setup, basis, hit["D"], hit["R"], hit["reference"], True, time.perf_counter() - t0)
     sensor = calibration_sensor(setup.pyramid)
     if setup.n_modes > sensor.n_slopes:
-        raise InputError(f"{setup.n_modes} modes cannot be calibrated from the {sensor.n_slopes} slopes of binning {setup.pyramid.binning} "
-                         f"(an under-determined interaction matrix): accepted at most {sensor.n_slopes} modes")
+        raise InputError(
+            f"{setup.n_modes} modes cannot be calibrated from the {sensor.n_slopes} slopes of binning {setup.pyramid.binning} "
+            f"(an under-determined interaction matrix): accepted at most {sensor.n_slopes} modes"
+        )
     maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
     D = push_pull(sensor, maps, setup.push_nm)
     R = np.linalg.pinv(D)

@@ -46,9 +46,7 @@ class Detector:
 
     def expected(self, intensity: np.ndarray, photons: float) -> np.ndarray:
         """The noiseless frame: mean electrons per pixel."""
-        return (np.asarray(intensity, dtype=np.float32) * np.float32(photons) + np.float32(self.background_e)).astype(
-            np.float32
-        )
+        return (np.asarray(intensity, dtype=np.float32) * np.float32(photons) + np.float32(self.background_e)).astype(np.float32)
 
     def read(self, intensity: np.ndarray, photons: float, rng: np.random.Generator) -> np.ndarray:
         """One noisy frame (float32 electrons) for an intensity map normalised to a total of 1

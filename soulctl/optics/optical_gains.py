@@ -27,8 +27,8 @@ import numpy as np
 
 from ..disturbance.turbulence import r0_from_seeing
 from ..errors import InputError
-from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
 from ..files import atomic_write_text
+from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
 from .atmosphere import fft_phase_screen
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .pupil import Pupil
@@ -115,9 +115,7 @@ def read_optical_gains(path: str | Path) -> np.ndarray:
     return gains
 
 
-def optical_gains(
-    calibration: Calibration, level: CorrectionLevel, n_screens: int = 4, seed: int = 1
-) -> OpticalGainTable:
+def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: int = 4, seed: int = 1) -> OpticalGainTable:
     """The modal optical gains of ``calibration``'s sensor and modes at ``level`` (see the
     module docstring): ``2 n_modes n_screens`` noiseless PWFS frames."""
     if not (1 <= n_screens <= 1000):

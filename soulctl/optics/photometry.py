@@ -25,7 +25,7 @@ class WfsPhotometry:
             raise InputError(f"zero point must be a positive number of photons per second, got {self.zero_point_ph_s}")
 
     @classmethod
-    def from_table(cls) -> "WfsPhotometry":
+    def from_table(cls) -> WfsPhotometry:
         t = tables.photometry_terms()
         return cls(
             zero_point_ph_s=float(t["zero_point_ph_s_per_subaperture"]),

@@ -185,7 +185,7 @@ class Pyramid:
         # by side (N, 2N): they are added together with the detector's binning, in one pass.
         out = np.empty((batch, N, 2 * N), dtype=np.float32)
         for b in range(batch):
-            sums = self._map(lambda t: self._modulated_sum(focal[b], t))
+            sums = self._map(lambda t, fb=focal[b]: self._modulated_sum(fb, t))
             out[b] = sums[0]
             for s in sums[1:]:
                 out[b] += s

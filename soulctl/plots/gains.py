@@ -78,7 +78,7 @@ def write_gain_figures(directory: Path, results: dict) -> list[Path]:
     first = next(iter(results.values()))
     rr = first.request.run
     obs = rr.observation
-    label = f"R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}\""
+    label = f'R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}"'
     names = gain_figure_names(results)
     figures = [(names[0], gain_vector_figure({m: x.gains for m, x in results.items()}, f"Optimised gains, {label}"))]
     for name, (method, result) in zip(names[1:], results.items()):

@@ -77,7 +77,7 @@ def write_loop_figures(directory: Path, result) -> list[Path]:
     r = result.request
     m = result.metrics
     lod_mas = band_wavelength(r.band) / LBT_DIAMETER_M * 180 / np.pi * 3600e3
-    label = f"R = {r.observation.magnitude_r:g}, {r.observation.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}\""
+    label = f'R = {r.observation.magnitude_r:g}, {r.observation.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}"'
     out = []
     figures = [("modal_variance.png", modal_variance_figure(result.spectra["modal_variance_nm2"], f"Modal residual variance, {label}"))]
     if m.strehl is not None:

@@ -17,7 +17,7 @@ def strehl_vs_magnitude(rows: list[dict], path: Path) -> Path:
     binnings = {r.get("binning") for r in rows}
     for r in rows:
         if r.get("status") == "ok" and r.get("strehl") is not None and math.isfinite(r["strehl"]):
-            label = f"seeing {r['seeing']:g}\"" + (f", binning {r['binning']}" if len(binnings) > 1 else "")
+            label = f'seeing {r["seeing"]:g}"' + (f", binning {r['binning']}" if len(binnings) > 1 else "")
             m = float(r["magnitude"])
             best[label][m] = max(best[label].get(m, 0.0), float(r["strehl"]))
     curves = {label: sorted(points.items()) for label, points in best.items()}

@@ -50,8 +50,9 @@ def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None 
     for ax, name in ((ax_s, "Sensitivity |S| (rejection)"), (ax_t, "Complementary sensitivity |T| (noise transfer)")):
         for fx, text in ((VIBRATION_HZ, "13 Hz"), (RESONANCE_HZ, "127 Hz")):
             ax.axvline(fx, color="0.5", linestyle=":", linewidth=1)
-            ax.annotate(text, (fx, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -12),
-                        textcoords="offset points", fontsize=8, color="0.35")
+            ax.annotate(
+                text, (fx, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -12), textcoords="offset points", fontsize=8, color="0.35"
+            )
         ax.axhline(1.0, color="0.75", linewidth=0.8)
         ax.axhline(1 / np.sqrt(2), color="0.75", linewidth=0.8, linestyle="--")
         ax.set_xlabel("frequency [Hz]")

@@ -23,8 +23,19 @@ from ..optics.cache import ArrayCache
 from ..optics.calibration import Calibration, CalibrationSetup, calibrate
 from .grid import case_id
 
-DEFAULTS = {"seeing": 1.0, "wind": 8.0, "L0": 25.0, "duration": 0.2, "gain_method": "default", "band": "H", "seed": 1,
-            "noise": True, "vibrations": True, "resonance": True, "oversampling": 2}
+DEFAULTS = {
+    "seeing": 1.0,
+    "wind": 8.0,
+    "L0": 25.0,
+    "duration": 0.2,
+    "gain_method": "default",
+    "band": "H",
+    "seed": 1,
+    "noise": True,
+    "vibrations": True,
+    "resonance": True,
+    "oversampling": 2,
+}
 METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
 STATUS = ("ok", "diverged", "failed")
 
@@ -41,9 +52,14 @@ def observation_for(case: dict) -> Observation:
         obs = dataclasses.replace(obs, binning=case["binning"], modes=rows[0].modes)
     if "frame_rate" in case:
         roots = tt_filter_roots(case["frame_rate"], tables.tt_iir_table())
-        obs = dataclasses.replace(obs, frame_rate_hz=float(case["frame_rate"]), tt_control="iir" if roots else "int",
-                                  tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
-                                  tt_zeros=roots.zeros if roots else (), tt_poles=roots.poles if roots else ())
+        obs = dataclasses.replace(
+            obs,
+            frame_rate_hz=float(case["frame_rate"]),
+            tt_control="iir" if roots else "int",
+            tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
+            tt_zeros=roots.zeros if roots else (),
+            tt_poles=roots.poles if roots else (),
+        )
     if case.get("tt_control") == "int":
         obs = dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=(), tt_filter_rate_hz=None)
     elif case.get("tt_control") == "iir" and obs.tt_control != "iir":
@@ -54,9 +70,20 @@ def observation_for(case: dict) -> Observation:
 def run_request(case: dict) -> RunRequest:
     """The `loop run` request of a case (its parameters over `loop run`'s defaults)."""
     p = {**DEFAULTS, **case}
-    return RunRequest(observation_for(case), p["seeing"], p["wind"], p["L0"], p["duration"], None, p["band"], p["seed"], p["noise"],
-                      VibrationSpectrum.lbt_default() if p["vibrations"] else None, p["oversampling"],
-                      StructuralResonance() if p["resonance"] else None)
+    return RunRequest(
+        observation_for(case),
+        p["seeing"],
+        p["wind"],
+        p["L0"],
+        p["duration"],
+        None,
+        p["band"],
+        p["seed"],
+        p["noise"],
+        VibrationSpectrum.lbt_default() if p["vibrations"] else None,
+        p["oversampling"],
+        StructuralResonance() if p["resonance"] else None,
+    )
 
 
 def calibration_setup(case: dict) -> CalibrationSetup:
@@ -71,8 +98,16 @@ def calibrate_case(setup: CalibrationSetup, cache_dir: str | None) -> Calibratio
 
 def failed_row(case: dict, reason: str) -> dict:
     """The row of a case that did not run (``run_case`` fills it in when it does)."""
-    return {"case_id": case_id(case), **DEFAULTS, **case, **dict.fromkeys(METRICS, float("nan")), "status": "failed",
-            "reason": reason, "run_seconds": 0.0, "soulctl_version": __version__}
+    return {
+        "case_id": case_id(case),
+        **DEFAULTS,
+        **case,
+        **dict.fromkeys(METRICS, float("nan")),
+        "status": "failed",
+        "reason": reason,
+        "run_seconds": 0.0,
+        "soulctl_version": __version__,
+    }
 
 
 def optimisation_period_s(duration_s: float, observation: Observation) -> float:
@@ -108,9 +143,11 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
             period = optimisation_period_s(p["duration"], request.observation)
-            result = optimize(OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period,
-                                              measure_s=p["duration"]), cache,
-                              calibration=calibration)
+            result = optimize(
+                OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"]),
+                cache,
+                calibration=calibration,
+            )
             if result.diverged_at is not None:
                 row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at} ({p['gain_method']})")
             else:

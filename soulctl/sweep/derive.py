@@ -11,8 +11,7 @@ import math
 from .. import tables
 from ..observation import BINNINGS, observation_for_magnitude
 
-LUT_COLUMNS = ("r_min", "r_max", "binning", "subapertures", "modes", "frame_rate_max_hz", "frame_rate_min_hz",
-               "modulation_lambda_over_d")
+LUT_COLUMNS = ("r_min", "r_max", "binning", "subapertures", "modes", "frame_rate_max_hz", "frame_rate_min_hz", "modulation_lambda_over_d")
 
 
 def best_per_magnitude(rows: list[dict]) -> list[dict]:
@@ -52,9 +51,19 @@ def derived_table(rows: list[dict]) -> list[dict]:
             out[-1]["frame_rate_min_hz"] = rate
             out[-1]["strehl"].append(pick["strehl"])
             continue
-        out.append({"r_min": lower, "r_max": upper, "binning": b, "subapertures": BINNINGS[b], "modes": modes.get(b, 0),
-                    "frame_rate_max_hz": rate, "frame_rate_min_hz": rate, "modulation_lambda_over_d": 3,
-                    "strehl": [pick["strehl"]]})
+        out.append(
+            {
+                "r_min": lower,
+                "r_max": upper,
+                "binning": b,
+                "subapertures": BINNINGS[b],
+                "modes": modes.get(b, 0),
+                "frame_rate_max_hz": rate,
+                "frame_rate_min_hz": rate,
+                "modulation_lambda_over_d": 3,
+                "strehl": [pick["strehl"]],
+            }
+        )
     return out
 
 

@@ -33,10 +33,20 @@ SOURCE = "bench/results/frame_cost.json (bench/bench_frame_cost.py)"
 # (binning, oversampling): (CPU ms per frame, CPU s per case, CPU s per calibration, cold), measured
 # by bench/bench_frame_cost.py (bench/results/frame_cost.json); oversampling 1 only up to 90 modes.
 _MEASURED = {
-    (3, 1): (1.8, 0.11, 3.2), (4, 1): (1.8, 0.09, 3.2),
-    (1, 2): (8.8, 0.36, 8.4), (2, 2): (5.9, 0.36, 5.3), (3, 2): (6.3, 0.30, 4.3), (4, 2): (6.7, 0.34, 3.2),
-    (1, 3): (16.0, 2.7, 18.0), (2, 3): (16.0, 1.5, 10.0), (3, 3): (15.0, 2.0, 4.8), (4, 3): (16.0, 1.3, 3.8),
-    (1, 4): (32.0, 1.2, 31.0), (2, 4): (27.0, 2.4, 16.0), (3, 4): (25.0, 2.2, 9.1), (4, 4): (28.0, 2.2, 7.4),
+    (3, 1): (1.8, 0.11, 3.2),
+    (4, 1): (1.8, 0.09, 3.2),
+    (1, 2): (8.8, 0.36, 8.4),
+    (2, 2): (5.9, 0.36, 5.3),
+    (3, 2): (6.3, 0.30, 4.3),
+    (4, 2): (6.7, 0.34, 3.2),
+    (1, 3): (16.0, 2.7, 18.0),
+    (2, 3): (16.0, 1.5, 10.0),
+    (3, 3): (15.0, 2.0, 4.8),
+    (4, 3): (16.0, 1.3, 3.8),
+    (1, 4): (32.0, 1.2, 31.0),
+    (2, 4): (27.0, 2.4, 16.0),
+    (3, 4): (25.0, 2.2, 9.1),
+    (4, 4): (28.0, 2.2, 7.4),
 }
 FRAME_MS = {k: v[0] for k, v in _MEASURED.items()}
 CASE_FIXED_S = {k: v[1] for k, v in _MEASURED.items()}
@@ -60,14 +70,26 @@ class Estimate:
         return self.cpu_seconds / self.workers / (PARALLEL_EFFICIENCY if self.workers > 1 else 1.0)
 
     def text(self) -> str:
-        where = (f"about {duration_text(self.wall_seconds)} on {self.workers} worker{'s' if self.workers != 1 else ''}"
-                 if self.workers is not None else "divided by the scheduler's workers")
-        return (f"estimate: {self.cases} case{'s' if self.cases != 1 else ''}, {self.frames:,} frames, {self.calibrations} "
-                f"calibration{'s' if self.calibrations != 1 else ''}: {duration_text(self.cpu_seconds)} of CPU, {where}")
+        where = (
+            f"about {duration_text(self.wall_seconds)} on {self.workers} worker{'s' if self.workers != 1 else ''}"
+            if self.workers is not None
+            else "divided by the scheduler's workers"
+        )
+        return (
+            f"estimate: {self.cases} case{'s' if self.cases != 1 else ''}, {self.frames:,} frames, {self.calibrations} "
+            f"calibration{'s' if self.calibrations != 1 else ''}: {duration_text(self.cpu_seconds)} of CPU, {where}"
+        )
 
     def as_json(self) -> dict:
-        return {"cases": self.cases, "frames": self.frames, "calibrations": self.calibrations, "cpu_seconds": self.cpu_seconds,
-                "workers": self.workers, "wall_seconds": self.wall_seconds, "source": SOURCE}
+        return {
+            "cases": self.cases,
+            "frames": self.frames,
+            "calibrations": self.calibrations,
+            "cpu_seconds": self.cpu_seconds,
+            "workers": self.workers,
+            "wall_seconds": self.wall_seconds,
+            "source": SOURCE,
+        }
 
 
 def duration_text(seconds: float) -> str:
@@ -82,8 +104,11 @@ def duration_text(seconds: float) -> str:
 
 @lru_cache(maxsize=4096)
 def _observation(magnitude, binning, frame_rate, tt_control):
-    case = {k: v for k, v in (("magnitude", magnitude), ("binning", binning), ("frame_rate", frame_rate),
-                              ("tt_control", tt_control)) if v is not None}
+    case = {
+        k: v
+        for k, v in (("magnitude", magnitude), ("binning", binning), ("frame_rate", frame_rate), ("tt_control", tt_control))
+        if v is not None
+    }
     try:
         return observation_for(case)
     except InputError:

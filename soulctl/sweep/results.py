@@ -137,8 +137,9 @@ def read_results(path: str | Path, cases: dict[str, dict] | None = None) -> Resu
             content = ResultsContent(_header(tail_record[1], where), complete_bytes=len(raw), ends_with_newline=False)
             return content
         if tail or start:  # an interrupted first write (the header): start again
-            return ResultsContent(COLUMNS, complete_bytes=0,
-                                  notes=[f"{where}: the incomplete header line (an interrupted write) is ignored"] if tail else [])
+            return ResultsContent(
+                COLUMNS, complete_bytes=0, notes=[f"{where}: the incomplete header line (an interrupted write) is ignored"] if tail else []
+            )
         return ResultsContent(COLUMNS, complete_bytes=0)
     columns = _header(records[0][1], where)
     content = ResultsContent(columns, complete_bytes=cut)
@@ -153,8 +154,9 @@ def read_results(path: str | Path, cases: dict[str, dict] | None = None) -> Resu
                 raise InputError("incomplete")
             row = _row(tail_record[1], columns, tail_line, where, cases)
         except InputError:
-            content.notes.append(f"{where}, line {tail_line}: an incomplete last row (an interrupted write) is ignored "
-                                 f"and removed; its case runs again")
+            content.notes.append(
+                f"{where}, line {tail_line}: an incomplete last row (an interrupted write) is ignored and removed; its case runs again"
+            )
         else:  # a complete row without its line end (e.g. saved by a spreadsheet)
             _add_row(content, row, tail_line)
             content.complete_bytes = len(raw)
@@ -194,8 +196,10 @@ def _header(fields: list[str], where: str) -> tuple[str, ...]:
         raise InputError(f"{where}: the column {', '.join(dup)} appears more than once")
     missing = [c for c in COLUMNS if c not in fields]
     if missing:
-        raise InputError(f"{where} lacks the columns {', '.join(missing)} of a soulctl results file "
-                         f"(from another version?): complete it or choose another --out")
+        raise InputError(
+            f"{where} lacks the columns {', '.join(missing)} of a soulctl results file "
+            f"(from another version?): complete it or choose another --out"
+        )
     return tuple(fields)
 
 
@@ -230,8 +234,10 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
     for name in METRICS:
         empty = texts[name].strip() == ""
         if row["status"] == "ok" and not math.isfinite(row[name]):
-            raise InputError(f"{at}: status ok with {'an empty' if empty else 'a non-finite'} {name} (an ok row needs "
-                             f"finite {', '.join(METRICS)}): correct or delete the row, or set its status to failed to run it again")
+            raise InputError(
+                f"{at}: status ok with {'an empty' if empty else 'a non-finite'} {name} (an ok row needs "
+                f"finite {', '.join(METRICS)}): correct or delete the row, or set its status to failed to run it again"
+            )
         if not empty and not math.isfinite(row[name]):
             raise InputError(f"{at}: {name} must be a finite number or empty, got '{texts[name]}'")
     if row["run_seconds"] is not None and not (math.isfinite(row["run_seconds"]) and row["run_seconds"] >= 0):
@@ -241,12 +247,15 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
         expected = {**DEFAULTS, **case}
         for name in PARAMETERS:
             if row[name] != expected.get(name):
-                raise InputError(f"{at}: the row of case {row['case_id']} has {name} = {_text(row[name]) or 'empty'} where the "
-                                 f"grid's case has {_text(expected.get(name)) or 'none'}: correct or delete the row")
+                raise InputError(
+                    f"{at}: the row of case {row['case_id']} has {name} = {_text(row[name]) or 'empty'} where the "
+                    f"grid's case has {_text(expected.get(name)) or 'none'}: correct or delete the row"
+                )
     return row
 
 
 # -------------------------------------------------------------------------------- the lock
+
 
 def lock_path(folder: str | Path) -> Path:
     return Path(folder) / LOCK_NAME
@@ -277,8 +286,10 @@ def _locked_message(folder, fd: int) -> str:
     except (OSError, UnicodeDecodeError):
         pid = ""
     who = f"process {pid}" if pid.isdigit() else "another process"
-    return (f"another soulctl sweep ({who}) is writing {Path(folder) / 'results.csv'}: wait for it to end, or choose "
-            f"another --out (a sweep holds {lock_path(folder)} while it runs)")
+    return (
+        f"another soulctl sweep ({who}) is writing {Path(folder) / 'results.csv'}: wait for it to end, or choose "
+        f"another --out (a sweep holds {lock_path(folder)} while it runs)"
+    )
 
 
 @contextmanager
@@ -325,6 +336,7 @@ def results_lock(folder: str | Path):
 
 
 # ------------------------------------------------------------------------------- the table
+
 
 class ResultsTable:
     """The results of a grid (``cases``), rows by case id, written to ``path`` (see the module)."""

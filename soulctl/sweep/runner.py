@@ -24,9 +24,9 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
+from ..ranges import WAIT_WORKERS_S
 from .case import calibrate_case, calibration_setup, failed_row, run_case
 from .results import ResultsTable, check_unlocked, results_lock
-from ..ranges import WAIT_WORKERS_S
 from .scheduler import CONNECT_TIMEOUT_S, probe
 
 RESULTS = "results.csv"
@@ -92,17 +92,20 @@ def connect(stack: ExitStack, scheduler: str | None, workers: int | None, wait_w
         try:
             client = stack.enter_context(Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s"))
         except Exception as e:  # noqa: BLE001 - what answers at the address is the user's: e.g. a worker (TypeError)
-            raise InputError(f"cannot connect to the Dask scheduler at {scheduler} ({type(e).__name__}: {e}; is it the "
-                             f"scheduler's address?); nothing was run") from None
+            raise InputError(
+                f"cannot connect to the Dask scheduler at {scheduler} ({type(e).__name__}: {e}; is it the "
+                f"scheduler's address?); nothing was run"
+            ) from None
         try:
             client.wait_for_workers(1, timeout=wait_workers_s)
         except TimeoutError:
-            raise InputError(f"the Dask scheduler at {scheduler} has no worker (none joined within {wait_workers_s:g} s): start "
-                             f"workers with 'dask worker {address}', or give --wait-workers; nothing was run") from None
+            raise InputError(
+                f"the Dask scheduler at {scheduler} has no worker (none joined within {wait_workers_s:g} s): start "
+                f"workers with 'dask worker {address}', or give --wait-workers; nothing was run"
+            ) from None
         return client
     n = workers or local_workers()
-    cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                               silence_logs=40))
+    cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40))
     return stack.enter_context(Client(cluster))
 
 
@@ -111,9 +114,15 @@ def local_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def execute(plan: SweepPlan, scheduler: str | None = None, workers: int | None = None, cache_dir: str | None = None,
-            on_row: Callable[[dict, SweepReport], None] | None = None, on_start: Callable[[int], None] | None = None,
-            wait_workers_s: float = WAIT_WORKERS_S) -> SweepReport:
+def execute(
+    plan: SweepPlan,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    cache_dir: str | None = None,
+    on_row: Callable[[dict, SweepReport], None] | None = None,
+    on_start: Callable[[int], None] | None = None,
+    wait_workers_s: float = WAIT_WORKERS_S,
+) -> SweepReport:
     """Run a plan (see the module): its folder is created only once the scheduler answered."""
     table = plan.table
     report = SweepReport(total=plan.total, skipped=plan.skipped, results=table.path)
@@ -186,8 +195,15 @@ def _remove_empty(folder: Path) -> None:
         pass
 
 
-def run_sweep(cases: list[dict], out_dir: str | Path, scheduler: str | None = None, workers: int | None = None,
-              resume: bool = False, cache_dir: str | None = None, on_row: Callable[[dict, SweepReport], None] | None = None,
-              on_start: Callable[[int], None] | None = None) -> SweepReport:
+def run_sweep(
+    cases: list[dict],
+    out_dir: str | Path,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    resume: bool = False,
+    cache_dir: str | None = None,
+    on_row: Callable[[dict, SweepReport], None] | None = None,
+    on_start: Callable[[int], None] | None = None,
+) -> SweepReport:
     """Run ``cases`` (from ``grid.parse_grid``), writing ``out_dir/results.csv``."""
     return execute(plan_sweep(cases, out_dir, resume), scheduler, workers, cache_dir, on_row, on_start)

@@ -39,9 +39,11 @@ def parse_address(address: str) -> tuple[str, int]:
     text = address.strip()
     scheme = text.split("://", 1)[0].lower() if "://" in text else "tcp"
     if scheme != "tcp":
-        why = {"tls": "TLS needs certificates soulctl has no options for; tunnel the scheduler's port over SSH instead",
-               "ucx": "UCX is an optional transport soulctl has no options for",
-               "inproc": "inproc:// only exists inside one Python process"}.get(scheme, "not a Dask transport")
+        why = {
+            "tls": "TLS needs certificates soulctl has no options for; tunnel the scheduler's port over SSH instead",
+            "ucx": "UCX is an optional transport soulctl has no options for",
+            "inproc": "inproc:// only exists inside one Python process",
+        }.get(scheme, "not a Dask transport")
         raise InputError(f"--scheduler must be {FORM}, got '{address}' ({scheme}://: {why})")
     m = _ADDRESS.fullmatch(text)
     port = int(m["port"]) if m else 0
@@ -63,8 +65,7 @@ def probe(address: str, timeout: float | None = None) -> str:
     host, port = parse_address(address)
     timeout = CONNECT_TIMEOUT_S if timeout is None else timeout
     result: dict = {}
-    thread = threading.Thread(target=_probe, args=(host, port, timeout, result), daemon=True,
-                              name="soulctl-scheduler-probe")
+    thread = threading.Thread(target=_probe, args=(host, port, timeout, result), daemon=True, name="soulctl-scheduler-probe")
     thread.start()
     thread.join(timeout)
     error = result.get("error", f"no answer from a Dask scheduler within {timeout:g} s")
@@ -81,7 +82,7 @@ def _probe(host: str, port: int, timeout: float, result: dict) -> None:
         result["error"] = f"unknown host {host} ({e.strerror})"
     except ConnectionRefusedError:
         result["error"] = "connection refused (no scheduler listens on that port)"
-    except (TimeoutError, socket.timeout):
+    except TimeoutError:
         result["error"] = f"no answer from a Dask scheduler within {timeout:g} s"
     except _NotDask as e:
         result["error"] = f"the listener there is not a Dask scheduler ({e})"
@@ -127,7 +128,7 @@ def _greet(host: str, port: int, deadline: float) -> None:
         if count < 1 or 16 + 8 * (count - 1) + length > n:
             raise _NotDask("its first message is not Dask's frames")
         start = 8 + 8 * count
-        info = msgpack.loads(body[start:start + length])
+        info = msgpack.loads(body[start : start + length])
         if not isinstance(info, dict) or "python" not in info:
             raise _NotDask("its first message is not Dask's handshake")
         reply = msgpack.dumps({"compression": None, "python": list(sys.version_info[:3]), "pickle-protocol": pickle.HIGHEST_PROTOCOL})

@@ -61,7 +61,9 @@ def test_bad_input_is_one_line_exit_2_nothing_written(args, message, tmp_path, c
     assert not path.exists() and list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("mag, shown", [("18.5000001", "R magnitude 18.5000001 is outside"), ("-0.0000001", "R magnitude -1e-07 is outside")])
+@pytest.mark.parametrize(
+    "mag, shown", [("18.5000001", "R magnitude 18.5000001 is outside"), ("-0.0000001", "R magnitude -1e-07 is outside")]
+)
 def test_out_of_range_message_shows_the_value_given(mag, shown, capsys):
     status, _, err = run(["configure", "--mag", mag], capsys)
     assert status == 2 and shown in err
@@ -72,10 +74,13 @@ def test_minus_zero_is_zero(capsys):
     assert status == 0 and '"magnitude_r": 0.0' in out
 
 
-@pytest.mark.parametrize("make_target", [
-    lambda d: d / "a_file" / "obs.toml",  # parent is a file
-    lambda d: d / ("x" * 250 + ".toml"),  # a valid name; a temporary named after it would be too long
-])
+@pytest.mark.parametrize(
+    "make_target",
+    [
+        lambda d: d / "a_file" / "obs.toml",  # parent is a file
+        lambda d: d / ("x" * 250 + ".toml"),  # a valid name; a temporary named after it would be too long
+    ],
+)
 def test_unwritable_out_is_one_line_exit_2(make_target, tmp_path, capsys):
     (tmp_path / "a_file").write_text("")
     target = make_target(tmp_path)
@@ -103,10 +108,16 @@ def test_console_script_has_no_traceback(tmp_path):
     otherwise import the source tree, which has no compiled core)."""
     proc = subprocess.run(
         [sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "x"],
-        capture_output=True, text=True, cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
     )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
-    ok = subprocess.run([sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "9.7"],
-                        capture_output=True, text=True, cwd=tmp_path)
+    ok = subprocess.run(
+        [sys.executable, "-c", "from soulctl.cli.app import main; main()", "configure", "--mag", "9.7"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert ok.returncode == 0 and "1700 Hz" in ok.stdout

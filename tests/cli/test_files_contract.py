@@ -78,8 +78,11 @@ def test_read_only_outputs_are_refused_and_kept(args, option, tmp_path, capsys):
 def test_unwritable_locations_are_found_up_front(args, option, tmp_path, capsys):
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    for target in (a_file / ("under" + suffix(option, args)), Path("/proc/soulctl-cannot" + suffix(option, args)),
-                   tmp_path / "missing" / ("x" + suffix(option, args))):
+    for target in (
+        a_file / ("under" + suffix(option, args)),
+        Path("/proc/soulctl-cannot" + suffix(option, args)),
+        tmp_path / "missing" / ("x" + suffix(option, args)),
+    ):
         t0 = time.perf_counter()
         status, _, err = run([*args, option, target], capsys)
         assert status == 2 and "cannot write" in err and err.count("\n") == 1, err
@@ -98,16 +101,24 @@ def test_symlinks_are_written_through_and_modes_kept(tmp_path, capsys):
     assert stat.S_IMODE(target.stat().st_mode) == 0o600
 
 
-@pytest.mark.parametrize("args", [
-    ["loop", "run", "--config", "{obs}", "--telemetry", "{obs}"],
-    ["optimize", "gains", "--telemetry", "{h5}", "--out", "{h5}"],
-    ["configure", "--mag", "9.7", "--roots", "{roots}", "--out", "{roots}"],
-    ["filter", "design", "--rate", "1700", "--vibrations", "{vib}", "--out", "{vib}"],
-    ["loop", "run", "--config", "{obs}", "--telemetry", "{link}"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["loop", "run", "--config", "{obs}", "--telemetry", "{obs}"],
+        ["optimize", "gains", "--telemetry", "{h5}", "--out", "{h5}"],
+        ["configure", "--mag", "9.7", "--roots", "{roots}", "--out", "{roots}"],
+        ["filter", "design", "--rate", "1700", "--vibrations", "{vib}", "--out", "{vib}"],
+        ["loop", "run", "--config", "{obs}", "--telemetry", "{link}"],
+    ],
+)
 def test_an_output_that_is_an_input_is_refused_before_any_work(args, tmp_path, capsys):
-    files = {"obs": tmp_path / "obs.toml", "h5": tmp_path / "t.h5", "roots": tmp_path / "roots.csv", "vib": tmp_path / "vib.toml",
-             "link": tmp_path / "link.h5"}
+    files = {
+        "obs": tmp_path / "obs.toml",
+        "h5": tmp_path / "t.h5",
+        "roots": tmp_path / "roots.csv",
+        "vib": tmp_path / "vib.toml",
+        "link": tmp_path / "link.h5",
+    }
     assert main(["configure", "--mag", "16.5", "--out", str(files["obs"])]) == 0
     files["h5"].write_bytes(b"HDF5 stand-in")
     files["roots"].write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1700,0,0,0,0,0,0,0,1\n")
@@ -135,8 +146,22 @@ def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, m
 
     monkeypatch.setattr(loop_cli, "write_loop_figures", fail)
     before = set(os.listdir(tmp_path))
-    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", tmp_path / "ok.h5",
-            "--plot", tmp_path, "--cache-dir", tmp_path / "cache"]
+    args = [
+        "loop",
+        "run",
+        "--mag",
+        "16.5",
+        "--oversampling",
+        "1",
+        "--duration",
+        "0.05",
+        "--telemetry",
+        tmp_path / "ok.h5",
+        "--plot",
+        tmp_path,
+        "--cache-dir",
+        tmp_path / "cache",
+    ]
     if status == 1:
         with pytest.raises(RuntimeError):
             main([str(a) for a in args])
@@ -159,12 +184,27 @@ sys.exit(app.main(sys.argv[1:]))
 def test_an_interrupt_removes_the_temporaries_and_says_so(signum, status, word, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", out / "tm.h5",
-            "--plot", out, "--cache-dir", tmp_path / "cache"]
+    args = [
+        "loop",
+        "run",
+        "--mag",
+        "16.5",
+        "--oversampling",
+        "1",
+        "--duration",
+        "0.05",
+        "--telemetry",
+        out / "tm.h5",
+        "--plot",
+        out,
+        "--cache-dir",
+        tmp_path / "cache",
+    ]
     # run from tmp_path: `python -c` puts the current folder first on sys.path, and the
     # installed package (with its compiled core) must be the one imported
-    p = subprocess.Popen([sys.executable, "-c", INTERRUPTED, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, cwd=tmp_path)
+    p = subprocess.Popen(
+        [sys.executable, "-c", INTERRUPTED, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path
+    )
     deadline = time.time() + 120
     while not any(f.name.startswith(".soulctl-") for f in out.iterdir()):  # the telemetry's temporary, waiting for the figures
         assert p.poll() is None and time.time() < deadline, p.communicate()
@@ -218,14 +258,16 @@ def test_readme_roots_example_and_user_paths_are_relative_to_the_current_folder(
     status, out, err = run(["configure", "--mag", "9.7", "--roots", "roots.csv", "--json"], capsys)
     assert status == 0, err
     # a user file named like the built-in table is the user's
-    Path("tt_iir_roots.csv").write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n"
-                                        "1700,0.1,0.2,0.3,0.4,0.0,0.0,0.5,1\n")
+    Path("tt_iir_roots.csv").write_text(
+        "frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1700,0.1,0.2,0.3,0.4,0.0,0.0,0.5,1\n"
+    )
     status, out, err = run(["configure", "--mag", "9.7", "--roots", "tt_iir_roots.csv", "--json"], capsys)
     assert status == 0, err
     assert json.loads(out)["control"]["tt_zeros"] == [0.1, 0.2, 0.3, 0.4]
 
 
 # --------------------------------------------------------------------------- what is printed
+
 
 @pytest.mark.parametrize("text", ["[/]", "[bold]x[/bold]", "[red", ":smile:", "\\[x]"])
 def test_user_text_prints_as_given(text, tmp_path, capsys):
@@ -235,15 +277,23 @@ def test_user_text_prints_as_given(text, tmp_path, capsys):
     assert text in out and f"written {plot}" in out
 
 
-@pytest.mark.parametrize("args", [
-    ["configure", "--mag", "13"],
-    ["filter", "analyze", "--rate", "1700", "--control", "leaky", "--gain", "0.3"],
-    ["optics", "atmosphere"],
-    ["configure", "--mag", "99"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["configure", "--mag", "13"],
+        ["filter", "analyze", "--rate", "1700", "--control", "leaky", "--gain", "0.3"],
+        ["optics", "atmosphere"],
+        ["configure", "--mag", "99"],
+    ],
+)
 def test_a_terminal_without_utf8_gets_ascii(args, tmp_path):
-    p = subprocess.run([shutil.which("soulctl"), *args], capture_output=True, cwd=tmp_path,
-                       env={**os.environ, "PYTHONIOENCODING": "ascii", "LC_ALL": "C"}, timeout=60)
+    p = subprocess.run(
+        [shutil.which("soulctl"), *args],
+        capture_output=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONIOENCODING": "ascii", "LC_ALL": "C"},
+        timeout=60,
+    )
     assert p.returncode in (0, 2), p.stderr
     assert b"Traceback" not in p.stderr
     p.stdout.decode("ascii")
@@ -264,17 +314,48 @@ def test_a_signal_lost_in_a_finaliser_still_discards_the_outputs(tmp_path, capsy
             pass
 
     monkeypatch.setattr(loop_cli, "write_loop_figures", swallowed)
-    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05", "--telemetry", tmp_path / "tm.h5",
-            "--plot", tmp_path, "--cache-dir", tmp_path / "cache"]
+    args = [
+        "loop",
+        "run",
+        "--mag",
+        "16.5",
+        "--oversampling",
+        "1",
+        "--duration",
+        "0.05",
+        "--telemetry",
+        tmp_path / "tm.h5",
+        "--plot",
+        tmp_path,
+        "--cache-dir",
+        tmp_path / "cache",
+    ]
     status, out, err = run(args, capsys)
     assert status == 143 and "interrupted (SIGTERM)" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
 
 
 def test_a_reader_that_goes_away_keeps_the_outputs(tmp_path):
-    p = subprocess.Popen([shutil.which("soulctl"), "loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.05",
-                          "--telemetry", str(tmp_path / "tm.h5"), "--cache-dir", str(tmp_path / "cache")],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    p = subprocess.Popen(
+        [
+            shutil.which("soulctl"),
+            "loop",
+            "run",
+            "--mag",
+            "16.5",
+            "--oversampling",
+            "1",
+            "--duration",
+            "0.05",
+            "--telemetry",
+            str(tmp_path / "tm.h5"),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=tmp_path,
+    )
     p.stdout.read(1)  # like `| head -c 1`
     p.stdout.close()
     _, err = p.communicate(timeout=120)
@@ -289,8 +370,13 @@ def test_an_unwritable_cache_home_keeps_refusals_to_one_line(tmp_path):
 
 
 def test_ascii_tables_are_measured_on_what_is_printed(tmp_path):
-    p = subprocess.run([shutil.which("soulctl"), "filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", "λ☃日本"],
-                       capture_output=True, env={**os.environ, "PYTHONIOENCODING": "ascii"}, cwd=tmp_path, timeout=60)
+    p = subprocess.run(
+        [shutil.which("soulctl"), "filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", "λ☃日本"],
+        capture_output=True,
+        env={**os.environ, "PYTHONIOENCODING": "ascii"},
+        cwd=tmp_path,
+        timeout=60,
+    )
     assert p.returncode == 0
     rows = [line for line in p.stdout.decode("ascii").splitlines() if line.startswith(("|", "+"))]
     assert len(rows) > 10 and len({len(line) for line in rows}) == 1

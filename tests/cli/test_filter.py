@@ -14,8 +14,20 @@ def run(args, capsys):
     return status, out, err
 
 
-PAPER_FIGURE = ["filter", "analyze", "--rate", "1700,1700,1000", "--control", "iir,int,int", "--gain", "0.69,0.21,0.39",
-                "--system", "soul,soul,flao", "--label", "SOUL-IIR,SOUL-INT,FLAO-INT"]
+PAPER_FIGURE = [
+    "filter",
+    "analyze",
+    "--rate",
+    "1700,1700,1000",
+    "--control",
+    "iir,int,int",
+    "--gain",
+    "0.69,0.21,0.39",
+    "--system",
+    "soul,soul,flao",
+    "--label",
+    "SOUL-IIR,SOUL-INT,FLAO-INT",
+]
 
 
 def test_analyze_json_compares_controllers(capsys):
@@ -40,16 +52,50 @@ def test_analyze_table_and_plot(tmp_path, capsys):
 
 
 def test_analyze_given_roots_delay_and_chi(capsys):
-    status, out, _ = run(["filter", "analyze", "--rate", "1000", "--gain", "0.5", "--zeros", "0.5",
-                          "--poles", "1,0.2", "--delay-ms", "2", "--chi", "0.5", "--json"], capsys)
+    status, out, _ = run(
+        [
+            "filter",
+            "analyze",
+            "--rate",
+            "1000",
+            "--gain",
+            "0.5",
+            "--zeros",
+            "0.5",
+            "--poles",
+            "1,0.2",
+            "--delay-ms",
+            "2",
+            "--chi",
+            "0.5",
+            "--json",
+        ],
+        capsys,
+    )
     c = json.loads(out)["controllers"][0]
     assert status == 0 and c["poles"] == [1.0, 0.2] and c["delay_frames"] == pytest.approx(2.0)
     assert c["optical_gain"] == 0.5
 
 
 def test_analyze_leaky(capsys):
-    status, out, _ = run(["filter", "analyze", "--rate", "500", "--control", "leaky", "--forgetting", "0.9",
-                          "--gain", "0.5", "--delay-frames", "1.5", "--json"], capsys)
+    status, out, _ = run(
+        [
+            "filter",
+            "analyze",
+            "--rate",
+            "500",
+            "--control",
+            "leaky",
+            "--forgetting",
+            "0.9",
+            "--gain",
+            "0.5",
+            "--delay-frames",
+            "1.5",
+            "--json",
+        ],
+        capsys,
+    )
     c = json.loads(out)["controllers"][0]
     assert status == 0 and c["poles"] == [0.9]
     # |S| at 13 Hz from the loop written out: C(z) = g / (1 - a z^-1), P(z) = z^-1.5 as the delay
@@ -68,23 +114,26 @@ def test_unstable_loop_exit_3_with_figures(capsys):
     assert status == 3 and "UNSTABLE" in out
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--rate", "0", "--gain", "0.5"], "--rate must be in 1..100000 Hz, got 0"),
-    (["--rate", "-5", "--gain", "0.5"], "--rate must be in 1..100000 Hz, got -5"),
-    (["--rate", "1000", "--gain", "abc"], "--gain must be a number in 0.0001..1000, got 'abc'"),
-    (["--rate", "1000", "--gain", "0.5", "--delay-frames", "-1"], "--delay-frames must be in 0..50 frames, got -1"),
-    (["--rate", "1000", "--gain", "0.5", "--delay-ms", "-2"], "--delay-ms must be in 0..50000 ms, got -2"),
-    (["--rate", "1000", "--gain", "0.5", "--delay-ms", "2", "--delay-frames", "2"], "not both"),
-    (["--rate", "1000", "--gain", "0.5", "--zeros", "0.3"], "--poles needs at least one pole"),
-    (["--rate", "1000", "--gain", "0.5", "--poles", "1,abc"], "--poles must be numbers"),
-    (["--rate", "1000", "--gain", "0.5", "--poles", "0.5+0.1j"], "conjugate pairs"),
-    (["--rate", "1000", "--gain", "0.5", "--control", "pid"], "--control must be iir, int or leaky"),
-    (["--rate", "1000,1700", "--gain", "0.5,0.2,0.3"], "--rate has 2 values but --gain has 3: give one value or 3"),
-    (["--rate", "1000", "--gain", "0.5", "--forgetting", "1.5", "--control", "leaky"], "--forgetting must be in 0..1, got 1.5"),
-    (["--rate", "1000", "--gain", "0.5", "--plot", "tf.txt"], "--plot must end in .png"),
-    (["--rate", "1000", "--gain", "0.5", "--system", "keck"], "--system must be soul or flao"),
-    (["--rate", "1000"], "Missing option '--gain'"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--rate", "0", "--gain", "0.5"], "--rate must be in 1..100000 Hz, got 0"),
+        (["--rate", "-5", "--gain", "0.5"], "--rate must be in 1..100000 Hz, got -5"),
+        (["--rate", "1000", "--gain", "abc"], "--gain must be a number in 0.0001..1000, got 'abc'"),
+        (["--rate", "1000", "--gain", "0.5", "--delay-frames", "-1"], "--delay-frames must be in 0..50 frames, got -1"),
+        (["--rate", "1000", "--gain", "0.5", "--delay-ms", "-2"], "--delay-ms must be in 0..50000 ms, got -2"),
+        (["--rate", "1000", "--gain", "0.5", "--delay-ms", "2", "--delay-frames", "2"], "not both"),
+        (["--rate", "1000", "--gain", "0.5", "--zeros", "0.3"], "--poles needs at least one pole"),
+        (["--rate", "1000", "--gain", "0.5", "--poles", "1,abc"], "--poles must be numbers"),
+        (["--rate", "1000", "--gain", "0.5", "--poles", "0.5+0.1j"], "conjugate pairs"),
+        (["--rate", "1000", "--gain", "0.5", "--control", "pid"], "--control must be iir, int or leaky"),
+        (["--rate", "1000,1700", "--gain", "0.5,0.2,0.3"], "--rate has 2 values but --gain has 3: give one value or 3"),
+        (["--rate", "1000", "--gain", "0.5", "--forgetting", "1.5", "--control", "leaky"], "--forgetting must be in 0..1, got 1.5"),
+        (["--rate", "1000", "--gain", "0.5", "--plot", "tf.txt"], "--plot must end in .png"),
+        (["--rate", "1000", "--gain", "0.5", "--system", "keck"], "--system must be soul or flao"),
+        (["--rate", "1000"], "Missing option '--gain'"),
+    ],
+)
 def test_analyze_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     status, out, err = run(["filter", "analyze", *args], capsys)
@@ -93,16 +142,19 @@ def test_analyze_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, m
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--epsilon", "1.5"], "--epsilon must be in 0..1 (> 0, < 1), got 1.5"),
-    (["--epsilon", "0"], "--epsilon must be in 0..1 (> 0, < 1), got 0"),
-    (["--rate", "0"], "--rate must be in 100..2000 Hz, got 0"),
-    (["--rate", "1700,1700"], "twice"),
-    (["--delay-ms", "-1"], "--delay-ms must be a number >= 0 ms, got -1"),
-    (["--seeing", "0"], "--seeing must be in 0.05..10 arcsec, got 0"),
-    (["--vibrations", "missing.toml"], "vibration file not found"),
-    (["--noise", "-1"], "--noise must be in 0..10000 mas, got -1"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--epsilon", "1.5"], "--epsilon must be in 0..1 (> 0, < 1), got 1.5"),
+        (["--epsilon", "0"], "--epsilon must be in 0..1 (> 0, < 1), got 0"),
+        (["--rate", "0"], "--rate must be in 100..2000 Hz, got 0"),
+        (["--rate", "1700,1700"], "twice"),
+        (["--delay-ms", "-1"], "--delay-ms must be a number >= 0 ms, got -1"),
+        (["--seeing", "0"], "--seeing must be in 0.05..10 arcsec, got 0"),
+        (["--vibrations", "missing.toml"], "vibration file not found"),
+        (["--noise", "-1"], "--noise must be in 0..10000 mas, got -1"),
+    ],
+)
 def test_design_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     status, out, err = run(["filter", "design", *args, "--out", "roots.csv"], capsys)
@@ -113,8 +165,7 @@ def test_design_bad_input_is_one_line_exit_2(args, message, tmp_path, capsys, mo
 
 def test_design_json_out_plot_and_configure_roots(tmp_path, capsys):
     roots, png = tmp_path / "roots.csv", tmp_path / "design.png"
-    status, out, err = run(["filter", "design", "--rate", "1000", "--json", "--out", str(roots), "--plot", str(png),
-                            "--seed", "3"], capsys)
+    status, out, err = run(["filter", "design", "--rate", "1000", "--json", "--out", str(roots), "--plot", str(png), "--seed", "3"], capsys)
     assert status == 0
     d = json.loads(out)
     (design,) = d["designs"]
@@ -128,12 +179,15 @@ def test_design_json_out_plot_and_configure_roots(tmp_path, capsys):
     assert c["tt_zeros"] == pytest.approx(design["iir"]["zeros"], abs=1e-4)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("frame_rate_hz,zero1\n1000,0.1\n", "lacks the columns"),
-    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,a,0,0,0,0,0,0,1\n", "must hold 9 numbers"),
-    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,0,0,0,0,0,0,1.5,1\n", "poles must be in -1..1"),
-    ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n", "no rows"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("frame_rate_hz,zero1\n1000,0.1\n", "lacks the columns"),
+        ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,a,0,0,0,0,0,0,1\n", "must hold 9 numbers"),
+        ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,0,0,0,0,0,0,1.5,1\n", "poles must be in -1..1"),
+        ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n", "no rows"),
+    ],
+)
 def test_configure_malformed_roots_exit_2(text, message, tmp_path, capsys):
     p = tmp_path / "roots.csv"
     p.write_text(text)

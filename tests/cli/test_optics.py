@@ -28,7 +28,7 @@ def test_atmosphere_json_against_the_seeing_relations(capsys):
     assert status == 0 and err == ""
     d = json.loads(out)
     assert d["r0_500nm_m"] == pytest.approx(0.98 * 500e-9 / (1.0 / 206265), rel=1e-3)
-    assert d["r0_750nm_m"] / d["r0_500nm_m"] == pytest.approx(1.5 ** 1.2)
+    assert d["r0_750nm_m"] / d["r0_500nm_m"] == pytest.approx(1.5**1.2)
     assert d["effective_wind_m_s"] == pytest.approx(10.0)
     assert d["tau0_500nm_ms"] == pytest.approx(0.314 * d["r0_500nm_m"] / 10.0 * 1e3)
     assert sum(layer["weight"] for layer in d["layers"]) == pytest.approx(1.0)

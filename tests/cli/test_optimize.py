@@ -57,12 +57,34 @@ def recorded(tmp_path_factory, cache_dir):
 
 def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir):
     out_file = tmp_path / "gains.toml"
-    status, out, err = cli(["optimize", "gains", "--method", "both", *SMALL, "--period", "1", "--duration", "2", "--measure", "0.3",
-                            "--sequence", "0.1", "--json", "--out", str(out_file), "--plot", str(tmp_path)], capsys, cache_dir)
+    status, out, err = cli(
+        [
+            "optimize",
+            "gains",
+            "--method",
+            "both",
+            *SMALL,
+            "--period",
+            "1",
+            "--duration",
+            "2",
+            "--measure",
+            "0.3",
+            "--sequence",
+            "0.1",
+            "--json",
+            "--out",
+            str(out_file),
+            "--plot",
+            str(tmp_path),
+        ],
+        capsys,
+        cache_dir,
+    )
     assert status == 0, err
     d = json.loads(out)
     assert set(d) == {"trial", "mgm"}
-    for method, r in d.items():
+    for r in d.values():
         g = np.array(r["gains"])
         assert g.shape == (54,) and np.all(np.isfinite(g)) and np.all(g >= 0)
         assert 0 < r["before"]["strehl"] < 1 and 0 < r["after"]["strehl"] < 1 and r["after"]["residual_nm"] > 0
@@ -101,8 +123,25 @@ def test_mgm_decouples_tip_and_tilt_with_different_vibrations(tmp_path, capsys, 
     tip_gains = []
     for tip, tilt in ((40.0, 2.0), (2.0, 40.0)):
         vib = _vibration_file(tmp_path / f"v{tip:g}.toml", tip, tilt)
-        status, out, err = cli(["optimize", "gains", *SMALL, "--no-ogtl", "--period", "1", "--duration", "3", "--measure", "0.2",
-                                "--vibrations", str(vib), "--json"], capsys, cache_dir)
+        status, out, err = cli(
+            [
+                "optimize",
+                "gains",
+                *SMALL,
+                "--no-ogtl",
+                "--period",
+                "1",
+                "--duration",
+                "3",
+                "--measure",
+                "0.2",
+                "--vibrations",
+                str(vib),
+                "--json",
+            ],
+            capsys,
+            cache_dir,
+        )
         assert status == 0, err
         g = json.loads(out)["gains"]
         tip_gains.append((g[0], g[1]))
@@ -112,8 +151,9 @@ def test_mgm_decouples_tip_and_tilt_with_different_vibrations(tmp_path, capsys, 
 
 def test_loop_run_with_mgm_and_ogtl_records_them_in_the_telemetry(tmp_path, capsys, cache_dir):
     h5 = tmp_path / "aux.h5"
-    status, out, err = cli(["loop", "run", *SMALL, "--duration", "3", "--mgm", "--ogtl", "--period", "1", "--telemetry", str(h5), "--json"],
-                           capsys, cache_dir)
+    status, out, err = cli(
+        ["loop", "run", *SMALL, "--duration", "3", "--mgm", "--ogtl", "--period", "1", "--telemetry", str(h5), "--json"], capsys, cache_dir
+    )
     assert status == 0, err
     d = json.loads(out)
     assert d["auxiliary_loops"] == ["metrics", "mgm", "ogtl", "safety"] and d["final_sensitivity"] > 1
@@ -139,8 +179,9 @@ def test_loop_run_with_mgm_and_ogtl_records_them_in_the_telemetry(tmp_path, caps
 
 def test_offline_mgm_on_a_recorded_loop(recorded, tmp_path, capsys, cache_dir):
     out_file = tmp_path / "offline.toml"
-    status, out, err = cli(["optimize", "gains", "--method", "mgm", "--telemetry", str(recorded), "--json", "--out", str(out_file)],
-                           capsys, cache_dir)
+    status, out, err = cli(
+        ["optimize", "gains", "--method", "mgm", "--telemetry", str(recorded), "--json", "--out", str(out_file)], capsys, cache_dir
+    )
     assert status == 0, err
     d = json.loads(out)
     previous, optimum, gains = (np.array(d[k]) for k in ("previous_gains", "optimum", "gains"))
@@ -183,14 +224,17 @@ def _short(f):
         f[name] = data
 
 
-@pytest.mark.parametrize("edit, args, message", [
-    (lambda f: f.__delitem__("measured_modes"), [], "lacks measured_modes"),
-    (_nan_commands, [], "field command_modes has 1 NaN"),
-    (lambda f: None, ["--mag", "15"], "field measured_modes has shape (814, 54), expected (frames, 90)"),
-    (lambda f: f.attrs.__delitem__("delay_frames"), [], "lacks delay_frames"),
-    (lambda f: f.attrs.__setitem__("configuration", "{not json"), [], "attribute configuration is not JSON"),
-    (_short, [], "must be at least"),
-])
+@pytest.mark.parametrize(
+    "edit, args, message",
+    [
+        (lambda f: f.__delitem__("measured_modes"), [], "lacks measured_modes"),
+        (_nan_commands, [], "field command_modes has 1 NaN"),
+        (lambda f: None, ["--mag", "15"], "field measured_modes has shape (814, 54), expected (frames, 90)"),
+        (lambda f: f.attrs.__delitem__("delay_frames"), [], "lacks delay_frames"),
+        (lambda f: f.attrs.__setitem__("configuration", "{not json"), [], "attribute configuration is not JSON"),
+        (_short, [], "must be at least"),
+    ],
+)
 def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, edit, args, message):
     path = _edited(recorded, tmp_path, edit)
     status, out, err = cli(["optimize", "gains", "--telemetry", str(path), *args, "--out", str(tmp_path / "g.toml")], capsys, cache_dir)
@@ -198,15 +242,18 @@ def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, ed
     assert not (tmp_path / "g.toml").exists()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--method", "grid"], "--method must be one of"),
-    (["--method", "trial", "--telemetry", "x.h5"], "use it with --method mgm"),
-    (["--period", "0.2"], "--period must be at least"),
-    (["--probe-mode", "60"], "--probe-mode 60 is beyond the 54 controlled modes"),
-    (["--duration", "0"], "--duration must be in 0..3600 s"),
-    (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
-    (["--seeing", "0"], "--seeing must be in"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--method", "grid"], "--method must be one of"),
+        (["--method", "trial", "--telemetry", "x.h5"], "use it with --method mgm"),
+        (["--period", "0.2"], "--period must be at least"),
+        (["--probe-mode", "60"], "--probe-mode 60 is beyond the 54 controlled modes"),
+        (["--duration", "0"], "--duration must be in 0..3600 s"),
+        (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
+        (["--seeing", "0"], "--seeing must be in"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(args, message, capsys, cache_dir):
     status, out, err = cli(["optimize", "gains", *SMALL, *args], capsys, cache_dir)
     assert status == 2 and message in err and err.count("\n") == 1
@@ -251,8 +298,9 @@ def test_the_default_period_is_valid_at_every_magnitude():
 
 def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     period = default_period_s(observation_for_magnitude(18))  # 4.1 s at 160 Hz: 4 segments of 256 frames
-    status, out, err = cli(["optimize", "gains", "--mag", "18", "--duration", f"{2.5 * period:g}", "--measure", "0.3", "--json"],
-                           capsys, cache_dir)
+    status, out, err = cli(
+        ["optimize", "gains", "--mag", "18", "--duration", f"{2.5 * period:g}", "--measure", "0.3", "--json"], capsys, cache_dir
+    )
     assert status == 0, err
     assert json.loads(out)["mgm_updates"] == 2
 

@@ -27,15 +27,46 @@ from hypothesis import strategies as st
 
 from soulctl.cli.app import main
 
-settings.register_profile("soulctl-ci", max_examples=6, deadline=None, derandomize=True,
-                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-settings.register_profile("soulctl-thorough", max_examples=150, deadline=None,
-                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-PROFILE = settings.get_profile(os.environ.get("HYPOTHESIS_PROFILE", "soulctl-ci")
-                               if os.environ.get("HYPOTHESIS_PROFILE", "").startswith("soulctl-") else "soulctl-ci")
+settings.register_profile(
+    "soulctl-ci",
+    max_examples=6,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+settings.register_profile(
+    "soulctl-thorough", max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture]
+)
+PROFILE = settings.get_profile(
+    os.environ.get("HYPOTHESIS_PROFILE", "soulctl-ci") if os.environ.get("HYPOTHESIS_PROFILE", "").startswith("soulctl-") else "soulctl-ci"
+)
 
-SPECIAL = ["nan", "inf", "-inf", "-0", "0", "1", "0.5", "-1", "1e308", "1e-300", "5e-324", "", " ", "abc", "1,2", "1_0",
-           "0x10", "１２", "١٢", "1e999", "2" * 40, "None", "true", "[]"]
+SPECIAL = [
+    "nan",
+    "inf",
+    "-inf",
+    "-0",
+    "0",
+    "1",
+    "0.5",
+    "-1",
+    "1e308",
+    "1e-300",
+    "5e-324",
+    "",
+    " ",
+    "abc",
+    "1,2",
+    "1_0",
+    "0x10",
+    "１２",
+    "١٢",
+    "1e999",
+    "2" * 40,
+    "None",
+    "true",
+    "[]",
+]
 NUMBERS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.integers(min_value=-(10**30), max_value=10**30).map(str),
@@ -67,21 +98,59 @@ CHEAP_OPTICS = ["--binning", "4", "--oversampling", "1"]
 # (command, base arguments, option, strategy, time limit in s)
 CASES = [
     ("configure", [], "--mag", NUMBERS, 10),
-    *[("filter analyze", ["--rate", "1700", "--gain", "0.3", "--control", c], o, s, 10) for c, o, s in [
-        ("int", "--rate", LISTS), ("int", "--gain", LISTS), ("int", "--delay-frames", LISTS), ("int", "--delay-ms", LISTS),
-        ("int", "--chi", LISTS), ("leaky", "--forgetting", LISTS), ("iir", "--zeros", LISTS), ("iir", "--poles", LISTS)]],
-    *[("filter design", ["--rate", "1700"], o, NUMBERS, 60) for o in
-      ["--rate", "--epsilon", "--seeing", "--wind", "--L0", "--noise", "--resonance-line", "--delay-ms", "--seed"]],
+    *[
+        ("filter analyze", ["--rate", "1700", "--gain", "0.3", "--control", c], o, s, 10)
+        for c, o, s in [
+            ("int", "--rate", LISTS),
+            ("int", "--gain", LISTS),
+            ("int", "--delay-frames", LISTS),
+            ("int", "--delay-ms", LISTS),
+            ("int", "--chi", LISTS),
+            ("leaky", "--forgetting", LISTS),
+            ("iir", "--zeros", LISTS),
+            ("iir", "--poles", LISTS),
+        ]
+    ],
+    *[
+        ("filter design", ["--rate", "1700"], o, NUMBERS, 60)
+        for o in ["--rate", "--epsilon", "--seeing", "--wind", "--L0", "--noise", "--resonance-line", "--delay-ms", "--seed"]
+    ],
     *[("optics atmosphere", [], o, NUMBERS, 10) for o in ["--seeing", "--wind", "--L0"]],
     *[("optics calibrate", CHEAP_OPTICS, o, NUMBERS, 120) for o in ["--binning", "--modes", "--modulation", "--oversampling"]],
-    *[("optics gains", [*CHEAP_OPTICS, "--screens", "1"], o, s, 120) for o, s in [
-        ("--seeing", NUMBERS), ("--L0", NUMBERS), ("--controlled-fraction", NUMBERS), ("--screens", small(4)), ("--seed", NUMBERS)]],
-    *[("loop run", FAST_LOOP, o, s, 120) for o, s in [
-        ("--mag", NUMBERS), ("--seeing", NUMBERS), ("--wind", NUMBERS), ("--L0", NUMBERS), ("--duration", small(0.1)),
-        ("--seed", NUMBERS), ("--oversampling", NUMBERS), ("--gains", LISTS)]],
+    *[
+        ("optics gains", [*CHEAP_OPTICS, "--screens", "1"], o, s, 120)
+        for o, s in [
+            ("--seeing", NUMBERS),
+            ("--L0", NUMBERS),
+            ("--controlled-fraction", NUMBERS),
+            ("--screens", small(4)),
+            ("--seed", NUMBERS),
+        ]
+    ],
+    *[
+        ("loop run", FAST_LOOP, o, s, 120)
+        for o, s in [
+            ("--mag", NUMBERS),
+            ("--seeing", NUMBERS),
+            ("--wind", NUMBERS),
+            ("--L0", NUMBERS),
+            ("--duration", small(0.1)),
+            ("--seed", NUMBERS),
+            ("--oversampling", NUMBERS),
+            ("--gains", LISTS),
+        ]
+    ],
     *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],
-    *[("optimize gains", OPTIMIZE, o, s, 180) for o, s in [
-        ("--period", NUMBERS), ("--duration", small(1.2)), ("--measure", small(0.2)), ("--seeing", NUMBERS), ("--seed", NUMBERS)]],
+    *[
+        ("optimize gains", OPTIMIZE, o, s, 180)
+        for o, s in [
+            ("--period", NUMBERS),
+            ("--duration", small(1.2)),
+            ("--measure", small(0.2)),
+            ("--seeing", NUMBERS),
+            ("--seed", NUMBERS),
+        ]
+    ],
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
 GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
@@ -141,8 +210,14 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
     @given(value=values)
     def check(value):
         fill = {"grid": str(grid), "out": str(grid.parent / f"out{next(outs)}")}  # a new folder per sweep
-        args = [*command.split(), *(a.format(**fill) for a in base), option, value, "--json",
-                *(["--cache-dir", cache] if uses_cache else [])]
+        args = [
+            *command.split(),
+            *(a.format(**fill) for a in base),
+            option,
+            value,
+            "--json",
+            *(["--cache-dir", cache] if uses_cache else []),
+        ]
         check_contract(args, limit)
 
     check()

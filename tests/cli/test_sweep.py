@@ -54,16 +54,30 @@ def cli(args, capsys, cache_dir):
 
 def test_local_cluster_equals_loop_run_case_by_case_and_resume(grid, tmp_path, capsys, cache_dir):
     out_dir = tmp_path / "out"
-    status, out, err = cli(["sweep", str(grid), "--workers", "2", "--out", str(out_dir), "--json", "--plot", "--derive-table"],
-                           capsys, cache_dir)
+    status, out, err = cli(
+        ["sweep", str(grid), "--workers", "2", "--out", str(out_dir), "--json", "--plot", "--derive-table"], capsys, cache_dir
+    )
     assert status == 0, err
     report = json.loads(out)
     assert (report["total"], report["computed"], report["failed"], report["skipped"]) == (4, 4, 0, 0)
     rows = ResultsTable.read_rows(out_dir / "results.csv")
     assert len(rows) == 4
     for row in rows.values():
-        args = ["loop", "run", "--mag", f"{row['magnitude']:g}", "--seeing", f"{row['seeing']:g}", "--oversampling", "1",
-                "--duration", "0.3", "--seed", "2", "--json"]
+        args = [
+            "loop",
+            "run",
+            "--mag",
+            f"{row['magnitude']:g}",
+            "--seeing",
+            f"{row['seeing']:g}",
+            "--oversampling",
+            "1",
+            "--duration",
+            "0.3",
+            "--seed",
+            "2",
+            "--json",
+        ]
         status, out, _ = cli(args, capsys, cache_dir)
         m = json.loads(out)["metrics"]
         assert (row["strehl"], row["tt_jitter_mas"], row["residual_nm"]) == (m["strehl"], m["tt_jitter_mas"], m["residual_nm"])
@@ -127,13 +141,34 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     sent to them with --scheduler."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", ":0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--dashboard-address",
+                ":0",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            cwd=tmp_path,
+        )
+    ]
     try:
         time.sleep(2)
-        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1",
-                                       "--nthreads", "1", "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                      cwd=tmp_path))
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                cwd=tmp_path,
+            )
+        )
         status, out, err = cli(["sweep", str(grid), "--scheduler", address, "--out", str(tmp_path / "ext"), "--json"], capsys, cache_dir)
         assert status == 0, err
         assert json.loads(out)["computed"] == 4
@@ -147,30 +182,45 @@ def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
                 p.kill()
 
 
-
 # ------------------------------------------------------------------- bad input: exit 2, nothing created
 
-@pytest.mark.parametrize("text, args, message", [
-    ("magnitude = [", [], "is not valid TOML"),
-    ("magnitude = 12\ncolour = 1\n", [], "unknown parameter colour"),
-    ("", [], "is empty"),
-    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:9"], "cannot reach the Dask scheduler at tcp://127.0.0.1:9: connection refused"),
-    ("magnitude = 12\n", ["--workers", "0"], "--workers (2 per core at most) must be in 1.."),
-    ("magnitude = 12\n", ["--workers", "512"], "--workers (2 per core at most) must be in 1.."),
-    # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
-    ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be in 0..100 m/s (> 0), got 0"),
-    ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be in 0.5..10000 m, got 0.1"),
-    ("magnitude = 18.6\n", [], "magnitude must be in 0..18.5, got 18.6"),
-    # schemes other than tcp:// are refused (they gave TypeError tracebacks), and malformed addresses
-    ("magnitude = 12\n", ["--scheduler", "ucx://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'ucx://127.0.0.1:8786' (ucx://"),
-    ("magnitude = 12\n", ["--scheduler", "tls://127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT, got 'tls://127.0.0.1:8786' (tls://: TLS"),
-    ("magnitude = 12\n", ["--scheduler", "inproc://127.0.0.1/1/2"], "(inproc://: inproc:// only exists inside one Python process)"),
-    ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "--scheduler must be tcp://HOST:PORT"),
-    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
-    ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:99999"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
-    ("magnitude = 12\n", ["--scheduler", "tcp://[::1:8786"], "--scheduler must be tcp://HOST:PORT"),
-    ("magnitude = 12\n", ["--scheduler", "tcp:// 127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT"),
-])
+
+@pytest.mark.parametrize(
+    "text, args, message",
+    [
+        ("magnitude = [", [], "is not valid TOML"),
+        ("magnitude = 12\ncolour = 1\n", [], "unknown parameter colour"),
+        ("", [], "is empty"),
+        (
+            "magnitude = 12\n",
+            ["--scheduler", "tcp://127.0.0.1:9"],
+            "cannot reach the Dask scheduler at tcp://127.0.0.1:9: connection refused",
+        ),
+        ("magnitude = 12\n", ["--workers", "0"], "--workers (2 per core at most) must be in 1.."),
+        ("magnitude = 12\n", ["--workers", "512"], "--workers (2 per core at most) must be in 1.."),
+        # the ranges are soulctl.ranges' (wind 0 crashed inside the loop; L0 below 0.5 m is not accepted by loop run)
+        ("magnitude = 12\nwind = [5, 0]\n", [], "wind must be in 0..100 m/s (> 0), got 0"),
+        ("magnitude = 12\nL0 = 0.1\n", [], "L0 must be in 0.5..10000 m, got 0.1"),
+        ("magnitude = 18.6\n", [], "magnitude must be in 0..18.5, got 18.6"),
+        # schemes other than tcp:// are refused (they gave TypeError tracebacks), and malformed addresses
+        (
+            "magnitude = 12\n",
+            ["--scheduler", "ucx://127.0.0.1:8786"],
+            "--scheduler must be tcp://HOST:PORT, got 'ucx://127.0.0.1:8786' (ucx://",
+        ),
+        (
+            "magnitude = 12\n",
+            ["--scheduler", "tls://127.0.0.1:8786"],
+            "--scheduler must be tcp://HOST:PORT, got 'tls://127.0.0.1:8786' (tls://: TLS",
+        ),
+        ("magnitude = 12\n", ["--scheduler", "inproc://127.0.0.1/1/2"], "(inproc://: inproc:// only exists inside one Python process)"),
+        ("magnitude = 12\n", ["--scheduler", "http://127.0.0.1:notaport"], "--scheduler must be tcp://HOST:PORT"),
+        ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
+        ("magnitude = 12\n", ["--scheduler", "tcp://127.0.0.1:99999"], "--scheduler must be tcp://HOST:PORT (PORT 1..65535"),
+        ("magnitude = 12\n", ["--scheduler", "tcp://[::1:8786"], "--scheduler must be tcp://HOST:PORT"),
+        ("magnitude = 12\n", ["--scheduler", "tcp:// 127.0.0.1:8786"], "--scheduler must be tcp://HOST:PORT"),
+    ],
+)
 def test_bad_input_exits_2_runs_nothing_and_creates_no_folder(text, args, message, tmp_path, capsys, cache_dir):
     path = tmp_path / "grid.toml"
     path.write_text(text)
@@ -201,6 +251,7 @@ def test_an_out_folder_that_cannot_be_made_is_refused_first(tmp_path, capsys, ca
 
 
 # ------------------------------------------------------------------- schedulers that do not answer
+
 
 class _Listener:
     """A TCP listener on 127.0.0.1 that accepts connections and then stays silent, or sends
@@ -241,16 +292,22 @@ def test_a_silent_listener_is_refused_within_the_bound_and_the_process_exits(tmp
     address = f"tcp://127.0.0.1:{listener.port}"
     try:
         t0 = time.monotonic()
-        proc = subprocess.run([sys.executable, "-m", "soulctl.cli.app", "sweep", str(grid), "--scheduler", address,
-                               "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=60,
-                              cwd=tmp_path)  # the installed package, not the source folder
+        proc = subprocess.run(
+            [sys.executable, "-m", "soulctl.cli.app", "sweep", str(grid), "--scheduler", address, "--out", str(tmp_path / "out")],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+        )  # the installed package, not the source folder
         t1 = time.monotonic()
     finally:
         listener.close()
     assert proc.returncode == 2, proc.stderr
     assert len(listener.accepted) == 1 and t1 - listener.accepted[0] < dask_scheduler.CONNECT_TIMEOUT_S + 1.5
-    assert proc.stderr == (f"soulctl: error: cannot reach the Dask scheduler at {address}: no answer from a Dask scheduler "
-                           f"within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; nothing was run\n")
+    assert proc.stderr == (
+        f"soulctl: error: cannot reach the Dask scheduler at {address}: no answer from a Dask scheduler "
+        f"within {dask_scheduler.CONNECT_TIMEOUT_S:g} s; nothing was run\n"
+    )
     assert dask_scheduler.CONNECT_TIMEOUT_S <= 10 and t1 - t0 < 20
     assert not (tmp_path / "out").exists()
 
@@ -265,12 +322,15 @@ class _Http(http.server.BaseHTTPRequestHandler):
         pass
 
 
-@pytest.mark.parametrize("server, message", [
-    ("http", "no answer from a Dask scheduler within 2 s"),  # e.g. the dashboard's port: waits for a request
-    ("random", "the listener there is not a Dask scheduler (it announced a first message of"),  # once: exabytes
-    ("http-greeting", "the listener there is not a Dask scheduler (it announced a first message of"),
-    ("closes", "the listener there is not a Dask scheduler (it closed the connection without a handshake)"),
-])
+@pytest.mark.parametrize(
+    "server, message",
+    [
+        ("http", "no answer from a Dask scheduler within 2 s"),  # e.g. the dashboard's port: waits for a request
+        ("random", "the listener there is not a Dask scheduler (it announced a first message of"),  # once: exabytes
+        ("http-greeting", "the listener there is not a Dask scheduler (it announced a first message of"),
+        ("closes", "the listener there is not a Dask scheduler (it closed the connection without a handshake)"),
+    ],
+)
 def test_a_listener_that_is_not_a_scheduler_is_refused(server, message, tmp_path, capsys, cache_dir, monkeypatch):
     monkeypatch.setattr(dask_scheduler, "CONNECT_TIMEOUT_S", 2.0)
     if server == "http":
@@ -299,8 +359,9 @@ def test_a_listener_that_is_not_a_scheduler_is_refused(server, message, tmp_path
     grid.write_text("magnitude = 12\n")
     try:
         t0 = time.monotonic()
-        status, _, err = cli(["sweep", str(grid), "--scheduler", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "out")],
-                             capsys, cache_dir)
+        status, _, err = cli(
+            ["sweep", str(grid), "--scheduler", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "out")], capsys, cache_dir
+        )
         elapsed = time.monotonic() - t0
     finally:
         close()
@@ -310,6 +371,7 @@ def test_a_listener_that_is_not_a_scheduler_is_refused(server, message, tmp_path
 
 
 # ------------------------------------------------------------------- --resume checks the rows
+
 
 def _finished_results(path, text, edit=lambda lines: lines, bom=False, newline="\n"):
     """A results file in which every case of the grid ``text`` is finished (no case to run)."""
@@ -345,7 +407,9 @@ def test_resume_refuses_a_parameter_out_of_range_naming_its_line(tmp_path, capsy
     grid = tmp_path / "grid.toml"
     grid.write_text(TINY)
     results = tmp_path / "out" / "results.csv"
-    _finished_results(results, TINY, lambda lines: [*lines, lines[1].replace(",1.0,8.0,", ",11.0,8.0,").replace(lines[1][:16], "0123456789abcdef")])
+    _finished_results(
+        results, TINY, lambda lines: [*lines, lines[1].replace(",1.0,8.0,", ",11.0,8.0,").replace(lines[1][:16], "0123456789abcdef")]
+    )
     status, _, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume"], capsys, cache_dir)
     assert status == 2 and "line 5: seeing must be in 0.05..10 arcsec, got 11" in err
 
@@ -355,8 +419,9 @@ def test_resume_accepts_a_spreadsheets_file_and_keeps_its_columns(tmp_path, caps
     grid = tmp_path / "grid.toml"
     grid.write_text(TINY)
     results = tmp_path / "out" / "results.csv"
-    cases = _finished_results(results, TINY, lambda lines: [lines[0] + ",notes"] + [ln + f",note {i}" for i, ln in enumerate(lines[1:])],
-                              bom=True, newline="\r\n")
+    cases = _finished_results(
+        results, TINY, lambda lines: [lines[0] + ",notes"] + [ln + f",note {i}" for i, ln in enumerate(lines[1:])], bom=True, newline="\r\n"
+    )
     status, out, err = cli(["sweep", str(grid), "--out", str(tmp_path / "out"), "--resume", "--json"], capsys, cache_dir)
     assert status == 0, err
     report = json.loads(out)
@@ -367,6 +432,7 @@ def test_resume_accepts_a_spreadsheets_file_and_keeps_its_columns(tmp_path, caps
 
 
 # ------------------------------------------------------------------- rows appended, one line each
+
 
 def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path, capsys, cache_dir, monkeypatch):
     """Each finished case appends one complete line to the same file (no rewrite per case); the
@@ -389,10 +455,11 @@ def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path,
     assert status == 0, err
     assert len(seen) == 3 and len({ino for ino, _ in seen}) == 1  # one file, appended to
     for (_, a), (_, b) in zip(seen, seen[1:]):
-        assert b.startswith(a) and b[len(a):].count(b"\n") == 1 and b.endswith(b"\n")
+        assert b.startswith(a) and b[len(a) :].count(b"\n") == 1 and b.endswith(b"\n")
     final = results.read_text().splitlines()
-    assert [ln.split(",")[0] for ln in final[1:]] == [case_id(c) for c in parse_grid({"magnitude": [16.6, 17.0, 17.5], "binning": 4,
-                                                                                     "oversampling": 1, "duration": 0.05})]
+    assert [ln.split(",")[0] for ln in final[1:]] == [
+        case_id(c) for c in parse_grid({"magnitude": [16.6, 17.0, 17.5], "binning": 4, "oversampling": 1, "duration": 0.05})
+    ]
     # a crash in the middle of the last write: the file ends with part of a line
     results.write_text("\n".join(final[:-1]) + "\n" + final[-1][:50])
     status, out_text, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(out), "--resume", "--json"], capsys, cache_dir)
@@ -406,14 +473,24 @@ def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path,
 
 # ------------------------------------------------------------------- one sweep per folder
 
+
 def test_a_second_sweep_into_the_same_folder_is_refused(tmp_path, capsys, cache_dir):
     grid = tmp_path / "grid.toml"
     grid.write_text(TINY)
     out = tmp_path / "out"
     out.mkdir()
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom soulctl.sweep.results import results_lock\n"
-                               "with results_lock(sys.argv[1]):\n    print('locked', flush=True)\n    time.sleep(60)\n", str(out)],
-                              stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom soulctl.sweep.results import results_lock\n"
+            "with results_lock(sys.argv[1]):\n    print('locked', flush=True)\n    time.sleep(60)\n",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         for extra in ([], ["--resume"]):
@@ -456,14 +533,17 @@ class _Terminal:
         return self.answer
 
 
-@pytest.mark.parametrize("answer, args, terminal, asked, status, message", [
-    ("n\n", [], True, 1, 2, "sweep not started (not confirmed; --yes starts a long sweep without asking)"),
-    ("", [], True, 1, 2, "sweep not started"),  # end of input
-    ("y\n", [], True, 1, 2, "reached the run"),
-    ("n\n", ["--yes"], True, 0, 2, "reached the run"),
-    ("n\n", [], False, 0, 2, "reached the run"),  # not a terminal: no question
-    ("n\n", ["--json"], True, 1, 2, "sweep not started"),  # the estimate in the question
-])
+@pytest.mark.parametrize(
+    "answer, args, terminal, asked, status, message",
+    [
+        ("n\n", [], True, 1, 2, "sweep not started (not confirmed; --yes starts a long sweep without asking)"),
+        ("", [], True, 1, 2, "sweep not started"),  # end of input
+        ("y\n", [], True, 1, 2, "reached the run"),
+        ("n\n", ["--yes"], True, 0, 2, "reached the run"),
+        ("n\n", [], False, 0, 2, "reached the run"),  # not a terminal: no question
+        ("n\n", ["--json"], True, 1, 2, "sweep not started"),  # the estimate in the question
+    ],
+)
 def test_a_long_sweep_asks_on_a_terminal(answer, args, terminal, asked, status, message, tmp_path, capsys, cache_dir, monkeypatch):
     import soulctl.cli.sweep as sweep_cli
     from soulctl.errors import InputError
@@ -491,13 +571,18 @@ def test_a_long_sweep_asks_on_a_terminal(answer, args, terminal, asked, status, 
 def test_a_scheduler_without_workers_is_refused_within_the_wait(grid, tmp_path, capsys, cache_dir):
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                  "--dashboard-address", ":0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
+    scheduler = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=tmp_path,
+    )
     try:
         time.sleep(2)
         t0 = time.monotonic()
-        status, out, err = cli(["sweep", str(grid), "--scheduler", address, "--wait-workers", "2", "--out", str(tmp_path / "none")],
-                               capsys, cache_dir)
+        status, out, err = cli(
+            ["sweep", str(grid), "--scheduler", address, "--wait-workers", "2", "--out", str(tmp_path / "none")], capsys, cache_dir
+        )
         assert status == 2 and "has no worker (none joined within 2 s)" in err and err.count("\n") == 1 and out == ""
         assert time.monotonic() - t0 < 20
         assert not (tmp_path / "none").exists()

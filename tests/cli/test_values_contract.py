@@ -35,24 +35,31 @@ def refused(status, out, err, *words):
 
 # ------------------------------------------------------------------------ observation files
 
-@pytest.mark.parametrize("edit, words", [
-    (("modes = 90", "modes = 1"), ("modes must be in 2..671",)),
-    (("modes = 90", "modes = 672"), ("modes must be in 2..671",)),
-    (("magnitude_r = 16.5", "magnitude_r = -60"), ("magnitude_r must be in the look-up table's 0..18.5",)),
-    (("magnitude_r = 16.5", "magnitude_r = 99"), ("magnitude_r",)),
-    (("magnitude_r = 16.5", "magnitude_r = -30"), ("magnitude_r",)),
-    (("zero_point_ph_s_per_subaperture = 264700000.0", "zero_point_ph_s_per_subaperture = 1e300"), ("zero_point",)),
-    (("t_asm_ms = 1.0", "t_asm_ms = 1e6"), ("t_asm_ms",)),
-    (("frame_rate_hz = 250.0", "frame_rate_hz = 1e9"), ("frame_rate_hz must be in 10..2000 Hz",)),
-])
+
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        (("modes = 90", "modes = 1"), ("modes must be in 2..671",)),
+        (("modes = 90", "modes = 672"), ("modes must be in 2..671",)),
+        (("magnitude_r = 16.5", "magnitude_r = -60"), ("magnitude_r must be in the look-up table's 0..18.5",)),
+        (("magnitude_r = 16.5", "magnitude_r = 99"), ("magnitude_r",)),
+        (("magnitude_r = 16.5", "magnitude_r = -30"), ("magnitude_r",)),
+        (("zero_point_ph_s_per_subaperture = 264700000.0", "zero_point_ph_s_per_subaperture = 1e300"), ("zero_point",)),
+        (("t_asm_ms = 1.0", "t_asm_ms = 1e6"), ("t_asm_ms",)),
+        (("frame_rate_hz = 250.0", "frame_rate_hz = 1e9"), ("frame_rate_hz must be in 10..2000 Hz",)),
+    ],
+)
 def test_every_field_of_an_observation_file_is_checked(edit, words, tmp_path, capsys, cache_dir):
     path = tmp_path / "obs.toml"
     observation_for_magnitude(16.5).write_toml(path)
     text = path.read_text()
     assert edit[0] in text
     path.write_text(text.replace(*edit))
-    refused(*run(["loop", "run", "--config", path, "--oversampling", "1", "--duration", "0.05"], capsys, cache_dir),
-            f"configuration file {path}", *words)
+    refused(
+        *run(["loop", "run", "--config", path, "--oversampling", "1", "--duration", "0.05"], capsys, cache_dir),
+        f"configuration file {path}",
+        *words,
+    )
 
 
 def iir_config(tmp_path, zeros, poles) -> str:
@@ -63,30 +70,39 @@ def iir_config(tmp_path, zeros, poles) -> str:
     return path
 
 
-@pytest.mark.parametrize("zeros, poles, words", [
-    ([1e300, 1e300, 0.0, 0.0], [0.1, 0.2, 0.3, 1.0], ("tt_zeros must be in -10..10",)),
-    ([0.1, 0.2, 0.3, 0.4], [1.0, 1.0, 1.0, 1.0], ("unstable at every gain",)),
-])
+@pytest.mark.parametrize(
+    "zeros, poles, words",
+    [
+        ([1e300, 1e300, 0.0, 0.0], [0.1, 0.2, 0.3, 1.0], ("tt_zeros must be in -10..10",)),
+        ([0.1, 0.2, 0.3, 0.4], [1.0, 1.0, 1.0, 1.0], ("unstable at every gain",)),
+    ],
+)
 def test_iir_roots_that_no_loop_can_run_are_refused(zeros, poles, words, tmp_path, capsys, cache_dir):
     refused(*run(["loop", "run", "--config", iir_config(tmp_path, zeros, poles)], capsys, cache_dir), *words)
 
 
-@pytest.mark.parametrize("row, words", [
-    ("1700,1e300,0,0,0,0,0,0,1", ("zeros must be in -10..10",)),
-    ("1700,0,0,0,0,1,1,1,1", ("unstable at every gain",)),
-    ("20,0,0,0,0,0,0,0.5,1", ("no row within 20% of 1700 Hz", "rows at 20 Hz")),
-])
+@pytest.mark.parametrize(
+    "row, words",
+    [
+        ("1700,1e300,0,0,0,0,0,0,1", ("zeros must be in -10..10",)),
+        ("1700,0,0,0,0,1,1,1,1", ("unstable at every gain",)),
+        ("20,0,0,0,0,0,0,0.5,1", ("no row within 20% of 1700 Hz", "rows at 20 Hz")),
+    ],
+)
 def test_roots_tables_that_do_not_apply_are_refused(row, words, tmp_path, capsys):
     roots = tmp_path / "roots.csv"
     roots.write_text("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n" + row + "\n")
     refused(*run(["configure", "--mag", "9.7", "--roots", roots], capsys), *words)
 
 
-@pytest.mark.parametrize("args", [
-    ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--zeros", "1e200,1e200", "--poles", "1"],
-    ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--zeros", "1e300", "--poles", "1"],
-    ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--poles", "1e300"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--zeros", "1e200,1e200", "--poles", "1"],
+        ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--zeros", "1e300", "--poles", "1"],
+        ["filter", "analyze", "--rate", "1700", "--gain", "0.5", "--poles", "1e300"],
+    ],
+)
 def test_huge_roots_are_refused(args, capsys):
     refused(*run(args, capsys), "modulus at most 10")
 
@@ -114,6 +130,7 @@ def test_the_largest_seed_runs(capsys, cache_dir):
 
 # ---------------------------------------------------------------------- filter analyze
 
+
 @pytest.mark.parametrize("option, value", [("--gain", "1e-12"), ("--chi", "1e-300")])
 def test_gains_too_small_for_the_verdict_are_refused(option, value, capsys):
     args = ["filter", "analyze", "--rate", "1700", "--control", "int", "--gain", "0.3", option, value]
@@ -129,13 +146,16 @@ def test_the_verdict_follows_from_the_gain_margin(gain, capsys):
     assert status == (0 if c["stable"] else 3)
 
 
-@pytest.mark.parametrize("args, words", [
-    (["--rate", "1700", "--delay-ms", "10000"], ("frames: accepted 0..50 frames",)),
-    (["--rate", "1700", "--delay-frames", "1000"], ("--delay-frames must be in 0..50 frames",)),
-    (["--rate", "1e6"], ("--rate must be in 1..100000 Hz",)),
-    (["--rate", "1e5"], ("SOUL delay model at 100000 Hz", "accepted 0..50 frames")),
-    (["--rate", ",".join(["1000"] * 17)], ("accepted at most 16",)),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--rate", "1700", "--delay-ms", "10000"], ("frames: accepted 0..50 frames",)),
+        (["--rate", "1700", "--delay-frames", "1000"], ("--delay-frames must be in 0..50 frames",)),
+        (["--rate", "1e6"], ("--rate must be in 1..100000 Hz",)),
+        (["--rate", "1e5"], ("SOUL delay model at 100000 Hz", "accepted 0..50 frames")),
+        (["--rate", ",".join(["1000"] * 17)], ("accepted at most 16",)),
+    ],
+)
 def test_analysis_requests_beyond_what_it_can_do_in_seconds_are_refused(args, words, capsys):
     t0 = time.perf_counter()
     refused(*run(["filter", "analyze", "--gain", "0.3", *args], capsys), *words)
@@ -144,9 +164,26 @@ def test_analysis_requests_beyond_what_it_can_do_in_seconds_are_refused(args, wo
 
 def test_the_costliest_accepted_analysis_takes_seconds(capsys):
     t0 = time.perf_counter()
-    status, out, err = run(["filter", "analyze", "--rate", ",".join(["1e5"] * 16), "--gain", "0.01", "--delay-frames", "50",
-                            "--control", "iir", "--zeros", "0.5,0.5,0.5,0.5,0.5,0.5,0.5,0.5", "--poles", "1,0.9,0.8,0.7,0.6,0.5,0.4,0.3",
-                            "--json"], capsys)
+    status, out, err = run(
+        [
+            "filter",
+            "analyze",
+            "--rate",
+            ",".join(["1e5"] * 16),
+            "--gain",
+            "0.01",
+            "--delay-frames",
+            "50",
+            "--control",
+            "iir",
+            "--zeros",
+            "0.5,0.5,0.5,0.5,0.5,0.5,0.5,0.5",
+            "--poles",
+            "1,0.9,0.8,0.7,0.6,0.5,0.4,0.3",
+            "--json",
+        ],
+        capsys,
+    )
     assert status in (0, 3), err
     assert time.perf_counter() - t0 < 10
 
@@ -162,11 +199,15 @@ def test_design_delays_beyond_the_method_are_refused(capsys):
 
 # ---------------------------------------------------------------------------- vibrations
 
-@pytest.mark.parametrize("field, value, words", [
-    ("damping", "1e-300", ("damping must be in 0.0001..0.9",)),
-    ("frequency_hz", "1e-300", ("frequency_hz must be in 0.1..1000 Hz",)),
-    ("tip_mas", "999999", ("tip_mas must be in 0..1000 mas",)),
-])
+
+@pytest.mark.parametrize(
+    "field, value, words",
+    [
+        ("damping", "1e-300", ("damping must be in 0.0001..0.9",)),
+        ("frequency_hz", "1e-300", ("frequency_hz must be in 0.1..1000 Hz",)),
+        ("tip_mas", "999999", ("tip_mas must be in 0..1000 mas",)),
+    ],
+)
 def test_vibration_lines_outside_their_physical_range_are_refused(field, value, words, tmp_path, capsys, cache_dir):
     line = {"frequency_hz": "13.0", "damping": "0.02", "tip_mas": "9.0", "tilt_mas": "6.5", field: value}
     vib = tmp_path / "vib.toml"
@@ -186,6 +227,7 @@ def test_the_whole_magnitude_range_runs_with_default_options(capsys, cache_dir):
 
 # --------------------------------------------------------------------------- the user's terms
 
+
 def test_wind_errors_are_in_the_users_terms(capsys, cache_dir):
     status, out, err = run(["loop", "run", *FAST, "--wind", "99", "--json"], capsys, cache_dir)
     assert status == 0, err
@@ -193,7 +235,21 @@ def test_wind_errors_are_in_the_users_terms(capsys, cache_dir):
 
 
 def test_a_probe_slower_than_the_update_is_refused(capsys, cache_dir):
-    args = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "2", "--ogtl", "--period", "0.1", "--probe-frequency", "0.001"]
+    args = [
+        "loop",
+        "run",
+        "--mag",
+        "16.5",
+        "--oversampling",
+        "1",
+        "--duration",
+        "2",
+        "--ogtl",
+        "--period",
+        "0.1",
+        "--probe-frequency",
+        "0.001",
+    ]
     refused(*run(args, capsys, cache_dir), "--probe-frequency 0.001 Hz", "at least 4")
 
 
@@ -213,17 +269,24 @@ def test_unicode_digits_are_the_same_digits(capsys):
 
 # ---------------------------------------------------------------------- ranges that agree
 
-@pytest.mark.parametrize("args", [
-    ["loop", "run", *FAST],
-    ["optimize", "gains", "--mag", "16.5", "--oversampling", "1"],
-    ["optics", "atmosphere"],
-    ["optics", "gains", "--binning", "4", "--oversampling", "1"],
-    ["filter", "design", "--rate", "1700"],
-])
-@pytest.mark.parametrize("option, value, words", [
-    ("--L0", "0.001", "--L0 must be in 0.5..10000 m, got 0.001"),
-    ("--seeing", "10.5", "--seeing must be in 0.05..10 arcsec, got 10.5"),
-])
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["loop", "run", *FAST],
+        ["optimize", "gains", "--mag", "16.5", "--oversampling", "1"],
+        ["optics", "atmosphere"],
+        ["optics", "gains", "--binning", "4", "--oversampling", "1"],
+        ["filter", "design", "--rate", "1700"],
+    ],
+)
+@pytest.mark.parametrize(
+    "option, value, words",
+    [
+        ("--L0", "0.001", "--L0 must be in 0.5..10000 m, got 0.001"),
+        ("--seeing", "10.5", "--seeing must be in 0.05..10 arcsec, got 10.5"),
+    ],
+)
 def test_one_range_for_every_command(args, option, value, words, capsys):
     refused(*run([*args, option, value], capsys), words)
 
@@ -235,11 +298,15 @@ def test_mode_counts_agree_with_the_mirror(optics_cache):
 
 
 def test_under_determined_calibrations_are_refused(capsys, cache_dir):
-    refused(*run(["optics", "calibrate", "--binning", "4", "--modes", "671"], capsys, cache_dir),
-            "cannot be calibrated from the", "accepted at most")
+    refused(
+        *run(["optics", "calibrate", "--binning", "4", "--modes", "671"], capsys, cache_dir),
+        "cannot be calibrated from the",
+        "accepted at most",
+    )
 
 
 # ------------------------------------------------------------------------------ gain files
+
 
 def test_a_binary_gain_file_is_refused(tmp_path, capsys, cache_dir):
     gains = tmp_path / "gains.csv"
@@ -263,12 +330,16 @@ def test_gain_files_are_applied_by_their_mode_column(tmp_path, capsys, cache_dir
 
 # --------------------------------------------------------------------------------- memory
 
+
 def test_a_run_whose_telemetry_would_not_fit_in_memory_is_refused(capsys, cache_dir, monkeypatch):
     from soulctl.loop import run as run_module
 
     monkeypatch.setattr(run_module, "available_memory_bytes", lambda: 50 * 2**20)
-    refused(*run(["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "60"], capsys, cache_dir),
-            "--duration: the run's telemetry, kept in memory, would need", "frames fit")
+    refused(
+        *run(["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "60"], capsys, cache_dir),
+        "--duration: the run's telemetry, kept in memory, would need",
+        "frames fit",
+    )
 
 
 def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
@@ -294,38 +365,53 @@ def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
 
 # --------------------------------------------------------- what adversarial testing found
 
+
 def test_offline_optimisation_checks_every_option(tmp_path, capsys, cache_dir):
     h5 = tmp_path / "t.h5"
     h5.write_bytes(b"not read: the options are checked first")
-    for option, value, words in [("--seeing", "nan", "--seeing must be in"), ("--seed", "-3", "--seed must be in"),
-                                 ("--duration", "nan", "--duration must be in"), ("--probe-mode", "9999", "--probe-mode must be in"),
-                                 ("--oversampling", "99", "--oversampling must be in"), ("--period", "-1", "--period must be in"),
-                                 ("--gains", "99,99,99", "--gains must be TT,MID,HIGH"), ("--tt-control", "foo", "--tt-control")]:
+    for option, value, words in [
+        ("--seeing", "nan", "--seeing must be in"),
+        ("--seed", "-3", "--seed must be in"),
+        ("--duration", "nan", "--duration must be in"),
+        ("--probe-mode", "9999", "--probe-mode must be in"),
+        ("--oversampling", "99", "--oversampling must be in"),
+        ("--period", "-1", "--period must be in"),
+        ("--gains", "99,99,99", "--gains must be TT,MID,HIGH"),
+        ("--tt-control", "foo", "--tt-control"),
+    ]:
         refused(*run(["optimize", "gains", "--telemetry", h5, option, value], capsys, cache_dir), words)
 
 
 def test_calibration_and_loop_refuse_the_same_sampling(capsys, cache_dir):
-    refused(*run(["optics", "calibrate", "--binning", "3", "--modes", "91", "--oversampling", "1"], capsys, cache_dir),
-            "accepted up to 90 modes")
+    refused(
+        *run(["optics", "calibrate", "--binning", "3", "--modes", "91", "--oversampling", "1"], capsys, cache_dir),
+        "accepted up to 90 modes",
+    )
 
 
-@pytest.mark.parametrize("args", [
-    ["optics", "atmosphere", "--seeing", "١", "--json"],
-    ["optics", "atmosphere", "--seeing", "１", "--json"],
-    ["optics", "atmosphere", "--wind", "1_0", "--json"],
-    ["filter", "design", "--rate", "1700", "--seed", "１", "--epsilon", "٠.٢", "--json"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["optics", "atmosphere", "--seeing", "١", "--json"],
+        ["optics", "atmosphere", "--seeing", "１", "--json"],
+        ["optics", "atmosphere", "--wind", "1_0", "--json"],
+        ["filter", "design", "--rate", "1700", "--seed", "１", "--epsilon", "٠.٢", "--json"],
+    ],
+)
 def test_every_numeric_option_reads_numbers_the_same_way(args, capsys):
     status, out, err = run(args, capsys)
     assert status == 0, err
     json.loads(out)
 
 
-@pytest.mark.parametrize("args, words", [
-    (["optics", "atmosphere", "--seeing", "abc"], "must be a number in 0.05..10 arcsec, got 'abc'"),
-    (["optics", "gains", "--screens", "1.5"], "must be an integer in 1..64, got '1.5'"),
-    (["loop", "run", *FAST, "--oversampling", "1.5"], "must be an integer in 1..4, got '1.5'"),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["optics", "atmosphere", "--seeing", "abc"], "must be a number in 0.05..10 arcsec, got 'abc'"),
+        (["optics", "gains", "--screens", "1.5"], "must be an integer in 1..64, got '1.5'"),
+        (["loop", "run", *FAST, "--oversampling", "1.5"], "must be an integer in 1..4, got '1.5'"),
+    ],
+)
 def test_a_text_that_is_not_a_number_is_refused_with_the_range(args, words, capsys):
     refused(*run(args, capsys), words)
 
@@ -336,9 +422,12 @@ def test_an_integral_float_is_an_integer(capsys, cache_dir):
     assert a[0] == b[0] == 0 and json.loads(a[1])["metrics"] == json.loads(b[1])["metrics"]
 
 
-@pytest.mark.parametrize("gains, words", [
-    ("0.3,9,0.2", "modes 3-90 gain 9 is unstable"),  # 90 modes: modes 3-90, no group 121-last
-])
+@pytest.mark.parametrize(
+    "gains, words",
+    [
+        ("0.3,9,0.2", "modes 3-90 gain 9 is unstable"),  # 90 modes: modes 3-90, no group 121-last
+    ],
+)
 def test_stability_refusals_name_the_groups_the_loop_has(gains, words, capsys, cache_dir):
     refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), words)
     # the gain of a group the loop does not have is not checked: it applies to no mode
@@ -356,9 +445,12 @@ def test_a_period_no_run_can_hold_is_refused_as_such(capsys, cache_dir):
     refused(*run(["loop", "run", *FAST, "--mgm", "--period", "600"], capsys, cache_dir), "shorten --period")
 
 
-@pytest.mark.parametrize("args, words", [
-    (["loop", "run", *FAST, "--ogtl", "--probe-amplitude", "1e-300"], "--probe-amplitude must be in 0.1..1000 nm"),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["loop", "run", *FAST, "--ogtl", "--probe-amplitude", "1e-300"], "--probe-amplitude must be in 0.1..1000 nm"),
+    ],
+)
 def test_probes_below_any_signal_are_refused(args, words, capsys, cache_dir):
     refused(*run(args, capsys, cache_dir), words)
 

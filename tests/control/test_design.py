@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from soulctl import tables
-from soulctl.control.design import (DesignCost, Disturbance, best_gain, design_tt_filter, filter_theta,
-                                    roots_table_csv)
+from soulctl.control.design import DesignCost, Disturbance, best_gain, design_tt_filter, filter_theta, roots_table_csv
 from soulctl.control.filters import Filter
 from soulctl.control.transfer import Loop, Plant, analyze
 from soulctl.errors import InputError
@@ -54,8 +53,11 @@ def test_cost_equals_an_independent_evaluation():
     loop = Loop(h, plant, 1700.0)
     f = np.union1d(np.geomspace(1e-2, 850, 6000), np.linspace(12, 14, 2001))
     s2, t2 = np.abs(loop.sensitivity(f)) ** 2, np.abs(loop.complementary(f)) ** 2
-    expected = (np.trapezoid(s2 * dist.psd(f), f) + np.trapezoid(t2 * dist.noise_mas**2 / 850, f)
-                + dist.resonance_mas**2 * np.abs(loop.complementary(np.array([127.0]))[0]) ** 2)
+    expected = (
+        np.trapezoid(s2 * dist.psd(f), f)
+        + np.trapezoid(t2 * dist.noise_mas**2 / 850, f)
+        + dist.resonance_mas**2 * np.abs(loop.complementary(np.array([127.0]))[0]) ** 2
+    )
     e = cost.evaluate(filter_theta(h))
     assert e["temporal"][0] + e["noise"][0] + e["line"][0] == pytest.approx(expected, rel=2e-3)
     assert e["stable"][0]

@@ -15,8 +15,17 @@ from scipy.signal import lfilter
 
 from soulctl.control import mgm
 from soulctl.control.filters import Filter
-from soulctl.control.mgm import (MgmSettings, ModalGainMachine, cost, gain_limits, min_frames, optimal_gains, pol_psd,
-                                 unit_open_loops, update_gains)
+from soulctl.control.mgm import (
+    MgmSettings,
+    ModalGainMachine,
+    cost,
+    gain_limits,
+    min_frames,
+    optimal_gains,
+    pol_psd,
+    unit_open_loops,
+    update_gains,
+)
 from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant, max_stable_gain
 from soulctl.errors import InputError
@@ -73,8 +82,10 @@ def test_mgm_optimum_matches_brute_force_closed_loop(delay, alpha):
     pol = m[:, -1] / CHI + y[:, -1]
     g_hat, info = machine.optimum(pol[:, None])
     rel = (g_hat[0] - g_bf) / g_bf
-    msg = (f"d = {delay:g}, alpha = {alpha:g}: MGM g_hat = {g_hat[0]:.4f}, brute force g = {g_bf:.4f}, "
-           f"relative difference {rel:+.4f} (upper {upper:.4f})")
+    msg = (
+        f"d = {delay:g}, alpha = {alpha:g}: MGM g_hat = {g_hat[0]:.4f}, brute force g = {g_bf:.4f}, "
+        f"relative difference {rel:+.4f} (upper {upper:.4f})"
+    )
     print(msg)
     assert abs(rel) < 0.05, msg
     assert info["f"].shape == (machine.settings.segment // 2,) and info["f"][0] > 0
@@ -148,8 +159,9 @@ def test_gain_limits_with_structure_and_unbounded_loop():
     assert upper[0] < upper[2]  # the resonance lowers the limit of Tip/Tilt only
     # Without delay an integrator is stable at every gain: capped, finite.
     assert max_stable_gain(Loop(unit, Plant(0.0), RATE)) == math.inf
-    np.testing.assert_allclose(gain_limits([unit] * 2, [0.5, 2.0], 0.0, RATE, 0.1),
-                               [mgm.UNBOUNDED_LOOP_GAIN / 0.5, mgm.UNBOUNDED_LOOP_GAIN / 2.0])
+    np.testing.assert_allclose(
+        gain_limits([unit] * 2, [0.5, 2.0], 0.0, RATE, 0.1), [mgm.UNBOUNDED_LOOP_GAIN / 0.5, mgm.UNBOUNDED_LOOP_GAIN / 2.0]
+    )
 
 
 def test_optimal_gains_inside_range_and_at_the_minimum():
@@ -263,9 +275,23 @@ def test_a_noise_dominated_mode_keeps_a_floor_gain_that_beats_the_short_windows_
     assert variance[0] > 2 * variance[:-1].min()
 
 
-@pytest.mark.parametrize("kwargs", [dict(nu=0.0), dict(nu=1.1), dict(rho=0.0), dict(rho=1.5), dict(margin=-0.1),
-                                    dict(margin=1.0), dict(segment=500), dict(segment=16), dict(segment=131072),
-                                    dict(segment=512.0), dict(grid=7), dict(nu=float("nan"))])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(nu=0.0),
+        dict(nu=1.1),
+        dict(rho=0.0),
+        dict(rho=1.5),
+        dict(margin=-0.1),
+        dict(margin=1.0),
+        dict(segment=500),
+        dict(segment=16),
+        dict(segment=131072),
+        dict(segment=512.0),
+        dict(grid=7),
+        dict(nu=float("nan")),
+    ],
+)
 def test_bad_settings(kwargs):
     with pytest.raises(InputError):
         MgmSettings(**kwargs)

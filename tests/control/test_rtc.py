@@ -84,9 +84,7 @@ def test_uncontrolled_modes_have_no_state_and_no_command():
 
 
 def test_delta_from_gains_round_trip():
-    mats = build_rtc(
-        [Filter.iir([0.3], [1.0], 1.0), Filter.integrator(0.5), None], np.eye(3), np.eye(3), state_size=6
-    )
+    mats = build_rtc([Filter.iir([0.3], [1.0], 1.0), Filter.integrator(0.5), None], np.eye(3), np.eye(3), state_size=6)
     delta = mats.delta_from_gains([0.7, 0.2, 0.9])
     np.testing.assert_array_equal(delta, [0.7, 0.7, 0.2, 0, 0, 0])
     np.testing.assert_array_equal(mats.mode_gains(delta), [0.7, 0.2, 0.0])

@@ -49,8 +49,10 @@ def test_modulus_margin_equals_a_dense_search():
     assert analyze(loop).modulus_margin == pytest.approx(brute, rel=1e-6)
 
 
-@pytest.mark.parametrize("zeros, poles", [((), (1.0,)), ((0.5,), (1.0, 0.2)), (ROOTS[1700].zeros, ROOTS[1700].poles),
-                                          (ROOTS[750].zeros, ROOTS[750].poles), ((), (0.95,))])
+@pytest.mark.parametrize(
+    "zeros, poles",
+    [((), (1.0,)), ((0.5,), (1.0, 0.2)), (ROOTS[1700].zeros, ROOTS[1700].poles), (ROOTS[750].zeros, ROOTS[750].poles), ((), (0.95,))],
+)
 @pytest.mark.parametrize("d", [1.0, 2.3, 3.567])
 def test_max_stable_gain_is_where_the_closed_loop_poles_leave_the_unit_circle(zeros, poles, d):
     loop = Loop(Filter.iir(zeros, poles, 1.0), Plant(d), 1700.0)
@@ -102,8 +104,11 @@ def test_paper_soul_integrator_at_gain_04_amplifies_127_hz_more_than_4x():
 def test_paper_figure_gains_give_the_same_t_at_127_hz():
     """Paper, Fig. IIR1700TF: gains 0.69 (SOUL-IIR), 0.21 (SOUL-INT) and 0.39 (FLAO-INT, 3.1 ms)
     were chosen to give the same |T(127 Hz)|."""
-    t = [analyze(paper_loop("iir", 1700, 0.69)).noise_127hz, analyze(paper_loop("int", 1700, 0.21)).noise_127hz,
-         analyze(paper_loop("int", 1000, 0.39, "flao")).noise_127hz]
+    t = [
+        analyze(paper_loop("iir", 1700, 0.69)).noise_127hz,
+        analyze(paper_loop("int", 1700, 0.21)).noise_127hz,
+        analyze(paper_loop("int", 1000, 0.39, "flao")).noise_127hz,
+    ]
     assert max(t) / min(t) < 1.1
 
 
@@ -131,8 +136,15 @@ def test_figures_beyond_nyquist_are_none():
     assert a.noise_127hz is None and a.rejection_13hz is not None
 
 
-@pytest.mark.parametrize("kwargs", [{"delay_frames": -1}, {"delay_frames": math.nan}, {"delay_frames": 1, "optical_gain": 0},
-                                    {"delay_frames": 1, "optical_gain": math.inf}])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"delay_frames": -1},
+        {"delay_frames": math.nan},
+        {"delay_frames": 1, "optical_gain": 0},
+        {"delay_frames": 1, "optical_gain": math.inf},
+    ],
+)
 def test_bad_plants(kwargs):
     with pytest.raises(InputError):
         Plant(**kwargs)

@@ -8,8 +8,7 @@ from soulctl.errors import InputError
 
 
 def test_groups_are_the_papers_three():
-    assert [(n, s.start, s.stop) for n, s in gain_groups(500)] == [
-        ("tip-tilt", 0, 2), ("modes 3-120", 2, 120), ("modes 121-500", 120, 500)]
+    assert [(n, s.start, s.stop) for n, s in gain_groups(500)] == [("tip-tilt", 0, 2), ("modes 3-120", 2, 120), ("modes 121-500", 120, 500)]
     assert [s.stop for _, s in gain_groups(54)] == [2, 54]
 
 

@@ -135,8 +135,7 @@ def test_subaperture_normalisation_zeroes_only_the_dark_subaperture():
 
 
 @settings(max_examples=200, deadline=None)
-@given(hnp.arrays(np.float32, SHAPE, elements=st.floats(-1e4, 1e4, width=32)),
-       st.sampled_from(["global", "subaperture"]))
+@given(hnp.arrays(np.float32, SHAPE, elements=st.floats(-1e4, 1e4, width=32)), st.sampled_from(["global", "subaperture"]))
 def test_never_nan_or_inf(frame, normalization):
     sc = SlopeComputer(pixel_map(4), SHAPE, normalization=normalization)
     s = sc.compute(frame)

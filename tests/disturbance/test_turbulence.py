@@ -66,8 +66,9 @@ def test_psd_scales_with_seeing_and_wind():
     np.testing.assert_allclose(b.psd(2 * f), a.psd(f) * ratio / 2, rtol=1e-9)
 
 
-@pytest.mark.parametrize("kwargs, text", [({"seeing_arcsec": 0}, "seeing"), ({"outer_scale_m": -1}, "outer scale"),
-                                          ({"wind_speed_m_s": 0}, "wind speed")])
+@pytest.mark.parametrize(
+    "kwargs, text", [({"seeing_arcsec": 0}, "seeing"), ({"outer_scale_m": -1}, "outer scale"), ({"wind_speed_m_s": 0}, "wind speed")]
+)
 def test_bad_parameters(kwargs, text):
     with pytest.raises(InputError, match=text):
         TurbulenceTipTilt(**kwargs)

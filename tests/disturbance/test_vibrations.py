@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum, VibrationSource
+from soulctl.disturbance.vibrations import VibrationLine, VibrationSource, VibrationSpectrum
 from soulctl.errors import InputError
 
 
@@ -38,14 +38,23 @@ def test_vibration_file_round_trip(tmp_path):
     assert v.lines == (VibrationLine(20.0, 0.05, 3.0, 4.0),) and v.variance_mas2("tilt") == 16.0
 
 
-@pytest.mark.parametrize("text, message", [
-    ("source = 'x'\n", "at least one [[line]]"),
-    ("[[line]]\nfrequency_hz = 20\ndamping = 0.05\ntip_mas = 3\n", "missing 'tilt_mas'"),
-    ("[[line]]\nfrequency_hz = 'a'\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n", "must be a number"),
-    ("[[line]]\nfrequency_hz = -2\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n", "line 1: vibration frequency_hz must be in 0.1..1000 Hz, got -2"),
-    ("[[line]]\nfrequency_hz = 2\ndamping = 1.5\ntip_mas = 3\ntilt_mas = 1\n", "line 1: vibration damping must be in 0.0001..0.9, got 1.5"),
-    ("[[line]\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("source = 'x'\n", "at least one [[line]]"),
+        ("[[line]]\nfrequency_hz = 20\ndamping = 0.05\ntip_mas = 3\n", "missing 'tilt_mas'"),
+        ("[[line]]\nfrequency_hz = 'a'\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n", "must be a number"),
+        (
+            "[[line]]\nfrequency_hz = -2\ndamping = 0.05\ntip_mas = 3\ntilt_mas = 1\n",
+            "line 1: vibration frequency_hz must be in 0.1..1000 Hz, got -2",
+        ),
+        (
+            "[[line]]\nfrequency_hz = 2\ndamping = 1.5\ntip_mas = 3\ntilt_mas = 1\n",
+            "line 1: vibration damping must be in 0.0001..0.9, got 1.5",
+        ),
+        ("[[line]\n", "not valid TOML"),
+    ],
+)
 def test_bad_vibration_files(tmp_path, text, message):
     p = tmp_path / "vib.toml"
     p.write_text(text)

@@ -62,15 +62,18 @@ def test_probe_is_on_the_mirror_and_k_scales_the_slopes(small_calibration):
     assert f[np.argmax(amplitude)] == pytest.approx(250.0)
     assert 10 < amplitude.max() <= 20.5  # the probe (20 nm) less what the loop takes back
     assert np.all(tm["sensitivity"] == 1.5)
-    np.testing.assert_allclose(tm["measured_modes"], tm["slopes"] @ small_calibration.reconstructor.T.astype(np.float32), rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose(
+        tm["measured_modes"], tm["slopes"] @ small_calibration.reconstructor.T.astype(np.float32), rtol=1e-3, atol=1e-3
+    )
 
 
 def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(small_calibration):
     """The sensitivity k OGTL settles on makes chi = gamma k = 1 for mode 30, so 1/k must be
     the PWFS's optical gain of mode 30 around the loop's own residual phases (push-pull of
     the optical model around snapshots of the residual)."""
-    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.6), LoopGains(0.2, 0.25, 0.25),
-                      noise=True, seed=2, aux_loops=[OgtlTask(200)])
+    loop = ClosedLoop(
+        OBS, small_calibration, AtmosphereConfig.lbt_default(0.6), LoopGains(0.2, 0.25, 0.25), noise=True, seed=2, aux_loops=[OgtlTask(200)]
+    )
     snapshots = []
     for i in range(2400):
         residual = loop.step()
@@ -95,8 +98,9 @@ def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(small_calibration
 def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_calibration):
     scans = [scan_gains(0.6, 4), scan_gains(0.6, 4)]
     task = TrialAndErrorTask(54, scans, settle=30, measure=70)
-    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.3, 0.3),
-                      noise=True, seed=1, aux_loops=[task])
+    loop = ClosedLoop(
+        OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.3, 0.3), noise=True, seed=1, aux_loops=[task]
+    )
     tm = loop.run(900)
     rec = tm.aux_arrays("trial")
     assert rec["group"].tolist() == [0] * 4 + [1] * 4 and task.done
@@ -154,8 +158,9 @@ class Saboteur(AuxLoop):
 def _sabotaged_loop(small_calibration, net):
     saboteur = Saboteur(300, 12.0)
     tasks = [saboteur] + ([SafetyNet(20, [saboteur])] if net else [])
-    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=3,
-                      aux_loops=tasks)
+    loop = ClosedLoop(
+        OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=3, aux_loops=tasks
+    )
     return loop, saboteur
 
 
@@ -177,7 +182,8 @@ def test_the_safety_net_restores_the_last_good_gains_and_damps_the_optimiser(sma
 
 def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration):
     net = SafetyNet(20)
-    loop = ClosedLoop(OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=4,
-                      aux_loops=[net])
+    loop = ClosedLoop(
+        OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=4, aux_loops=[net]
+    )
     loop.run(2000)
     assert net.events == 0 and np.all(np.isfinite(net.best))

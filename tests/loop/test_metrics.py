@@ -31,7 +31,7 @@ def test_strehl_of_a_small_random_aberration_is_marechal(sigma_rad):
         phi = fft_phase_screen(pupil.n_pixels, pupil.pixel_scale_m, 0.05, 25.0, rng)[pupil.mask]
         phi -= basis @ np.linalg.lstsq(basis, phi, rcond=None)[0]  # piston, Tip, Tilt removed
         acc.add(phi / np.std(phi) * sigma_rad * lam * 1e9 / (2 * np.pi))
-    assert acc.strehl == pytest.approx(np.exp(-sigma_rad**2), rel=0.03)
+    assert acc.strehl == pytest.approx(np.exp(-(sigma_rad**2)), rel=0.03)
 
 
 def test_cumulative_spectrum_and_rejection_of_a_sinusoid():

@@ -9,9 +9,9 @@ import pytest
 from scipy.signal import welch
 
 from soulctl.control.filters import Filter
+from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
-from soulctl.control.structure import StructuralResonance
 from soulctl.loop.metrics import pseudo_open_loop
 from soulctl.loop.simulation import ClosedLoop, LoopDiverged, LoopGains
 from soulctl.observation import observation_for_magnitude
@@ -91,7 +91,9 @@ def test_turbulence_is_corrected(small_calibration):
     res, dist = tm["residual_modes"][100:], tm["disturbance_modes"][100:]
     assert np.sqrt((res**2).sum(axis=1).mean()) < 0.45 * np.sqrt((dist**2).sum(axis=1).mean())
     # the residual keeps the uncontrolled modes (fitting error) but far less than open loop
-    open_loop_rms = np.sqrt(np.mean([np.mean((loop.disturbance_opd(k) - loop.disturbance_opd(k).mean()) ** 2) for k in range(100, 300, 20)]))
+    open_loop_rms = np.sqrt(
+        np.mean([np.mean((loop.disturbance_opd(k) - loop.disturbance_opd(k).mean()) ** 2) for k in range(100, 300, 20)])
+    )
     assert tm["residual_rms_nm"][100:].mean() < 0.6 * open_loop_rms
 
 
@@ -99,8 +101,15 @@ def test_disturbance_modes_are_the_projection_of_the_disturbance(small_calibrati
     """The telemetry's disturbance modes come from the residual's by linearity (mirror,
     structure and piston terms): they equal the direct projection of the disturbance OPD."""
     obs = observation_for_magnitude(9.7)
-    loop = ClosedLoop(obs, small_calibration, AtmosphereConfig.lbt_default(1.0), LoopGains(0.5, 0.4, 0.4),
-                      vibrations=VibrationSpectrum.lbt_default(), noise=True, seed=3)
+    loop = ClosedLoop(
+        obs,
+        small_calibration,
+        AtmosphereConfig.lbt_default(1.0),
+        LoopGains(0.5, 0.4, 0.4),
+        vibrations=VibrationSpectrum.lbt_default(),
+        noise=True,
+        seed=3,
+    )
     tm = loop.run(60).arrays()
     direct = np.array([loop.project(loop.disturbance_opd(k)) for k in range(60)])
     assert np.abs(direct[-1]).max() > 10  # a real disturbance, with the structure excited
@@ -111,8 +120,15 @@ def test_same_seed_same_loop(small_calibration):
     obs = observation_for_magnitude(12.0)
     runs = []
     for seed in (5, 5, 6):
-        loop = ClosedLoop(obs, small_calibration, AtmosphereConfig.lbt_default(1.0), LoopGains(0.5, 0.4, 0.4),
-                          vibrations=VibrationSpectrum.lbt_default(), noise=True, seed=seed)
+        loop = ClosedLoop(
+            obs,
+            small_calibration,
+            AtmosphereConfig.lbt_default(1.0),
+            LoopGains(0.5, 0.4, 0.4),
+            vibrations=VibrationSpectrum.lbt_default(),
+            noise=True,
+            seed=seed,
+        )
         runs.append(loop.run(20).arrays()["measured_modes"])
     assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
 

@@ -52,6 +52,7 @@ def replace(name, data):
     def change(f):
         del f[name]
         f[name] = data
+
     return change
 
 
@@ -81,36 +82,45 @@ def test_a_valid_file_reads_back(h5):
         np.testing.assert_array_equal(tm.read("measured_modes", slice(30, 40), slice(1, 3)), data["measured_modes"][30:, 1:])
 
 
-@pytest.mark.parametrize("change, message", [
-    (replace("measured_modes", np.array([["a"] * MODES] * FRAMES, dtype="S1")), "field measured_modes holds text"),
-    (replace("measured_modes", np.ones((FRAMES, MODES), dtype=complex)), "field measured_modes holds complex numbers"),
-    (replace("gains", np.ones(MODES, dtype=bool)), "field gains holds booleans"),
-    (lambda f: (f.__delitem__("gains"), f.create_group("gains")), "field gains is a group, expected a dataset"),
-    (lambda f: (f.__delitem__("gain_history"), f.__setitem__("gain_history", [1.0])), "gain_history is a dataset, expected a group"),
-    (replace("sensitivity", np.ones((FRAMES, 1))), "field sensitivity has shape (40, 1), expected (frames,)"),
-    (replace("command_modes", np.ones((FRAMES - 1, MODES))), "field command_modes has 39 frames, measured_modes has 40"),
-    (replace("gains", np.ones(MODES + 1)), "field gains has 4 modes, measured_modes has 3"),
-    (replace("gain_history/gains", np.ones((3, MODES))), "field gain_history/gains has 3 entries, gain_history/frames has 2"),
-    (replace("gain_history/frames", np.zeros((2, 1), dtype=np.int64)), "field gain_history/frames has shape (2, 1), expected (changes,)"),
-    (lambda f: f["gain_history"].__delitem__("gains"), "gain_history needs both frames and gains"),
-    (lambda f: f.attrs.__setitem__("rate_hz", "fast"), "attribute rate_hz must be a number in 10..2000 Hz, got 'fast'"),
-    (lambda f: f.attrs.__setitem__("rate_hz", [400.0, 400.0]), "attribute rate_hz must be a number in 10..2000 Hz, got an array of shape (2,)"),
-    (lambda f: f.attrs.__setitem__("rate_hz", np.nan), "attribute rate_hz must be a number in 10..2000 Hz, got nan"),
-    (lambda f: f.attrs.__setitem__("rate_hz", 1 + 2j), "attribute rate_hz must be a number in 10..2000 Hz, got the complex number"),
-    (lambda f: f.attrs.__setitem__("delay_frames", -1.0), "attribute delay_frames must be a number in 0..50 frames, got -1"),
-    (lambda f: f.attrs.__setitem__("diverged_at", 2.5), "attribute diverged_at must be an integer in -1..2^63-1, got 2.5"),
-    (lambda f: f.attrs.__setitem__("diverged_at", 41), "attribute diverged_at is 41, beyond the file's 40 frames"),
-    (lambda f: f.attrs.__setitem__("n_modes", 4), "attribute n_modes is 4, measured_modes has 3 modes"),
-    (lambda f: f.attrs.__setitem__("configuration", np.bytes_(b"\xff")), "attribute configuration is not UTF-8 text"),
-    (lambda f: f.attrs.__setitem__("configuration", "[1, 2]"), "attribute configuration must be a JSON object"),
-    (lambda f: f.attrs.__setitem__("configuration", "[" * 5000), "attribute configuration is not JSON"),
-    (lambda f: f.attrs.__setitem__("configuration", 3.0), "attribute configuration must be text, got 3"),
-    (lambda f: f["aux"].create_dataset("x", data=[1.0]), "aux/x is a dataset, expected a group"),
-    (lambda f: f["aux/ogtl"].create_dataset("label", data=[b"x"]), "field aux/ogtl/label holds text"),
-    (lambda f: f["aux/ogtl"].create_dataset("chi", data=[1.0, 2.0]), "aux/ogtl/chi has 2: the fields must agree"),
-    (lambda f: f.__setitem__("gain_history/elsewhere", h5py.ExternalLink("/dev/zero", "/")), None),
-    (replace("measured_modes", h5py.ExternalLink("other.h5", "/data")), "measured_modes is a link to another file"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (replace("measured_modes", np.array([["a"] * MODES] * FRAMES, dtype="S1")), "field measured_modes holds text"),
+        (replace("measured_modes", np.ones((FRAMES, MODES), dtype=complex)), "field measured_modes holds complex numbers"),
+        (replace("gains", np.ones(MODES, dtype=bool)), "field gains holds booleans"),
+        (lambda f: (f.__delitem__("gains"), f.create_group("gains")), "field gains is a group, expected a dataset"),
+        (lambda f: (f.__delitem__("gain_history"), f.__setitem__("gain_history", [1.0])), "gain_history is a dataset, expected a group"),
+        (replace("sensitivity", np.ones((FRAMES, 1))), "field sensitivity has shape (40, 1), expected (frames,)"),
+        (replace("command_modes", np.ones((FRAMES - 1, MODES))), "field command_modes has 39 frames, measured_modes has 40"),
+        (replace("gains", np.ones(MODES + 1)), "field gains has 4 modes, measured_modes has 3"),
+        (replace("gain_history/gains", np.ones((3, MODES))), "field gain_history/gains has 3 entries, gain_history/frames has 2"),
+        (
+            replace("gain_history/frames", np.zeros((2, 1), dtype=np.int64)),
+            "field gain_history/frames has shape (2, 1), expected (changes,)",
+        ),
+        (lambda f: f["gain_history"].__delitem__("gains"), "gain_history needs both frames and gains"),
+        (lambda f: f.attrs.__setitem__("rate_hz", "fast"), "attribute rate_hz must be a number in 10..2000 Hz, got 'fast'"),
+        (
+            lambda f: f.attrs.__setitem__("rate_hz", [400.0, 400.0]),
+            "attribute rate_hz must be a number in 10..2000 Hz, got an array of shape (2,)",
+        ),
+        (lambda f: f.attrs.__setitem__("rate_hz", np.nan), "attribute rate_hz must be a number in 10..2000 Hz, got nan"),
+        (lambda f: f.attrs.__setitem__("rate_hz", 1 + 2j), "attribute rate_hz must be a number in 10..2000 Hz, got the complex number"),
+        (lambda f: f.attrs.__setitem__("delay_frames", -1.0), "attribute delay_frames must be a number in 0..50 frames, got -1"),
+        (lambda f: f.attrs.__setitem__("diverged_at", 2.5), "attribute diverged_at must be an integer in -1..2^63-1, got 2.5"),
+        (lambda f: f.attrs.__setitem__("diverged_at", 41), "attribute diverged_at is 41, beyond the file's 40 frames"),
+        (lambda f: f.attrs.__setitem__("n_modes", 4), "attribute n_modes is 4, measured_modes has 3 modes"),
+        (lambda f: f.attrs.__setitem__("configuration", np.bytes_(b"\xff")), "attribute configuration is not UTF-8 text"),
+        (lambda f: f.attrs.__setitem__("configuration", "[1, 2]"), "attribute configuration must be a JSON object"),
+        (lambda f: f.attrs.__setitem__("configuration", "[" * 5000), "attribute configuration is not JSON"),
+        (lambda f: f.attrs.__setitem__("configuration", 3.0), "attribute configuration must be text, got 3"),
+        (lambda f: f["aux"].create_dataset("x", data=[1.0]), "aux/x is a dataset, expected a group"),
+        (lambda f: f["aux/ogtl"].create_dataset("label", data=[b"x"]), "field aux/ogtl/label holds text"),
+        (lambda f: f["aux/ogtl"].create_dataset("chi", data=[1.0, 2.0]), "aux/ogtl/chi has 2: the fields must agree"),
+        (lambda f: f.__setitem__("gain_history/elsewhere", h5py.ExternalLink("/dev/zero", "/")), None),
+        (replace("measured_modes", h5py.ExternalLink("other.h5", "/data")), "measured_modes is a link to another file"),
+    ],
+)
 def test_layout_errors_name_the_field(h5, change, message):
     edit(h5, change)
     if message is None:  # an unknown member: not read, not an error
@@ -121,18 +131,30 @@ def test_layout_errors_name_the_field(h5, change, message):
             reader(h5)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda f: f["measured_modes"].__setitem__((3, 1), np.nan), "field measured_modes has 1 NaN or infinite values"),
-    (lambda f: f["command_modes"].__setitem__((3, 1), 1e7), "field command_modes must hold real numbers in -1000000..1000000 nm, got 10000000"),
-    (lambda f: f["gains"].__setitem__(0, -0.5), "field gains must hold real numbers in 0..10, got -0.5"),
-    (lambda f: f["gain_history/gains"].__setitem__((0, 0), 4e5), "field gain_history/gains must hold real numbers in 0..10, got 400000"),
-    (lambda f: f["sensitivity"].__setitem__(5, 0.0), "field sensitivity must hold real numbers in 0.05..20, got 0"),
-    (replace("gain_history/frames", np.array([-5, 10])), "field gain_history/frames must hold integers in 0..2^63-1, got -5"),
-    (replace("gain_history/frames", np.array([0, 10**12])), "field gain_history/frames holds frame 1000000000000, beyond the file's 40 frames"),
-    (replace("gain_history/frames", np.array([10, 0])), "field gain_history/frames must increase strictly"),
-    (replace("gain_history/frames", np.array([0.0, 2.5])), "field gain_history/frames must hold integers in 0..2^63-1, got 2.5"),
-    (replace("gain_history/frames", np.array([0, 2**64 - 1], dtype=np.uint64)), "got 18446744073709551615"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda f: f["measured_modes"].__setitem__((3, 1), np.nan), "field measured_modes has 1 NaN or infinite values"),
+        (
+            lambda f: f["command_modes"].__setitem__((3, 1), 1e7),
+            "field command_modes must hold real numbers in -1000000..1000000 nm, got 10000000",
+        ),
+        (lambda f: f["gains"].__setitem__(0, -0.5), "field gains must hold real numbers in 0..10, got -0.5"),
+        (
+            lambda f: f["gain_history/gains"].__setitem__((0, 0), 4e5),
+            "field gain_history/gains must hold real numbers in 0..10, got 400000",
+        ),
+        (lambda f: f["sensitivity"].__setitem__(5, 0.0), "field sensitivity must hold real numbers in 0.05..20, got 0"),
+        (replace("gain_history/frames", np.array([-5, 10])), "field gain_history/frames must hold integers in 0..2^63-1, got -5"),
+        (
+            replace("gain_history/frames", np.array([0, 10**12])),
+            "field gain_history/frames holds frame 1000000000000, beyond the file's 40 frames",
+        ),
+        (replace("gain_history/frames", np.array([10, 0])), "field gain_history/frames must increase strictly"),
+        (replace("gain_history/frames", np.array([0.0, 2.5])), "field gain_history/frames must hold integers in 0..2^63-1, got 2.5"),
+        (replace("gain_history/frames", np.array([0, 2**64 - 1], dtype=np.uint64)), "got 18446744073709551615"),
+    ],
+)
 def test_value_errors_name_the_field(h5, change, message):
     edit(h5, change)
     with pytest.raises(InputError, match=re.escape(message)):
@@ -144,6 +166,7 @@ def test_a_diverged_loop_may_record_anything_from_the_frame_it_diverged_at(h5):
         f.attrs["diverged_at"] = 38
         f["measured_modes"][38:] = np.inf
         f["residual_rms_nm"][39] = np.nan
+
     edit(h5, diverged)
     data, attrs = read_telemetry(h5)
     assert attrs["diverged_at"] == 38 and np.isinf(data["measured_modes"][38:]).all()

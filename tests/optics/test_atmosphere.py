@@ -15,6 +15,7 @@ from soulctl.optics.atmosphere import (
     AtmosphereConfig,
     FrozenFlowAtmosphere,
     Layer,
+    _default_screen_pixels,
     fft_phase_screen,
     phase_covariance,
     phase_psd,
@@ -23,7 +24,6 @@ from soulctl.optics.atmosphere import (
     tilt_variance_rad2,
     tilt_variance_ratio,
 )
-from soulctl.optics.atmosphere import _default_screen_pixels
 from soulctl.optics.zernike import noll_to_nm, pupil_mask, zernike
 
 NM_PER_RAD = 500.0 / (2 * math.pi)  # OPD (nm) of one radian of phase at 500 nm

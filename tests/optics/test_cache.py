@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from soulctl.loop.optimize import optical_gain_table
+from soulctl.optics.asm import AsmGeometry
 from soulctl.optics.cache import CHECKSUM, ArrayCache, EntrySpec, checksum
 from soulctl.optics.calibration import BasisSetup, CalibrationSetup, basis_entry, calibrate, modal_basis
-from soulctl.optics.asm import AsmGeometry
 from soulctl.optics.pwfs import PyramidConfig
 
 SETUP = CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 10)
@@ -51,19 +51,23 @@ def assert_fresh(cal, fresh):
 
 def _keep_checksum(change):
     """Edit the arrays, keep the stored checksum (a zeroed or scaled entry)."""
+
     def edit(arrays):
         stored = arrays.pop(CHECKSUM)
         change(arrays)
         return {**arrays, CHECKSUM: stored}
+
     return edit
 
 
 def _new_checksum(change):
     """Edit the arrays and write a matching checksum (well-formed, but not what the caller expects)."""
+
     def edit(arrays):
         arrays.pop(CHECKSUM)
         change(arrays)
         return {**arrays, CHECKSUM: np.array(checksum(arrays))}
+
     return edit
 
 
@@ -129,8 +133,9 @@ def test_a_basis_short_of_modes_is_recomputed_before_the_request_is_blamed(tmp_p
     cache = ArrayCache(tmp_path)
     calibrate(setup, cache)
     key = setup.basis.key()
-    cut = _new_checksum(lambda a: (a.__setitem__("M", a["M"][:, :5]), a.__setitem__("M_inv", a["M_inv"][:5]),
-                                   a.__setitem__("variance", a["variance"][:5])))
+    cut = _new_checksum(
+        lambda a: (a.__setitem__("M", a["M"][:, :5]), a.__setitem__("M_inv", a["M_inv"][:5]), a.__setitem__("variance", a["variance"][:5]))
+    )
     np.savez(cache.path(key), **cut(entry(cache, key)))
     cache.path(setup.key()).unlink()
     assert_fresh(calibrate(setup, cache), fresh)

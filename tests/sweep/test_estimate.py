@@ -28,8 +28,9 @@ def test_frames_of_a_case():
 
 
 def test_a_large_grid_is_estimated_at_once():
-    cases = parse_grid({"magnitude": [16.6, 17.0, 17.5], "seeing": [0.6, 0.8, 1.0, 1.2, 1.4], "seed": list(range(1, 6001)),
-                        "duration": 0.5})
+    cases = parse_grid(
+        {"magnitude": [16.6, 17.0, 17.5], "seeing": [0.6, 0.8, 1.0, 1.2, 1.4], "seed": list(range(1, 6001)), "duration": 0.5}
+    )
     t0 = time.perf_counter()
     e = estimate(cases, 2)
     assert time.perf_counter() - t0 < 5

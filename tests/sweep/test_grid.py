@@ -32,22 +32,25 @@ def test_case_ids_depend_on_the_parameters_only():
     assert {case_id(c) for c in a} == {case_id(c) for c in b} and len({case_id(c) for c in a}) == 2
 
 
-@pytest.mark.parametrize("grid, message", [
-    ({}, "is empty"),
-    ({"seeing": 1.0}, "needs magnitude"),
-    ({"magnitude": 12, "colour": "red"}, "unknown parameter colour"),
-    ({"magnitude": []}, "magnitude is an empty list"),
-    ({"magnitude": 12, "seeing": [1.0, -1.0]}, "seeing must be in 0.05..10 arcsec, got -1"),
-    ({"magnitude": 18.6}, "magnitude must be in 0..18.5, got 18.6"),
-    ({"magnitude": 12, "wind": 0}, "wind must be in 0..100 m/s (> 0), got 0"),
-    ({"magnitude": 12, "L0": 0.1}, "L0 must be in 0.5..10000 m, got 0.1"),
-    ({"magnitude": 12, "seeing": float("nan")}, "seeing must be in 0.05..10 arcsec, got nan"),
-    ({"magnitude": 12, "oversampling": 5}, "oversampling must be in 1..4, got 5"),
-    ({"magnitude": 12, "binning": 2.5}, "binning must be 1, 2, 3 or 4"),
-    ({"magnitude": 12, "noise": "yes"}, "noise must be true or false"),
-    ({"magnitude": 12, "seed": True}, "seed must be"),
-    ({"magnitude": 12, "gain_method": "auto"}, "gain_method must be default, mgm or trial"),
-])
+@pytest.mark.parametrize(
+    "grid, message",
+    [
+        ({}, "is empty"),
+        ({"seeing": 1.0}, "needs magnitude"),
+        ({"magnitude": 12, "colour": "red"}, "unknown parameter colour"),
+        ({"magnitude": []}, "magnitude is an empty list"),
+        ({"magnitude": 12, "seeing": [1.0, -1.0]}, "seeing must be in 0.05..10 arcsec, got -1"),
+        ({"magnitude": 18.6}, "magnitude must be in 0..18.5, got 18.6"),
+        ({"magnitude": 12, "wind": 0}, "wind must be in 0..100 m/s (> 0), got 0"),
+        ({"magnitude": 12, "L0": 0.1}, "L0 must be in 0.5..10000 m, got 0.1"),
+        ({"magnitude": 12, "seeing": float("nan")}, "seeing must be in 0.05..10 arcsec, got nan"),
+        ({"magnitude": 12, "oversampling": 5}, "oversampling must be in 1..4, got 5"),
+        ({"magnitude": 12, "binning": 2.5}, "binning must be 1, 2, 3 or 4"),
+        ({"magnitude": 12, "noise": "yes"}, "noise must be true or false"),
+        ({"magnitude": 12, "seed": True}, "seed must be"),
+        ({"magnitude": 12, "gain_method": "auto"}, "gain_method must be default, mgm or trial"),
+    ],
+)
 def test_bad_grids_name_the_problem(grid, message):
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.")):
         parse_grid(grid)

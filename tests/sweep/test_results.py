@@ -84,16 +84,19 @@ def _line(row):
     return csv_line(row, COLUMNS).encode()
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda f: f.replace("0.5,3.5,120.0,ok", ",3.5,120.0,ok"), "line 2: status ok with an empty strehl"),
-    (lambda f: f.replace("0.5,3.5,120.0,ok", "nan,3.5,120.0,ok"), "line 2: status ok with a non-finite strehl"),
-    (lambda f: f.replace(",ok,", ",done,"), "line 2: status must be ok, diverged or failed, got 'done'"),
-    (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,0.0,25.0,"), "line 2: wind must be in 0..100 m/s (> 0), got 0"),
-    (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,9.0,25.0,"), "line 2: the row of case"),
-    (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 24 fields where the header has 23"),
-    (lambda f: f.replace("case_id,", "case_id,band,", 1), "the column band appears more than once"),
-    (lambda f: f.replace(",soulctl_version", ""), "lacks the columns soulctl_version"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda f: f.replace("0.5,3.5,120.0,ok", ",3.5,120.0,ok"), "line 2: status ok with an empty strehl"),
+        (lambda f: f.replace("0.5,3.5,120.0,ok", "nan,3.5,120.0,ok"), "line 2: status ok with a non-finite strehl"),
+        (lambda f: f.replace(",ok,", ",done,"), "line 2: status must be ok, diverged or failed, got 'done'"),
+        (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,0.0,25.0,"), "line 2: wind must be in 0..100 m/s (> 0), got 0"),
+        (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,9.0,25.0,"), "line 2: the row of case"),
+        (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 24 fields where the header has 23"),
+        (lambda f: f.replace("case_id,", "case_id,band,", 1), "the column band appears more than once"),
+        (lambda f: f.replace(",soulctl_version", ""), "lacks the columns soulctl_version"),
+    ],
+)
 def test_edited_rows_are_refused_naming_the_line(tmp_path, edit, message):
     cases = parse_grid({"magnitude": [12.0]})
     table = _with_one_ok_row(tmp_path, cases)
