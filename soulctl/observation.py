@@ -153,7 +153,7 @@ class Observation:
 
     def to_dict(self) -> dict:
         """A JSON/TOML-ready dict: free parameters by section, derived values under 'derived'."""
-        d = {
+        d: dict[str, dict] = {
             "star": {"magnitude_r": self.magnitude_r},
             "wfs": {
                 "binning": self.binning,

@@ -36,6 +36,7 @@ def number(accepted: Range) -> Callable[[str], float | int]:
         if isinstance(text, (int, float)) and not isinstance(text, bool):  # a default
             return text
         text = str(text).strip()
+        value: float | int | None
         if accepted.integer:
             value = _integer(text)
         else:

@@ -55,7 +55,7 @@ def _text_gains(text: str, path: Path) -> list[float]:
         raise InputError(f"gain file {path} holds no gains (one per line, or mode,gain lines)")
     rows = [(n, [c.strip() for c in row]) for (n, _), row in zip(numbered, csv.reader(line for _, line in numbered))]
     header = [c.lower() for c in rows[0][1]]
-    columns = {"gain": len(header) - 1, "mode": 0 if len(header) == 2 else None}
+    columns: dict[str, int | None] = {"gain": len(header) - 1, "mode": 0 if len(header) == 2 else None}
     if not _is_number(rows[0][1][-1]):
         if "gain" not in header or set(header) - {"mode", "gain"}:
             raise InputError(f"gain file {path}, line {rows[0][0]}: the header must name the columns mode,gain or gain, got {rows[0][1]}")
@@ -66,9 +66,11 @@ def _text_gains(text: str, path: Path) -> list[float]:
     for n, row in rows:
         if len(row) != width:
             raise InputError(f"gain file {path}, line {n}: expected {'mode,gain' if width == 2 else 'one gain'}, got {row}")
-        gains.append(_gain(row[columns["gain"]], path, f"line {n}"))
-        if columns["mode"] is not None:
-            modes.append(_mode(row[columns["mode"]], path, n))
+        gain_column, mode_column = columns["gain"], columns["mode"]
+        assert gain_column is not None
+        gains.append(_gain(row[gain_column], path, f"line {n}"))
+        if mode_column is not None:
+            modes.append(_mode(row[mode_column], path, n))
     return gains if not modes else _by_mode(gains, modes, path)
 
 

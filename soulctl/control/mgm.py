@@ -153,8 +153,10 @@ def _distinct(filters, structure) -> tuple[list[tuple], np.ndarray]:
 
 
 def _plant(delay_frames: float, structure, structured: bool) -> Plant:
-    s = None if not structured else tuple(tuple(float(c) for c in x) for x in structure)
-    return Plant(delay_frames, 1.0, s)
+    if not structured:
+        return Plant(delay_frames, 1.0, None)
+    b, a = structure
+    return Plant(delay_frames, 1.0, (tuple(float(c) for c in b), tuple(float(c) for c in a)))
 
 
 def unit_open_loops(filters, chi, delay_frames: float, rate_hz: float, f, structure=None) -> np.ndarray:

@@ -49,7 +49,7 @@ class RTCMatrices:
     def used_states(self) -> int:
         return sum(b.n_states for b in self.blocks)
 
-    def delta_from_gains(self, gains: Sequence[float]) -> np.ndarray:
+    def delta_from_gains(self, gains: Sequence[float] | np.ndarray) -> np.ndarray:
         """The diagonal of Delta for one gain per mode (n_modes values; uncontrolled modes ignored)."""
         g = np.asarray(gains, dtype=float)
         if g.shape != (self.n_modes,):

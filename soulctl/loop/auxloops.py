@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -71,7 +72,7 @@ class OgtlTask(AuxLoop):
         )
         k, status = ogtl.next_sensitivity(window.sensitivity, est, settings, min(self.k_max, self.ceiling), growing)
         reliable = status not in (ogtl.LOW_SNR, ogtl.NO_ESTIMATE)
-        if reliable and ogtl.spiralling(window.sensitivity, est.chi, self._last):
+        if reliable and self._last is not None and ogtl.spiralling(window.sensitivity, est.chi, self._last):
             k, status = self._last[0], ogtl.SPIRAL
             self.ceiling = k  # k is not raised past the value before the spiral again
         elif reliable:
@@ -270,6 +271,12 @@ class LiveMetricsTask(AuxLoop):
         }
 
 
+class Damped(Protocol):
+    """A task the safety net can damp after a restore (OGTL, MGM, trial-and-error)."""
+
+    def damp(self) -> None: ...
+
+
 class SafetyNet(AuxLoop):
     """The RTC's safety net beside the optimisers.  It runs every ``period_frames`` (a few
     frames) and sums, over those frames and without the probed mode:
@@ -306,7 +313,7 @@ class SafetyNet(AuxLoop):
     GRACE_CHECKS = 2  # checks skipped after a restore, while the loop closes again
     IN_A_ROW = 3  # checks in trouble in a row before the net acts (fast runaways trip the fast rule)
 
-    def __init__(self, period_frames: int, tuned: Sequence[AuxLoop] = (), threshold: float = 3.0, give_up: int = 20, checks: int = 1):
+    def __init__(self, period_frames: int, tuned: Sequence[Damped] = (), threshold: float = 3.0, give_up: int = 20, checks: int = 1):
         super().__init__(period_frames)
         if not (threshold > 1 and give_up >= 1 and checks >= 1):
             raise InputError(f"safety net: threshold must be > 1, give_up and checks >= 1, got {threshold!r}, {give_up!r}, {checks!r}")
@@ -375,6 +382,7 @@ class SafetyNet(AuxLoop):
         return float(max(finite)) if finite else 0.0
 
     def _restore(self, rtc: RtcParameters) -> None:
+        assert self.good is not None  # a restore follows a good state (``update``)
         gains, k = self.good
         rtc.set_gains(gains)
         rtc.set_sensitivity(k)

@@ -396,6 +396,7 @@ class TelemetryReader:
                 shown = f"an array of shape {raw.shape}" if isinstance(raw, np.ndarray) else describe(raw)
                 raise InputError(f"{label} must be text, got {shown}")
             return raw
+        assert field.range is not None  # every numeric attribute of the schema has its range
         if isinstance(raw, np.ndarray):
             kind = "an integer" if field.range.integer else "a number"
             raise InputError(f"{label} must be {kind} in {field.range.text()}, got an array of shape {raw.shape}")
@@ -433,8 +434,8 @@ class TelemetryReader:
         data = np.asarray(data)
         checked = data
         if field.per_frame and self._diverged() >= 0:  # rows from the divergence on hold anything
-            first = range(ds.shape[0])[rows][:1]
-            first = first[0] if len(first) else 0
+            head = range(ds.shape[0])[rows][:1]
+            first = head[0] if len(head) else 0
             checked = data[: max(0, self._diverged() - first)]
         values = self._checked(field, name, data, checked)
         if field is TELEMETRY_SCHEMA["gain_history/frames"] or field is AUX_FRAME:
@@ -482,7 +483,9 @@ def configuration_member(conf: dict, name: str, default, path):
             raise InputError(f"telemetry file {path}: attribute configuration.{part} must be a JSON object, got {describe(section)}")
     if key not in section:
         return default
-    return check_number(CONFIGURATION_SCHEMA[name], section[key], f"telemetry file {path}: attribute configuration.{name}")
+    accepted = CONFIGURATION_SCHEMA[name]
+    assert isinstance(accepted, Range)  # configuration_member reads the numeric members only
+    return check_number(accepted, section[key], f"telemetry file {path}: attribute configuration.{name}")
 
 
 def configuration_observation(conf: dict, path) -> Observation:

@@ -85,11 +85,12 @@ class AsmGeometry:
         p = self.positions()
         radius2 = np.log(floor) / np.log(self.coupling) * self.pitch_m**2
         tree = cKDTree(p)
-        rows, cols = [], []
+        rows_list: list[int] = []
+        cols_list: list[int] = []
         for i, neighbours in enumerate(tree.query_ball_point(np.stack([x, y], axis=1), np.sqrt(radius2))):
-            rows.extend([i] * len(neighbours))
-            cols.extend(neighbours)
-        rows, cols = np.array(rows), np.array(cols)
+            rows_list.extend([i] * len(neighbours))
+            cols_list.extend(neighbours)
+        rows, cols = np.array(rows_list), np.array(cols_list)
         d2 = (x[rows] - p[cols, 0]) ** 2 + (y[rows] - p[cols, 1]) ** 2
         values = np.exp(np.log(self.coupling) * d2 / self.pitch_m**2)
         return csr_matrix((values, (rows, cols)), shape=(x.size, self.n_actuators))

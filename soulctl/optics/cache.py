@@ -144,6 +144,6 @@ class ArrayCache:
         payload = {**arrays, CHECKSUM: np.array(checksum(arrays))}
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write(path, lambda tmp: np.savez(tmp, **payload), immediate=True)
+            atomic_write(path, lambda tmp: np.savez(tmp, **payload), immediate=True)  # type: ignore[arg-type]  # numpy's stub types **kwds as bool
         except (OSError, InputError):  # InputError: something that is not a regular file at the path
             return

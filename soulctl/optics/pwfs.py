@@ -249,7 +249,7 @@ class Pyramid:
         h = n // 2  # each pupil image fills one quadrant of the frame
         I = self.reference_intensity
         quadrant = {1: (h, h), 2: (0, h), 3: (h, 0), 4: (0, 0)}  # (row0, col0) of each image's box
-        flux = sum(I[r0 : r0 + h, c0 : c0 + h] for r0, c0 in quadrant.values())
+        flux = np.sum([I[r0 : r0 + h, c0 : c0 + h] for r0, c0 in quadrant.values()], axis=0)
         rows, cols = np.nonzero(flux >= self.config.valid_threshold * flux.max())
         pixels = np.empty((rows.size, 4, 2), dtype=np.int64)
         for q, (r0, c0) in quadrant.items():

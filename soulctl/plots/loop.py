@@ -30,7 +30,7 @@ def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: flo
     n = psf.shape[0]
     half = min(n // 2, 20 * pad)
     crop = psf[n // 2 - half : n // 2 + half, n // 2 - half : n // 2 + half]
-    extent = np.array([-half, half, -half, half]) * lambda_over_d_mas / pad
+    extent = (-half * lambda_over_d_mas / pad, half * lambda_over_d_mas / pad) * 2
     im = ax.imshow(np.maximum(crop, 1e-5), norm=LogNorm(vmin=1e-5, vmax=1.0), origin="lower", extent=extent, cmap="inferno")
     fig.colorbar(im, ax=ax, label="intensity / diffraction-limited peak")
     ax.set_xlabel("x [mas]")

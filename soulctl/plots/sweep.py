@@ -13,7 +13,7 @@ from .transfer import save_figure
 
 
 def strehl_vs_magnitude(rows: list[dict], path: Path) -> Path:
-    best = defaultdict(dict)  # label -> magnitude -> best Strehl
+    best: defaultdict[str, dict] = defaultdict(dict)  # label -> magnitude -> best Strehl
     binnings = {r.get("binning") for r in rows}
     for r in rows:
         if r.get("status") == "ok" and r.get("strehl") is not None and math.isfinite(r["strehl"]):
