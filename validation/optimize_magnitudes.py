@@ -157,7 +157,10 @@ def main() -> None:
         for seed in a.seeds.split(",")
         for v in a.variants.split(",")
     }
-    rows = checks([r for r in (json.loads(line) for line in a.out.read_text().splitlines()) if _key(r) in wanted])
+    unique = {}  # a case run twice (two runs on one file) gives the same row: keep the first
+    for r in (json.loads(line) for line in a.out.read_text().splitlines()):
+        unique.setdefault(_key(r), r)
+    rows = checks([r for k, r in unique.items() if k in wanted])
     render(rows, Console())
 
 
