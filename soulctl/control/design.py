@@ -302,7 +302,7 @@ def design_tt_filter(
         bounds,
         vectorized=True,
         updating="deferred",
-        seed=seed,
+        seed=np.random.default_rng(seed),  # a Generator: every seed the CLI accepts (0..2^63-1), not only the legacy 32-bit ones
         maxiter=maxiter,
         popsize=popsize,
         tol=1e-7,

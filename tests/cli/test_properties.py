@@ -221,3 +221,22 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
         check_contract(args, limit)
 
     check()
+
+
+SEEDED = [(c, b, lim) for c, b, o, _, lim in CASES if o == "--seed"]
+
+
+@pytest.mark.parametrize("command, base, limit", SEEDED, ids=[c for c, _, _ in SEEDED])
+@pytest.mark.parametrize("seed", [0, 2**32, 2**63 - 1])
+def test_every_seed_in_the_stated_range_runs(command, base, limit, seed, tmp_path_factory):
+    """Every command with --seed runs at the ends of the stated range and past the legacy
+    32-bit seeds (a search that seeded numpy's RandomState failed at 2^32)."""
+    from soulctl.ranges import SEED
+
+    assert SEED.contains(seed)
+    cache = str(tmp_path_factory.getbasetemp() / "property-cache")
+    uses_cache = command.split()[0] in ("loop", "optimize") or command == "optics gains"
+    args = [*command.split(), *base, "--seed", str(seed), "--json", *(["--cache-dir", cache] if uses_cache else [])]
+    status, out, err, _ = invoke(args, limit)
+    assert status == 0, (args, err)
+    json.loads(out, parse_constant=no_constants)
