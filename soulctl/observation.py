@@ -193,11 +193,14 @@ class Observation:
                 key: _number(delay, key, "delay") if key in delay else getattr(default, key)
                 for key in ("t_readout_ms", "t_computation_ms", "t_asm_ms")
             }
-            delay_model = DelayModel(**terms, source="configuration file" if delay else default.source)
+            # the tables' provenance is kept where a file repeats their values
+            same = all(terms[k] == getattr(default, k) for k in terms)
+            delay_model = DelayModel(**terms, source=default.source if same else "configuration file")
             phot = WfsPhotometry.from_table()
             if "zero_point_ph_s_per_subaperture" in phot_section:
                 zp = _number(phot_section, "zero_point_ph_s_per_subaperture", "photometry")
-                phot = WfsPhotometry(zp, phot.reference_subapertures, phot.pupil_diameter_m, "configuration file")
+                if zp != phot.zero_point_ph_s:
+                    phot = WfsPhotometry(zp, phot.reference_subapertures, phot.pupil_diameter_m, "configuration file")
             tt_control = control["tt_control"]
             _require(isinstance(tt_control, str), f"control.tt_control must be 'iir' or 'int', got {tt_control!r}")
             rate = control.get("tt_filter_rate_hz")

@@ -414,7 +414,7 @@ def initial_gains(
     chi_worst = plant_model(calibration, cache, ogtl, probe_mode, ogtl_model.WORST_SEEING_ARCSEC)
     gamma = optical_gain_table(calibration, cache, request.seeing_arcsec)
     capped = capped_gains(gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting)
-    atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
+    atmosphere = request.atmosphere()
     model = noise_aware_gains(
         obs,
         request.structure,
@@ -523,7 +523,7 @@ def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_m
 
 def _new_loop(r: RunRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:
     """The run's closed loop at t = 0: same seed, same turbulence, vibrations and noise."""
-    atmosphere = AtmosphereConfig.lbt_default(r.seeing_arcsec, r.L0_m, r.wind_m_s)
+    atmosphere = r.atmosphere()
     return ClosedLoop(r.observation, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
 
 

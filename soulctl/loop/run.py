@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .. import defaults
 from ..control.filters import Filter
 from ..control.structure import StructuralResonance
 from ..control.transfer import Loop, Plant, max_stable_gain
@@ -16,7 +17,7 @@ from ..control.trial import MID_GROUP_END
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..observation import Observation
-from ..optics.atmosphere import AtmosphereConfig
+from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
 from ..optics.pwfs import PyramidConfig
@@ -31,19 +32,23 @@ MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
 
 @dataclass(frozen=True)
 class RunRequest:
+    """What ``run`` needs, resolved: built by ``soulctl.run_config.RunConfig.request`` (the
+    run description's one factory) or directly by the Python API."""
+
     observation: Observation
-    seeing_arcsec: float = 1.0
-    wind_m_s: float = 8.0
-    L0_m: float = 25.0
-    duration_s: float = 0.2
+    seeing_arcsec: float = defaults.SEEING_ARCSEC
+    wind_m_s: float = defaults.WIND_M_S
+    L0_m: float = defaults.L0_M
+    duration_s: float = defaults.DURATION_S
     gains: LoopGains | None = None  # None: default_gains
-    band: str = "H"
-    seed: int = 1
+    band: str = defaults.BAND
+    seed: int = defaults.SEED
     noise: bool = True
     vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
-    oversampling: int = 2
+    oversampling: int = defaults.OVERSAMPLING
     structure: StructuralResonance | None = field(default_factory=StructuralResonance)
     allow_unstable: bool = False
+    layers: tuple[Layer, ...] | None = None  # explicit turbulence layers; None: the LBT profile at wind_m_s
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -58,6 +63,12 @@ class RunRequest:
     @property
     def frames(self) -> int:
         return max(1, round(self.duration_s * self.observation.frame_rate_hz))
+
+    def atmosphere(self) -> AtmosphereConfig:
+        """The turbulence: the explicit layers, else the LBT profile scaled to ``wind_m_s``."""
+        if self.layers:
+            return AtmosphereConfig(self.seeing_arcsec, self.L0_m, self.layers)
+        return AtmosphereConfig.lbt_default(self.seeing_arcsec, self.L0_m, self.wind_m_s)
 
     @property
     def skip(self) -> int:
@@ -264,7 +275,7 @@ def run(
     cal = calibration or calibration_for(request, cache)
     check_memory(request.frames, cal, "--duration")
     t_cal = time.perf_counter() - t0
-    atmosphere = AtmosphereConfig.lbt_default(request.seeing_arcsec, request.L0_m, request.wind_m_s)
+    atmosphere = request.atmosphere()
     loop = ClosedLoop(
         obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure
     )

@@ -6,13 +6,29 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).parents[1]))
-from regression_runs import RECORD, close, figures  # noqa: E402
+from regression_runs import ADAPTIVE, LINEAR_RTOL, RECORD, SAME_PLATFORM_RTOL, close, figures  # noqa: E402
 
 
-def test_every_run_path_gives_the_recorded_figures(optics_cache):
+@pytest.fixture(scope="module")
+def both(optics_cache):
     recorded = json.loads(RECORD.read_text())["figures"]
-    now = figures(str(optics_cache.directory))
+    return recorded, figures(str(optics_cache.directory))
+
+
+def test_linear_paths_give_the_recorded_figures(both):
+    recorded, now = both
     assert now.keys() == recorded.keys()
-    for name in recorded:
-        assert close(now[name], recorded[name]), (name, now[name], recorded[name])
+    for name in set(recorded) - set(ADAPTIVE):
+        assert close(now[name], recorded[name], LINEAR_RTOL), (name, now[name], recorded[name])
+
+
+def test_adaptive_paths_give_the_recorded_figures_on_the_same_platform(both):
+    recorded, now = both
+    linear = set(recorded) - set(ADAPTIVE)
+    if not all(close(now[n], recorded[n], SAME_PLATFORM_RTOL) for n in linear):
+        pytest.skip("floating point differs from the recording machine in the last bits, which the auxiliary loops amplify")
+    for name in ADAPTIVE:
+        assert close(now[name], recorded[name], SAME_PLATFORM_RTOL), (name, now[name], recorded[name])

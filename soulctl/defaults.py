@@ -1,0 +1,15 @@
+"""The one home of the defaults of a simulated run: what `loop run`, `optimize gains`, `sweep`
+and the Python API assume when the user says nothing.  The run description
+(``soulctl.run_config``) takes its field defaults from here; `soulctl loop run --print-config`
+prints them resolved.  Physical constants of the telescope and the tables' values have their
+own homes (``optics.pupil``, ``tables/``); these are choices of a run."""
+
+MAGNITUDE_R = 9.7  # the paper's bright-star on-sky tests (Sec. 4)
+SEEING_ARCSEC = 1.0  # at 500 nm, on the line of sight
+WIND_M_S = 8.0  # effective wind speed of the LBT profile
+L0_M = 25.0  # outer scale
+DURATION_S = 0.2  # simulated time of `loop run`
+BAND = "H"  # science band of the Strehl ratio
+SEED = 1
+OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
+MEASURE_S = 0.5  # `optimize gains`: before and after

@@ -1,0 +1,425 @@
+"""The run description: one declarative, complete record of a simulated closed loop, read and
+written as TOML without loss, validated in one place, and the one factory of the loop's
+requests (``RunConfig.request``).
+
+Its TOML form extends the observation file of `soulctl configure --out` (which stays a valid
+run description); every section and key is optional, and what a file leaves out takes the
+look-up table's value for its star, else ``soulctl.defaults``:
+
+    [star]        magnitude_r                       the look-up table's row for this magnitude ...
+    [wfs]         binning, frame_rate_hz,           ... overridden key by key; a binning without
+                  modulation_lambda_over_d           modes takes the table's modes, a frame rate
+    [control]     modes, tt_control, tt_zeros,       without roots the Tip/Tilt IIR of the nearest
+                  tt_poles, tt_filter_rate_hz,       tabulated rate (an integrator below 750 Hz);
+                  gains, forgetting, allow_unstable  gains: 3 (TT, 3-120, 121-last) or one per mode
+    [delay]       t_readout_ms, t_computation_ms, t_asm_ms, or frames (the total, explicitly)
+    [photometry]  zero_point_ph_s_per_subaperture
+    [atmosphere]  seeing_arcsec (or r0_m at 500 nm), L0_m, wind_m_s (the LBT profile's
+                  effective speed), or [[atmosphere.layer]]: altitude_m, fraction,
+                  wind_speed_m_s, wind_direction_deg
+    [vibrations]  enabled, file, scale, [[vibrations.line]] (the format of --vibrations files)
+    [structure]   enabled, frequency_hz, damping, coupling (the 127 Hz resonance)
+    [detector]    noise
+    [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
+    [run]         duration_s, band, seed, oversampling
+
+``to_toml`` writes the description resolved (the observation whole, the vibration lines inline,
+the gains the run starts from), so that a stored description re-runs the same loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomli_w
+
+from . import defaults, tables
+from .control.ogtl import PROBE_MODE
+from .control.structure import StructuralResonance
+from .disturbance.turbulence import r0_from_seeing
+from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
+from .errors import InputError
+from .loop.metrics import BANDS
+from .loop.run import RunRequest, default_gains, sampled_structure
+from .loop.simulation import DEFAULT_FORGETTING, LoopGains
+from .observation import Observation, observation_for_magnitude, tt_filter_roots
+from .optics.atmosphere import Layer
+from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S, Range
+
+HEADER = "# soulctl run description (soulctl loop run --print-config; read by loop run --config).\n"
+OBSERVATION_SECTIONS = ("star", "wfs", "control", "delay", "photometry")
+CONTROLLER_KEYS = ("gains", "forgetting", "allow_unstable")
+KEYS = {
+    "star": ("magnitude_r",),
+    "wfs": ("binning", "frame_rate_hz", "modulation_lambda_over_d"),
+    "control": ("modes", "tt_control", "tt_filter_rate_hz", "tt_zeros", "tt_poles", *CONTROLLER_KEYS),
+    "delay": ("t_readout_ms", "t_computation_ms", "t_asm_ms", "frames"),
+    "photometry": ("zero_point_ph_s_per_subaperture",),
+    "derived": None,  # informational, recomputed
+    "atmosphere": ("seeing_arcsec", "r0_m", "L0_m", "wind_m_s", "layer"),
+    "vibrations": ("enabled", "file", "scale", "source", "line"),
+    "structure": ("enabled", "frequency_hz", "damping", "coupling"),
+    "detector": ("noise",),
+    "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
+    "run": ("duration_s", "band", "seed", "oversampling"),
+}
+LAYER_KEYS = ("altitude_m", "fraction", "wind_speed_m_s", "wind_direction_deg")
+FORGETTING = Range(0.0, 1.0)
+VIBRATION_SCALE = Range(0.0, 100.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AtmosphereSpec:
+    """Seeing and outer scale; the LBT profile at ``wind_m_s``, or explicit ``layers``."""
+
+    seeing_arcsec: float = defaults.SEEING_ARCSEC
+    L0_m: float = defaults.L0_M
+    wind_m_s: float = defaults.WIND_M_S
+    layers: tuple[Layer, ...] = ()
+
+    def __post_init__(self):
+        SEEING_ARCSEC.check(self.seeing_arcsec, "atmosphere.seeing_arcsec")
+        OUTER_SCALE_M.check(self.L0_m, "atmosphere.L0_m")
+        WIND_M_S.check(self.wind_m_s, "atmosphere.wind_m_s")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerSpec:
+    """The modal gains (empty: ``loop.run.default_gains``; 3: the paper's groups; else one per
+    mode) and the leaky integrators' forgetting factor (1: pure integrators)."""
+
+    gains: tuple[float, ...] = ()
+    forgetting: float = DEFAULT_FORGETTING
+    allow_unstable: bool = False
+
+    def __post_init__(self):
+        FORGETTING.check(self.forgetting, "control.forgetting")
+        for g in self.gains:
+            LOOP_GAIN.check(g, "control.gains")
+
+    def loop_gains(self) -> LoopGains | None:
+        if not self.gains:
+            return None
+        if len(self.gains) == 3:
+            return LoopGains(*self.gains, forgetting=self.forgetting)
+        return LoopGains.from_modes(self.gains, self.forgetting)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AuxiliarySpec:
+    """`loop run --mgm --ogtl`: the auxiliary loops beside the run (None: the operating point's default)."""
+
+    mgm: bool = False
+    ogtl: bool = False
+    period_s: float | None = None
+    probe_mode: int = PROBE_MODE
+    probe_amplitude_nm: float | None = None
+    probe_frequency_hz: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunConfig:
+    """A whole simulated run (see the module for its TOML form)."""
+
+    observation: Observation = field(default_factory=lambda: observation_for_magnitude(defaults.MAGNITUDE_R))
+    atmosphere: AtmosphereSpec = AtmosphereSpec()
+    vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
+    structure: StructuralResonance | None = StructuralResonance()
+    noise: bool = True
+    controller: ControllerSpec = ControllerSpec()
+    auxiliary: AuxiliarySpec = AuxiliarySpec()
+    duration_s: float = defaults.DURATION_S
+    band: str = defaults.BAND
+    seed: int = defaults.SEED
+    oversampling: int = defaults.OVERSAMPLING
+
+    def __post_init__(self):
+        DURATION_S.check(self.duration_s, "run.duration_s")
+        SEED.check(self.seed, "run.seed")
+        OVERSAMPLING.check(self.oversampling, "run.oversampling")
+        if self.band not in BANDS:
+            raise InputError(f"run.band must be one of {', '.join(BANDS)}, got {self.band!r}")
+        n = len(self.controller.gains)
+        if n not in (0, 3, self.observation.modes):
+            raise InputError(f"control.gains needs 3 values (the groups) or one per mode ({self.observation.modes}), got {n}")
+
+    def request(self) -> RunRequest:
+        """The run's request: the one place a ``RunRequest`` is built from a description."""
+        a = self.atmosphere
+        return RunRequest(
+            self.observation,
+            a.seeing_arcsec,
+            a.wind_m_s,
+            a.L0_m,
+            self.duration_s,
+            self.controller.loop_gains(),
+            self.band,
+            self.seed,
+            self.noise,
+            self.vibrations,
+            self.oversampling,
+            self.structure,
+            self.controller.allow_unstable,
+            a.layers or None,
+        )
+
+    def resolved(self) -> RunConfig:
+        """The description with the gains the run starts from written out (the defaults'
+        today), so that the stored description does not depend on tomorrow's defaults."""
+        if self.controller.gains:
+            return self
+        g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
+        return dataclasses.replace(
+            self, controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high)))
+        )
+
+    def to_dict(self) -> dict:
+        return _to_dict(self)
+
+    def to_toml(self) -> str:
+        return HEADER + tomli_w.dumps(self.to_dict())
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "run description") -> RunConfig:
+        try:
+            return _from_dict(data)
+        except InputError as e:
+            raise InputError(f"{where}: {e}") from None
+
+    def with_values(self, values: dict) -> RunConfig:
+        """The description with dotted fields replaced (``{"atmosphere.seeing_arcsec": 0.8}``),
+        checked as a file's would be; ``star.magnitude_r`` takes the table's observation for
+        that magnitude (the controller's keys stay)."""
+        d = self.to_dict()
+        if "star.magnitude_r" in values:
+            for section in OBSERVATION_SECTIONS:
+                kept = {k: v for k, v in d.get(section, {}).items() if section == "control" and k in CONTROLLER_KEYS}
+                d[section] = kept
+            d.pop("derived", None)
+            d["control"].pop("gains", None)  # per-mode gains of another configuration do not carry over
+        for dotted, value in values.items():
+            section, _, key = dotted.partition(".")
+            if KEYS.get(section) is None or key not in KEYS[section]:
+                raise InputError(f"unknown run description field {dotted!r}")
+            d.setdefault(section, {})[key] = value
+        return RunConfig.from_dict(d, "the run description with its overrides")
+
+
+def read_run_config(path: str | Path) -> RunConfig:
+    """A run description from a TOML file, or the one stored in a telemetry file (.h5)."""
+    path = Path(path)
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        from .loop.telemetry_file import stored_run_description
+
+        return RunConfig.from_dict(stored_run_description(path), f"telemetry file {path}")
+    from .files import read_toml
+
+    return RunConfig.from_dict(read_toml(path, "run description"), f"run description {path}")
+
+
+# ---- the TOML form -------------------------------------------------------------------------
+
+
+def _to_dict(c: RunConfig) -> dict:
+    d = c.observation.to_dict()
+    ctl = c.controller
+    d["control"].update({"forgetting": ctl.forgetting, "allow_unstable": ctl.allow_unstable})
+    if ctl.gains:
+        d["control"]["gains"] = list(ctl.gains)
+    a = c.atmosphere
+    d["atmosphere"] = {"seeing_arcsec": a.seeing_arcsec, "L0_m": a.L0_m, "wind_m_s": a.wind_m_s}
+    if a.layers:
+        d["atmosphere"]["layer"] = [
+            {
+                "altitude_m": x.altitude_m,
+                "fraction": x.weight,
+                "wind_speed_m_s": x.wind_speed_m_s,
+                "wind_direction_deg": x.wind_direction_deg,
+            }
+            for x in a.layers
+        ]
+    v = c.vibrations
+    d["vibrations"] = {"enabled": False} if v is None else {"enabled": True, "source": v.source, "line": [_line(x) for x in v.lines]}
+    s = c.structure
+    d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
+    d["detector"] = {"noise": c.noise}
+    d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
+    d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
+    return d
+
+
+def _line(x: VibrationLine) -> dict:
+    return {k: getattr(x, k) for k in LINE_KEYS} | ({"note": x.note} if x.note else {})
+
+
+def _check_keys(data: dict) -> None:
+    unknown = sorted(set(data) - set(KEYS))
+    if unknown:
+        raise InputError(f"unknown section [{unknown[0]}] (accepted: {', '.join(k for k in KEYS if k != 'derived')})")
+    for section, value in data.items():
+        if not isinstance(value, dict):
+            raise InputError(f"[{section}] must be a table, got {value!r}")
+        if KEYS[section] is None:
+            continue
+        extra = sorted(set(value) - set(KEYS[section]))
+        if extra:
+            raise InputError(f"[{section}] has the unknown key {extra[0]!r} (accepted: {', '.join(KEYS[section])})")
+
+
+def _from_dict(data: dict) -> RunConfig:
+    _check_keys(data)
+    ctl = data.get("control", {})
+    aux = data.get("auxiliary", {})
+    run = data.get("run", {})
+    try:
+        return RunConfig(
+            observation=_observation(data),
+            atmosphere=_atmosphere(data.get("atmosphere", {})),
+            vibrations=_vibrations(data.get("vibrations", {})),
+            structure=_structure(data.get("structure", {})),
+            noise=_bool(data.get("detector", {}), "noise", True, "detector"),
+            controller=ControllerSpec(
+                gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),
+                forgetting=_number(ctl.get("forgetting", DEFAULT_FORGETTING), "control.forgetting"),
+                allow_unstable=_bool(ctl, "allow_unstable", False, "control"),
+            ),
+            auxiliary=AuxiliarySpec(
+                mgm=_bool(aux, "mgm", False, "auxiliary"),
+                ogtl=_bool(aux, "ogtl", False, "auxiliary"),
+                **{k: _number(aux[k], f"auxiliary.{k}") for k in ("period_s", "probe_amplitude_nm", "probe_frequency_hz") if k in aux},
+                probe_mode=_integer(aux.get("probe_mode", PROBE_MODE), "auxiliary.probe_mode"),
+            ),
+            duration_s=_number(run.get("duration_s", defaults.DURATION_S), "run.duration_s"),
+            band=str(run.get("band", defaults.BAND)),
+            seed=_integer(run.get("seed", defaults.SEED), "run.seed"),
+            oversampling=_integer(run.get("oversampling", defaults.OVERSAMPLING), "run.oversampling"),
+        )
+    except TypeError as e:  # a value of the wrong kind deep in a constructor
+        raise InputError(str(e)) from None
+
+
+def _observation(data: dict) -> Observation:
+    """The table's observation for the star, overridden key by key (see the module)."""
+    star = data.get("star", {})
+    mag = _number(star.get("magnitude_r", defaults.MAGNITUDE_R), "star.magnitude_r")
+    base = observation_for_magnitude(mag).to_dict()
+    given = {s: dict(data.get(s, {})) for s in OBSERVATION_SECTIONS}
+    wfs, ctl = given["wfs"], given["control"]
+    if "binning" in wfs and "modes" not in ctl:
+        rows = [b for b in tables.magnitude_table() if b.binning == wfs["binning"]]
+        if rows:
+            ctl["modes"] = rows[0].modes
+    if "frame_rate_hz" in wfs and "tt_zeros" not in ctl and ctl.get("tt_control") != "int":
+        roots = tt_filter_roots(_number(wfs["frame_rate_hz"], "wfs.frame_rate_hz"), tables.tt_iir_table())
+        ctl.setdefault("tt_control", "iir" if roots else "int")
+        base["control"].update(
+            {"tt_filter_rate_hz": roots.frame_rate_hz, "tt_zeros": list(roots.zeros), "tt_poles": list(roots.poles)} if roots else {}
+        )
+    merged = {s: {**base.get(s, {}), **given[s]} for s in OBSERVATION_SECTIONS}
+    merged["control"] = {k: v for k, v in merged["control"].items() if k not in CONTROLLER_KEYS}
+    c = merged["control"]
+    if c.get("tt_control") == "int":
+        for k in ("tt_zeros", "tt_poles", "tt_filter_rate_hz"):
+            c.pop(k, None)
+    elif c.get("tt_control") == "iir" and not c.get("tt_zeros"):
+        raise InputError(f"control.tt_control 'iir': the roots table has no IIR filter at {merged['wfs']['frame_rate_hz']:g} Hz")
+    if "frames" in given["delay"]:
+        merged["delay"] = _explicit_delay(given["delay"], merged["wfs"]["frame_rate_hz"])
+    return Observation.from_dict(merged)
+
+
+def _explicit_delay(delay: dict, rate_hz) -> dict:
+    """A total delay of ``frames`` frames as the delay model's terms: one frame of integration
+    plus a computation term (the model's other terms 0)."""
+    if set(delay) != {"frames"}:
+        others = sorted(set(delay) - {"frames"})
+        raise InputError(f"[delay] frames is the total delay: give it without {', '.join(others)}")
+    frames = _number(delay["frames"], "delay.frames")
+    rate = _number(rate_hz, "wfs.frame_rate_hz")
+    if not (1.0 <= frames <= 10.0):
+        raise InputError(f"delay.frames must be in 1..10 (one frame of integration at least), got {frames:g}")
+    return {"t_readout_ms": 0.0, "t_computation_ms": (frames - 1.0) / rate * 1e3, "t_asm_ms": 0.0}
+
+
+def _atmosphere(a: dict) -> AtmosphereSpec:
+    if "r0_m" in a and "seeing_arcsec" in a:
+        raise InputError("[atmosphere] takes seeing_arcsec or r0_m, not both")
+    seeing = _number(a.get("seeing_arcsec", defaults.SEEING_ARCSEC), "atmosphere.seeing_arcsec")
+    if "r0_m" in a:
+        r0 = _number(a["r0_m"], "atmosphere.r0_m")
+        if not r0 > 0:
+            raise InputError(f"atmosphere.r0_m must be > 0 m, got {r0:g}")
+        seeing = r0_from_seeing(1.0) / r0  # r0 is inversely proportional to the seeing
+    layers = a.get("layer", [])
+    if not isinstance(layers, list):
+        raise InputError("atmosphere.layer must be an array of tables ([[atmosphere.layer]])")
+    return AtmosphereSpec(
+        seeing_arcsec=seeing,
+        L0_m=_number(a.get("L0_m", defaults.L0_M), "atmosphere.L0_m"),
+        wind_m_s=_number(a.get("wind_m_s", defaults.WIND_M_S), "atmosphere.wind_m_s"),
+        layers=tuple(_layer(x, i) for i, x in enumerate(layers)),
+    )
+
+
+def _layer(x, i: int) -> Layer:
+    where = f"atmosphere.layer {i + 1}"
+    if not isinstance(x, dict) or set(x) - set(LAYER_KEYS):
+        raise InputError(f"{where} must be a table with {', '.join(LAYER_KEYS)}")
+    return Layer(
+        altitude_m=_number(x.get("altitude_m", 0.0), where),
+        weight=_number(x.get("fraction", 1.0), where),
+        wind_speed_m_s=_number(x.get("wind_speed_m_s", defaults.WIND_M_S), where),
+        wind_direction_deg=_number(x.get("wind_direction_deg", 0.0), where),
+    )
+
+
+def _vibrations(v: dict) -> VibrationSpectrum | None:
+    if not _bool(v, "enabled", True, "vibrations"):
+        return None
+    if "file" in v and "line" in v:
+        raise InputError("[vibrations] takes a file or [[vibrations.line]] tables, not both")
+    if "file" in v:
+        spectrum = VibrationSpectrum.read(str(v["file"]))
+    elif "line" in v:
+        spectrum = VibrationSpectrum.from_dict({k: v[k] for k in ("line", "source") if k in v}, "[vibrations]")
+    else:
+        spectrum = VibrationSpectrum.lbt_default()
+    scale = VIBRATION_SCALE.check(_number(v.get("scale", 1.0), "vibrations.scale"), "vibrations.scale")
+    if scale == 1.0:
+        return spectrum
+    lines = tuple(dataclasses.replace(x, tip_mas=x.tip_mas * scale, tilt_mas=x.tilt_mas * scale) for x in spectrum.lines)
+    return VibrationSpectrum(lines, f"{spectrum.source} x {scale:g}")
+
+
+def _structure(s: dict) -> StructuralResonance | None:
+    if not _bool(s, "enabled", True, "structure"):
+        return None
+    return StructuralResonance(**{k: _number(s[k], f"structure.{k}") for k in ("frequency_hz", "damping", "coupling") if k in s})
+
+
+def _bool(d: dict, key: str, default: bool, section: str) -> bool:
+    value = d.get(key, default)
+    if not isinstance(value, bool):
+        raise InputError(f"{section}.{key} must be true or false, got {value!r}")
+    return value
+
+
+def _number(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _integer(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"{name} must be an integer, got {value!r}")
+    return value
+
+
+def _numbers(values, name: str) -> list[float]:
+    if not isinstance(values, list):
+        raise InputError(f"{name} must be an array of numbers, got {values!r}")
+    return [_number(v, name) for v in values]

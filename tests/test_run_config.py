@@ -1,0 +1,127 @@
+"""The run description: lossless TOML, one place of validation, the one factory of requests."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from soulctl import defaults
+from soulctl.errors import InputError
+from soulctl.observation import observation_for_magnitude
+from soulctl.run_config import RunConfig, read_run_config
+
+EXPLICIT = """
+[star]
+magnitude_r = 9.7
+[wfs]
+binning = 1
+frame_rate_hz = 1000.0
+modulation_lambda_over_d = 3.0
+[control]
+modes = 500
+tt_control = "int"
+gains = [0.4, 0.4, 0.4]
+forgetting = 1.0
+[delay]
+frames = 2
+[atmosphere]
+r0_m = 0.15
+L0_m = 40.0
+[[atmosphere.layer]]
+altitude_m = 0.0
+fraction = 1.0
+wind_speed_m_s = 10.0
+wind_direction_deg = 0.0
+[vibrations]
+enabled = false
+[structure]
+enabled = false
+[detector]
+noise = false
+[run]
+seed = 7
+"""
+
+
+def round_trip(c: RunConfig) -> RunConfig:
+    return RunConfig.from_dict(tomllib.loads(c.to_toml()))
+
+
+def test_defaults_round_trip_and_resolve():
+    c = RunConfig()
+    assert round_trip(c) == c
+    r = c.resolved()
+    assert round_trip(r) == r
+    assert len(r.controller.gains) == 3 and all(type(g) is float for g in r.controller.gains)
+    assert r.request().gains is not None and c.request().gains is None
+
+
+def test_explicit_run_round_trips_and_reaches_the_request():
+    c = RunConfig.from_dict(tomllib.loads(EXPLICIT))
+    assert round_trip(c) == c
+    obs = c.observation
+    assert (obs.binning, obs.modes, obs.frame_rate_hz, obs.tt_control) == (1, 500, 1000.0, "int")
+    assert obs.delay_frames == pytest.approx(2.0)
+    req = c.request()
+    assert req.vibrations is None and req.structure is None and not req.noise and req.seed == 7
+    atm = req.atmosphere()
+    assert len(atm.layers) == 1 and atm.layers[0].wind_speed_m_s == 10.0 and req.L0_m == 40.0
+    assert atm.r0_m == pytest.approx(0.15)  # r0 given, seeing derived, r0 recovered
+    g = req.gains
+    assert (g.tip_tilt, g.mid, g.high, g.forgetting) == (0.4, 0.4, 0.4, 1.0)
+
+
+def test_vibration_scale_and_lines_round_trip():
+    c = RunConfig.from_dict({"vibrations": {"scale": 2.0}})
+    base = RunConfig().vibrations
+    assert c.vibrations.lines[0].tip_mas == pytest.approx(2.0 * base.lines[0].tip_mas)
+    assert round_trip(c) == c
+
+
+def test_an_observation_file_is_a_run_description(tmp_path):
+    obs = observation_for_magnitude(16.5)
+    path = tmp_path / "obs.toml"
+    path.write_text(obs.to_toml())
+    c = read_run_config(path)
+    assert c.observation == obs
+    assert c.atmosphere.seeing_arcsec == defaults.SEEING_ARCSEC and c.duration_s == defaults.DURATION_S
+
+
+def test_partial_observation_takes_the_table_row_key_by_key():
+    c = RunConfig.from_dict({"star": {"magnitude_r": 16.5}, "wfs": {"frame_rate_hz": 1000.0}})
+    table = observation_for_magnitude(16.5)
+    assert c.observation.binning == table.binning and c.observation.modes == table.modes
+    assert c.observation.frame_rate_hz == 1000.0 and c.observation.tt_filter_rate_hz != table.tt_filter_rate_hz
+
+
+@pytest.mark.parametrize(
+    "data, words",
+    [
+        ({"atmos": {}}, "unknown section [atmos]"),
+        ({"atmosphere": {"seeing": 1.0}}, "unknown key 'seeing'"),
+        ({"atmosphere": {"seeing_arcsec": 12.0}}, "atmosphere.seeing_arcsec"),
+        ({"atmosphere": {"seeing_arcsec": "1"}}, "finite number"),
+        ({"control": {"gains": [0.1, 0.2]}}, "3 values"),
+        ({"control": {"forgetting": 1.5}}, "forgetting"),
+        ({"delay": {"frames": 0.5}}, "1..10"),
+        ({"delay": {"frames": 2, "t_asm_ms": 1.0}}, "total delay"),
+        ({"run": {"band": "Q"}}, "run.band"),
+        ({"run": {"seed": 1.5}}, "integer"),
+        ({"structure": {"enabled": "yes"}}, "true or false"),
+        ({"atmosphere": {"layer": [{"height": 0}]}}, "atmosphere.layer 1"),
+    ],
+)
+def test_bad_descriptions_name_the_field(data, words):
+    with pytest.raises(InputError) as e:
+        RunConfig.from_dict(data)
+    assert words in str(e.value)
+
+
+def test_with_values_overrides_dotted_fields():
+    c = RunConfig().with_values({"atmosphere.seeing_arcsec": 0.6, "run.seed": 3})
+    assert c.atmosphere.seeing_arcsec == 0.6 and c.seed == 3
+    m = c.with_values({"star.magnitude_r": 16.5})
+    assert m.observation == observation_for_magnitude(16.5) and m.atmosphere.seeing_arcsec == 0.6
+    with pytest.raises(InputError, match="unknown run description field"):
+        c.with_values({"atmosphere.sseing": 1.0})
