@@ -10,8 +10,9 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [wfs]         binning, frame_rate_hz,           ... overridden key by key; a binning without
                   modulation_lambda_over_d           modes takes the table's modes, a frame rate
     [control]     modes, tt_control, tt_zeros,       without roots the Tip/Tilt IIR of the nearest
-                  tt_poles, tt_filter_rate_hz,       tabulated rate (an integrator below 750 Hz);
-                  gains, forgetting, allow_unstable  gains: 3 (TT, 3-120, 121-last) or one per mode
+                  tt_poles, tt_filter_rate_hz,       tabulated rate (an integrator below 750 Hz)
+                  gains (TT, 3-120, 121-last) or mode_gains (one per mode), forgetting,
+                  allow_unstable
     [delay]       t_readout_ms, t_computation_ms, t_asm_ms, or frames (the total, explicitly)
     [photometry]  zero_point_ph_s_per_subaperture
     [atmosphere]  seeing_arcsec (or r0_m at 500 nm), L0_m, wind_m_s (the LBT profile's
@@ -37,22 +38,23 @@ from pathlib import Path
 import tomli_w
 
 from . import defaults, tables
-from .control.ogtl import PROBE_MODE
+from .control.ogtl import PROBE_MODE, OgtlSettings
 from .control.structure import StructuralResonance
 from .disturbance.turbulence import r0_from_seeing
 from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
 from .errors import InputError
 from .loop.metrics import BANDS
+from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest, default_gains, sampled_structure
 from .loop.simulation import DEFAULT_FORGETTING, LoopGains
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.atmosphere import Layer
-from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S, Range
+from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
 
 HEADER = "# soulctl run description (soulctl loop run --print-config; read by loop run --config).\n"
 OBSERVATION_SECTIONS = ("star", "wfs", "control", "delay", "photometry")
-CONTROLLER_KEYS = ("gains", "forgetting", "allow_unstable")
-KEYS = {
+CONTROLLER_KEYS = ("gains", "mode_gains", "forgetting", "allow_unstable")
+KEYS: dict[str, tuple[str, ...] | None] = {
     "star": ("magnitude_r",),
     "wfs": ("binning", "frame_rate_hz", "modulation_lambda_over_d"),
     "control": ("modes", "tt_control", "tt_filter_rate_hz", "tt_zeros", "tt_poles", *CONTROLLER_KEYS),
@@ -65,6 +67,19 @@ KEYS = {
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
+}
+# What an override makes stale (re-derived unless given too); "section.*": the section's keys
+# but the controller's.
+_TT_FILTER = ("control.tt_control", "control.tt_zeros", "control.tt_poles", "control.tt_filter_rate_hz")
+STALE = {
+    "star.magnitude_r": (*(f"{s}.*" for s in OBSERVATION_SECTIONS), "control.mode_gains"),
+    "wfs.binning": ("control.modes", "control.mode_gains"),
+    "control.modes": ("control.mode_gains",),
+    "wfs.frame_rate_hz": _TT_FILTER,
+    "control.gains": ("control.mode_gains",),
+    "control.mode_gains": ("control.gains",),
+    "vibrations.file": tuple(f"vibrations.{k}" for k in ("line", "source", "scale")),
+    "vibrations.enabled": tuple(f"vibrations.{k}" for k in ("line", "source", "scale")),
 }
 LAYER_KEYS = ("altitude_m", "fraction", "wind_speed_m_s", "wind_direction_deg")
 FORGETTING = Range(0.0, 1.0)
@@ -88,24 +103,31 @@ class AtmosphereSpec:
 
 @dataclass(frozen=True, kw_only=True)
 class ControllerSpec:
-    """The modal gains (empty: ``loop.run.default_gains``; 3: the paper's groups; else one per
-    mode) and the leaky integrators' forgetting factor (1: pure integrators)."""
+    """The modal gains: ``gains`` the paper's three groups (Tip/Tilt, modes 3-120, 121-last) or
+    ``mode_gains`` one per mode (neither: ``loop.run.default_gains``), and the leaky
+    integrators' forgetting factor (1: pure integrators)."""
 
     gains: tuple[float, ...] = ()
+    mode_gains: tuple[float, ...] = ()
     forgetting: float = DEFAULT_FORGETTING
     allow_unstable: bool = False
 
     def __post_init__(self):
         FORGETTING.check(self.forgetting, "control.forgetting")
-        for g in self.gains:
-            LOOP_GAIN.check(g, "control.gains")
+        if self.gains and self.mode_gains:
+            raise InputError("[control] takes gains (the three groups) or mode_gains (one per mode), not both")
+        if len(self.gains) not in (0, 3):
+            raise InputError(f"control.gains needs 3 values (Tip/Tilt, modes 3-120, 121-last), got {len(self.gains)}")
+        for g in self.gains + self.mode_gains:
+            LOOP_GAIN.check(g, "control.gains" if self.gains else "control.mode_gains")
 
     def loop_gains(self) -> LoopGains | None:
+        if self.mode_gains:
+            return LoopGains.from_modes(self.mode_gains, self.forgetting)
         if not self.gains:
             return None
-        if len(self.gains) == 3:
-            return LoopGains(*self.gains, forgetting=self.forgetting)
-        return LoopGains.from_modes(self.gains, self.forgetting)
+        tip_tilt, mid, high = self.gains
+        return LoopGains(tip_tilt, mid, high, forgetting=self.forgetting)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,6 +140,20 @@ class AuxiliarySpec:
     probe_mode: int = PROBE_MODE
     probe_amplitude_nm: float | None = None
     probe_frequency_hz: float | None = None
+
+    def __post_init__(self):
+        if self.period_s is not None:
+            PERIOD_S.check(self.period_s, "auxiliary.period_s")
+        self.probe()  # checks the probe's fields
+
+    def probe(self) -> OgtlSettings:
+        return OgtlSettings(self.probe_mode, self.probe_amplitude_nm, self.probe_frequency_hz)
+
+    def live(self) -> LiveOptimisers | None:
+        """The auxiliary loops of `loop run --mgm/--ogtl` (None: neither)."""
+        if not (self.mgm or self.ogtl):
+            return None
+        return LiveOptimisers(self.mgm, self.ogtl, self.period_s, self.probe())
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -142,9 +178,9 @@ class RunConfig:
         OVERSAMPLING.check(self.oversampling, "run.oversampling")
         if self.band not in BANDS:
             raise InputError(f"run.band must be one of {', '.join(BANDS)}, got {self.band!r}")
-        n = len(self.controller.gains)
-        if n not in (0, 3, self.observation.modes):
-            raise InputError(f"control.gains needs 3 values (the groups) or one per mode ({self.observation.modes}), got {n}")
+        n = len(self.controller.mode_gains)
+        if n not in (0, self.observation.modes):
+            raise InputError(f"control.mode_gains has {n} gains but {self.observation.modes} modes are controlled")
 
     def request(self) -> RunRequest:
         """The run's request: the one place a ``RunRequest`` is built from a description."""
@@ -155,7 +191,7 @@ class RunConfig:
             a.wind_m_s,
             a.L0_m,
             self.duration_s,
-            self.controller.loop_gains(),
+            self.resolved().controller.loop_gains(),
             self.band,
             self.seed,
             self.noise,
@@ -169,7 +205,7 @@ class RunConfig:
     def resolved(self) -> RunConfig:
         """The description with the gains the run starts from written out (the defaults'
         today), so that the stored description does not depend on tomorrow's defaults."""
-        if self.controller.gains:
+        if self.controller.gains or self.controller.mode_gains:
             return self
         g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
         return dataclasses.replace(
@@ -191,19 +227,27 @@ class RunConfig:
 
     def with_values(self, values: dict) -> RunConfig:
         """The description with dotted fields replaced (``{"atmosphere.seeing_arcsec": 0.8}``),
-        checked as a file's would be; ``star.magnitude_r`` takes the table's observation for
-        that magnitude (the controller's keys stay)."""
+        checked as a file's would be.  What a field derives from is re-derived unless given too
+        (``STALE``): ``star.magnitude_r`` takes the table's observation for that magnitude (the
+        controller's keys stay), ``wfs.binning`` the table's modes, ``wfs.frame_rate_hz`` the
+        Tip/Tilt filter of that rate."""
+        for dotted in values:
+            section, _, key = dotted.partition(".")
+            if key not in (KEYS.get(section) or ()):
+                raise InputError(f"unknown run description field {dotted!r}")
         d = self.to_dict()
-        if "star.magnitude_r" in values:
-            for section in OBSERVATION_SECTIONS:
-                kept = {k: v for k, v in d.get(section, {}).items() if section == "control" and k in CONTROLLER_KEYS}
-                d[section] = kept
-            d.pop("derived", None)
-            d["control"].pop("gains", None)  # per-mode gains of another configuration do not carry over
+        d.pop("derived", None)
+        for dotted in values:
+            for stale in STALE.get(dotted, ()):
+                section, _, key = stale.partition(".")
+                if stale in values:
+                    continue
+                if key == "*":
+                    d[section] = {k: v for k, v in d.get(section, {}).items() if section == "control" and k in CONTROLLER_KEYS}
+                else:
+                    d.get(section, {}).pop(key, None)
         for dotted, value in values.items():
             section, _, key = dotted.partition(".")
-            if KEYS.get(section) is None or key not in KEYS[section]:
-                raise InputError(f"unknown run description field {dotted!r}")
             d.setdefault(section, {})[key] = value
         return RunConfig.from_dict(d, "the run description with its overrides")
 
@@ -227,8 +271,9 @@ def _to_dict(c: RunConfig) -> dict:
     d = c.observation.to_dict()
     ctl = c.controller
     d["control"].update({"forgetting": ctl.forgetting, "allow_unstable": ctl.allow_unstable})
-    if ctl.gains:
-        d["control"]["gains"] = list(ctl.gains)
+    for key in ("gains", "mode_gains"):
+        if getattr(ctl, key):
+            d["control"][key] = list(getattr(ctl, key))
     a = c.atmosphere
     d["atmosphere"] = {"seeing_arcsec": a.seeing_arcsec, "L0_m": a.L0_m, "wind_m_s": a.wind_m_s}
     if a.layers:
@@ -262,11 +307,12 @@ def _check_keys(data: dict) -> None:
     for section, value in data.items():
         if not isinstance(value, dict):
             raise InputError(f"[{section}] must be a table, got {value!r}")
-        if KEYS[section] is None:
+        accepted = KEYS[section]
+        if accepted is None:
             continue
-        extra = sorted(set(value) - set(KEYS[section]))
+        extra = sorted(set(value) - set(accepted))
         if extra:
-            raise InputError(f"[{section}] has the unknown key {extra[0]!r} (accepted: {', '.join(KEYS[section])})")
+            raise InputError(f"[{section}] has the unknown key {extra[0]!r} (accepted: {', '.join(accepted)})")
 
 
 def _from_dict(data: dict) -> RunConfig:
@@ -283,6 +329,7 @@ def _from_dict(data: dict) -> RunConfig:
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),
             controller=ControllerSpec(
                 gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),
+                mode_gains=tuple(_numbers(ctl.get("mode_gains", []), "control.mode_gains")),
                 forgetting=_number(ctl.get("forgetting", DEFAULT_FORGETTING), "control.forgetting"),
                 allow_unstable=_bool(ctl, "allow_unstable", False, "control"),
             ),
@@ -305,6 +352,9 @@ def _observation(data: dict) -> Observation:
     """The table's observation for the star, overridden key by key (see the module)."""
     star = data.get("star", {})
     mag = _number(star.get("magnitude_r", defaults.MAGNITUDE_R), "star.magnitude_r")
+    lo, hi = tables.magnitude_range(tables.magnitude_table())
+    if not lo <= mag <= hi:
+        raise InputError(f"star.magnitude_r must be in the look-up table's {lo:g}..{hi:g}, got {mag:g}")
     base = observation_for_magnitude(mag).to_dict()
     given = {s: dict(data.get(s, {})) for s in OBSERVATION_SECTIONS}
     wfs, ctl = given["wfs"], given["control"]

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import tomllib
+from pathlib import Path
 
 import pytest
 
-from soulctl import defaults
+from soulctl import defaults, tables
 from soulctl.errors import InputError
 from soulctl.observation import observation_for_magnitude
 from soulctl.run_config import RunConfig, read_run_config
@@ -54,7 +55,7 @@ def test_defaults_round_trip_and_resolve():
     r = c.resolved()
     assert round_trip(r) == r
     assert len(r.controller.gains) == 3 and all(type(g) is float for g in r.controller.gains)
-    assert r.request().gains is not None and c.request().gains is None
+    assert r.request().gains == c.request().gains  # the description's gains, the defaults' today
 
 
 def test_explicit_run_round_trips_and_reaches_the_request():
@@ -70,6 +71,15 @@ def test_explicit_run_round_trips_and_reaches_the_request():
     assert atm.r0_m == pytest.approx(0.15)  # r0 given, seeing derived, r0 recovered
     g = req.gains
     assert (g.tip_tilt, g.mid, g.high, g.forgetting) == (0.4, 0.4, 0.4, 1.0)
+
+
+def test_per_mode_gains_round_trip_and_reach_the_loop():
+    c = RunConfig.from_dict({"star": {"magnitude_r": 16.5}, "control": {"mode_gains": [0.3, 0.3] + [0.2] * 88, "forgetting": 1.0}})
+    assert round_trip(c) == c
+    g = c.request().gains
+    assert g.per_mode(90)[:3].tolist() == [0.3, 0.3, 0.2] and g.forgetting == 1.0
+    assert c.with_values({"control.gains": [0.1, 0.2, 0.3]}).controller.mode_gains == ()
+    assert RunConfig.from_dict({"control": {"forgetting": 1.0}}).request().gains.forgetting == 1.0  # default gains, given forgetting
 
 
 def test_vibration_scale_and_lines_round_trip():
@@ -103,6 +113,8 @@ def test_partial_observation_takes_the_table_row_key_by_key():
         ({"atmosphere": {"seeing_arcsec": 12.0}}, "atmosphere.seeing_arcsec"),
         ({"atmosphere": {"seeing_arcsec": "1"}}, "finite number"),
         ({"control": {"gains": [0.1, 0.2]}}, "3 values"),
+        ({"control": {"mode_gains": [0.1, 0.2, 0.3]}}, "3 gains but 500 modes"),
+        ({"control": {"gains": [0.1, 0.2, 0.3], "mode_gains": [0.1] * 500}}, "not both"),
         ({"control": {"forgetting": 1.5}}, "forgetting"),
         ({"delay": {"frames": 0.5}}, "1..10"),
         ({"delay": {"frames": 2, "t_asm_ms": 1.0}}, "total delay"),
@@ -125,3 +137,26 @@ def test_with_values_overrides_dotted_fields():
     assert m.observation == observation_for_magnitude(16.5) and m.atmosphere.seeing_arcsec == 0.6
     with pytest.raises(InputError, match="unknown run description field"):
         c.with_values({"atmosphere.sseing": 1.0})
+
+
+def test_overrides_re_derive_what_they_make_stale():
+    base = RunConfig()
+    b = base.with_values({"wfs.binning": 4})
+    assert b.observation.modes == next(r.modes for r in tables.magnitude_table() if r.binning == 4)
+    r = base.with_values({"wfs.frame_rate_hz": 500.0})
+    assert r.observation.tt_control == "int" and r.observation.tt_zeros == ()
+    i = base.with_values({"wfs.frame_rate_hz": 1000.0})
+    assert i.observation.tt_control == "iir" and i.observation.tt_filter_rate_hz == 1000.0
+    v = base.with_values({"vibrations.enabled": False}).with_values({"vibrations.enabled": True})
+    assert v.vibrations == base.vibrations
+    kept = base.with_values({"star.magnitude_r": 13.0, "wfs.binning": 1})
+    assert kept.observation.binning == 1 and kept.observation.magnitude_r == 13.0
+
+
+def test_the_readme_shows_the_resolved_default_the_tool_prints(capsys):
+    from soulctl.cli.app import main
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    block = readme.split("<!-- print-config -->", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
+    assert main(["loop", "run", "--print-config"]) == 0
+    assert capsys.readouterr().out == block

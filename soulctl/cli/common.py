@@ -11,51 +11,74 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from .. import ranges
-from ..disturbance.vibrations import VibrationSpectrum
+from .. import defaults, ranges
+from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
 from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
-from ..observation import Observation, observation_for_magnitude
+from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
+from ..run_config import RunConfig, read_run_config
 from .configure import parse_magnitude
 from .numbers import number
 from .output import console as make_console
 
 CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
+RUN_CONFIG = typer.Option(
+    None,
+    "--config",
+    metavar="FILE",
+    help="Run description (TOML, as --print-config prints it; an observation file from 'soulctl configure --out' is one) "
+    "or a telemetry file (.h5) whose run is repeated; the other options override its fields.",
+)
 NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (the cache is otherwise reused).")
 CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder (default $XDG_CACHE_HOME/soulctl or ~/.cache/soulctl).")
 
 
-# Options of a simulated loop, shared by `loop run` and `optimize gains`.
+# Options of a simulated loop, shared by `loop run` and `optimize gains`: each an override of a
+# field of the run description (None: the description's value, else soulctl.defaults).
 SEEING = typer.Option(
-    1.0,
+    None,
     "--seeing",
     parser=number(ranges.SEEING_ARCSEC),
     metavar="ARCSEC",
+    show_default=str(defaults.SEEING_ARCSEC),
     help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).",
 )
 WIND = typer.Option(
-    8.0,
+    None,
     "--wind",
     parser=number(ranges.WIND_M_S),
     metavar="M/S",
+    show_default=str(defaults.WIND_M_S),
     help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).",
 )
 OUTER_SCALE = typer.Option(
-    25.0, "--L0", parser=number(ranges.OUTER_SCALE_M), metavar="M", help=f"Outer scale ({ranges.OUTER_SCALE_M.text()})."
+    None,
+    "--L0",
+    parser=number(ranges.OUTER_SCALE_M),
+    metavar="M",
+    show_default=str(defaults.L0_M),
+    help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).",
 )
 TT_CONTROL = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one).")
-BAND = typer.Option("H", "--band", help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
-SEED = typer.Option(1, "--seed", parser=number(ranges.SEED), help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).")
+BAND = typer.Option(None, "--band", show_default=defaults.BAND, help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
+SEED = typer.Option(
+    None,
+    "--seed",
+    parser=number(ranges.SEED),
+    show_default=str(defaults.SEED),
+    help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).",
+)
 NO_NOISE = typer.Option(False, "--no-noise", help="Noiseless detector.")
 VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml).")
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 OVERSAMPLING = typer.Option(
-    2,
+    None,
     "--oversampling",
     parser=number(ranges.OVERSAMPLING),
+    show_default=str(defaults.OVERSAMPLING),
     help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).",
 )
 PERIOD = typer.Option(
@@ -67,7 +90,11 @@ PERIOD = typer.Option(
     "segments with bins of at most 1 Hz, up to 512 frames: 2.6 s at 250 Hz, 3.3 s at 100 Hz).",
 )
 PROBE_MODE = typer.Option(
-    30, "--probe-mode", parser=number(ranges.PROBE_MODE), help="OGTL probe mode (1-based, at most the controlled modes)."
+    None,
+    "--probe-mode",
+    show_default=str(PROBE_MODE_DEFAULT),
+    parser=number(ranges.PROBE_MODE),
+    help="OGTL probe mode (1-based, at most the controlled modes).",
 )
 PROBE_AMPLITUDE = typer.Option(
     None,
@@ -87,23 +114,56 @@ PROBE_FREQUENCY = typer.Option(
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
 
-def check_run_options(seeing: float, wind: float, L0: float, band: str, seed: int, duration: float | None = None) -> None:
-    """InputError naming the option and its accepted range for the options of a simulated loop."""
-    ranges.SEEING_ARCSEC.check(seeing, "--seeing")
-    ranges.WIND_M_S.check(wind, "--wind")
-    ranges.OUTER_SCALE_M.check(L0, "--L0")
-    ranges.SEED.check(seed, "--seed")
-    if duration is not None:
-        ranges.DURATION_S.check(duration, "--duration")
-    if band not in BANDS:
+def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=None) -> None:
+    """InputError naming the option and its accepted range for the options of a simulated loop
+    (None: not given)."""
+    for value, accepted, option in (
+        (seeing, ranges.SEEING_ARCSEC, "--seeing"),
+        (wind, ranges.WIND_M_S, "--wind"),
+        (L0, ranges.OUTER_SCALE_M, "--L0"),
+        (seed, ranges.SEED, "--seed"),
+        (duration, ranges.DURATION_S, "--duration"),
+        (oversampling, ranges.OVERSAMPLING, "--oversampling"),
+    ):
+        if value is not None:
+            accepted.check(value, option)
+    if band is not None and band not in BANDS:
         raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
 
 
-def vibration_spectrum(no_vibrations: bool, path: Path | None) -> VibrationSpectrum | None:
-    """--no-vibrations, --vibrations FILE or the LBT default."""
-    if no_vibrations:
-        return None
-    return VibrationSpectrum.read(path) if path else VibrationSpectrum.lbt_default()
+def loop_overrides(
+    seeing, wind, L0, tt_control, gains, band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
+) -> dict:
+    """The options of a simulated loop as overrides of the run description's dotted fields
+    (given options only; ``gains`` the overrides of ``--gains``, ``loop.gain_overrides``)."""
+    check_run_options(seeing, wind, L0, band, seed, oversampling=oversampling)
+    if tt_control not in (None, *TT_CONTROLS):
+        raise InputError(f"--tt-control must be 'iir' or 'int', got '{tt_control}'")
+    values = {
+        "atmosphere.seeing_arcsec": seeing,
+        "atmosphere.wind_m_s": wind,
+        "atmosphere.L0_m": L0,
+        "control.tt_control": tt_control,
+        "run.band": band,
+        "run.seed": seed,
+        "run.oversampling": oversampling,
+        "detector.noise": False if no_noise else None,
+        "vibrations.file": str(vibrations) if vibrations is not None and not no_vibrations else None,
+        "vibrations.enabled": False if no_vibrations else None,
+        "structure.enabled": False if no_resonance else None,
+    }
+    return {k: v for k, v in values.items() if v is not None} | gains
+
+
+def run_description(config: Path | None, mag: str | None, overrides: dict) -> RunConfig:
+    """The run of --config (a run description or a telemetry file) or --mag (the table's star;
+    the default star without either), with the other options' overrides applied."""
+    if config is not None and mag is not None:
+        raise InputError("give either --config or --mag, not both")
+    base = read_run_config(config) if config is not None else RunConfig()
+    if mag is not None:
+        overrides = {"star.magnitude_r": parse_magnitude(mag), **overrides}
+    return base.with_values(overrides) if overrides else base
 
 
 def frames_progress(label: str) -> Progress:

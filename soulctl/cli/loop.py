@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from contextlib import nullcontext
 from pathlib import Path
@@ -10,25 +9,22 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
+from .. import defaults
 from ..control.gain_file import SUFFIXES, read_gain_file
-from ..control.ogtl import OgtlSettings
-from ..control.structure import StructuralResonance
-from ..control.trial import MID_GROUP_END
+from ..control.trial import MID_GROUP_END, gain_groups
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
-from ..loop.optimize import LiveOptimisers
-from ..loop.run import RunRequest, run
+from ..loop.run import run
 from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..loop.telemetry_file import telemetry_arrays, write_telemetry
-from ..observation import Observation, observation_for_magnitude
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, LOOP_GAIN, OVERSAMPLING
+from ..ranges import DURATION_S, LOOP_GAIN
+from ..run_config import RunConfig
 from . import common
 from .common import (
     BAND,
     CACHE_DIR,
-    CONFIG,
     JSON_OUTPUT,
     NO_CACHE,
     NO_NOISE,
@@ -39,6 +35,7 @@ from .common import (
     PROBE_AMPLITUDE,
     PROBE_FREQUENCY,
     PROBE_MODE,
+    RUN_CONFIG,
     SEED,
     SEEING,
     TT_CONTROL,
@@ -49,30 +46,15 @@ from .common import (
     aux_summary,
     check_run_options,
     frames_progress,
-    observation_option,
+    loop_overrides,
     quantity_table,
-    vibration_spectrum,
+    run_description,
 )
-from .configure import parse_magnitude
 from .numbers import number
 from .output import console as make_console
 from .output import print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
-
-DEFAULT_MAGNITUDE = "9.7"  # the paper's bright-star on-sky tests
-
-
-def observation_from(config: Path | None, mag: str | None, tt_control: str | None) -> Observation:
-    """--config or --mag (the default star without either), with --tt-control applied."""
-    obs = observation_option(config, mag) or observation_for_magnitude(parse_magnitude(DEFAULT_MAGNITUDE))
-    if tt_control is None or tt_control == obs.tt_control:
-        return obs
-    if tt_control == "int":
-        return dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=(), tt_filter_rate_hz=None)
-    if tt_control == "iir":
-        raise InputError(f"--tt-control iir: the roots table has no IIR filter at {obs.frame_rate_hz:g} Hz (750 Hz and above)")
-    raise InputError(f"--tt-control must be 'iir' or 'int', got '{tt_control}'")
 
 
 def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
@@ -90,7 +72,17 @@ def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
         values = []
     if len(values) != 3 or not all(LOOP_GAIN.contains(v) for v in values):
         raise InputError(f"--gains must be TT,MID,HIGH (three numbers in {LOOP_GAIN.text()}) or a gain file, got '{text}'")
-    return LoopGains(*values, forgetting=forgetting)
+    tip_tilt, mid, high = values
+    return LoopGains(tip_tilt, mid, high, forgetting=forgetting)
+
+
+def gain_overrides(text: str | None) -> dict:
+    """--gains as an override of the run description: control.gains (the three groups) or
+    control.mode_gains (a gain file)."""
+    g = parse_gains(text, DEFAULT_FORGETTING)
+    if g is None:
+        return {}
+    return {"control.mode_gains": list(g.modes)} if g.modes is not None else {"control.gains": [g.tip_tilt, g.mid, g.high]}
 
 
 def _gain_file(text: str) -> Path | None:
@@ -160,10 +152,9 @@ def _render(result, console: Console) -> None:
     if result.telemetry.aux:
         fg = result.final_gains
         t.add_row("auxiliary loops", ", ".join(sorted(result.telemetry.aux)))
-        t.add_row(
-            "final gains Tip / Tilt / 3-120 / 121-last",
-            f"{fg[0]:.3f} / {fg[1]:.3f} / {fg[2:120].mean():.3f} / " + (f"{fg[120:].mean():.3f}" if len(fg) > 120 else "-"),
-        )
+        t.add_row("final gains Tip / Tilt", f"{fg[0]:.3f} / {fg[1]:.3f}")
+        for name, modes in gain_groups(len(fg))[1:]:
+            t.add_row(f"final gains {name} (mean)", f"{fg[modes].mean():.3f}")
         t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
         for label, text in aux_rows(result.telemetry):
             t.add_row(label, text)
@@ -175,38 +166,49 @@ def _render(result, console: Console) -> None:
 
 @app.command("run")
 def run_cmd(
-    config: Path | None = CONFIG,
+    config: Path | None = RUN_CONFIG,
     mag: str | None = typer.Option(
-        None, "--mag", metavar="R", help=f"Guide star R magnitude (default {DEFAULT_MAGNITUDE}, the paper's bright star)."
+        None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}, the paper's bright star)."
     ),
-    seeing: float = SEEING,
-    wind: float = WIND,
-    L0: float = OUTER_SCALE,
-    duration: float = typer.Option(
-        0.2, "--duration", parser=number(DURATION_S), metavar="S", help="Simulated time (s); the first 20 % is left out of the metrics."
+    seeing: float | None = SEEING,
+    wind: float | None = WIND,
+    L0: float | None = OUTER_SCALE,
+    duration: float | None = typer.Option(
+        None,
+        "--duration",
+        parser=number(DURATION_S),
+        metavar="S",
+        show_default=str(defaults.DURATION_S),
+        help="Simulated time (s); the first 20 % is left out of the metrics.",
     ),
     tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(
         None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."
     ),
-    band: str = BAND,
-    seed: int = SEED,
+    band: str | None = BAND,
+    seed: int | None = SEED,
     no_noise: bool = NO_NOISE,
     vibrations: Path | None = VIBRATIONS,
     no_vibrations: bool = NO_VIBRATIONS,
     no_resonance: bool = NO_RESONANCE,
-    oversampling: int = common.OVERSAMPLING,
+    oversampling: int | None = common.OVERSAMPLING,
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
     period: float | None = PERIOD,
-    probe_mode: int = PROBE_MODE,
+    probe_mode: int | None = PROBE_MODE,
     probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
     telemetry: Path | None = typer.Option(
-        None, "--telemetry", metavar="FILE.h5", help="Write the telemetry (HDF5; with the auxiliary loops' records)."
+        None,
+        "--telemetry",
+        metavar="FILE.h5",
+        help="Write the telemetry (HDF5; with the auxiliary loops' records and the run description).",
     ),
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
+    print_config: bool = typer.Option(
+        False, "--print-config", help="Print the resolved run description (TOML; JSON with --json) and exit without running."
+    ),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = JSON_OUTPUT,
@@ -216,40 +218,41 @@ def run_cmd(
     and RTC, the loop delay.  Prints the Strehl ratio, Tip/Tilt jitter (residual and
     pseudo-open loop), residual wavefront error and the 13 Hz rejection.  --mgm and --ogtl run
     the Modal Gain Machine and the optical gain tracking loop beside it once the loop has
-    closed (their records go to the telemetry file).  Exit status 3 if the loop diverges (the
-    telemetry so far is still written).
+    closed (their records go to the telemetry file).  The run is a run description (--config,
+    else the defaults; --print-config shows it); every other option overrides one of its
+    fields, and the telemetry file stores it, so that `--config t.h5` runs the same loop again.
+    Exit status 3 if the loop diverges (the telemetry so far is still written).
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
-    check_run_options(seeing, wind, L0, band, seed, duration)
-    OVERSAMPLING.check(oversampling, "--oversampling")
     inputs = [("--config", config), gain_file_input(gains), ("--vibrations", vibrations)]
     if telemetry is not None:
         check_output_path(telemetry, "--telemetry", inputs)
     if plot is not None:
         check_output_folder(plot, "--plot", LOOP_FIGURES)
-    obs = observation_from(config, mag, tt_control)
-    loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
-    vib = vibration_spectrum(no_vibrations, vibrations)
-    request = RunRequest(
-        obs,
-        seeing,
-        wind,
-        L0,
-        duration,
-        loop_gains,
-        band,
-        seed,
-        not no_noise,
-        vib,
-        oversampling,
-        None if no_resonance else StructuralResonance(),
-        allow_unstable,
+    check_run_options(None, None, None, None, None, duration)
+    overrides = loop_overrides(
+        seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
     )
-    aux = None
-    if mgm or ogtl:
-        aux = LiveOptimisers(mgm, ogtl, period, OgtlSettings(probe_mode, probe_amplitude, probe_frequency))
-        aux.check(obs, duration)
+    aux_values = {
+        "run.duration_s": duration,
+        "control.allow_unstable": allow_unstable or None,
+        "auxiliary.mgm": mgm or None,
+        "auxiliary.ogtl": ogtl or None,
+        "auxiliary.period_s": period,
+        "auxiliary.probe_mode": probe_mode,
+        "auxiliary.probe_amplitude_nm": probe_amplitude,
+        "auxiliary.probe_frequency_hz": probe_frequency,
+    }
+    description = run_description(config, mag, overrides | {k: v for k, v in aux_values.items() if v is not None}).resolved()
+    if print_config:
+        print_json(description.to_dict()) if json_output else print(description.to_toml(), end="")
+        return 0
+    request = description.request()
+    obs = request.observation
+    aux = description.auxiliary.live()
+    if aux is not None:
+        aux.check(obs, request.duration_s)
     cache = array_cache(no_cache, cache_dir)
     show = not json_output and sys.stderr.isatty()
     progress = frames_progress("closed loop")
@@ -257,19 +260,7 @@ def run_cmd(
         task = progress.add_task("loop", total=request.frames) if show else None
         result = run(request, cache, progress=(lambda k: progress.update(task, completed=k)) if show else None, aux=aux)
     if telemetry is not None:
-        tm = telemetry_arrays(result.telemetry)
-        tm["gains"] = result.final_gains
-        write_telemetry(
-            telemetry,
-            tm,
-            {
-                "rate_hz": obs.frame_rate_hz,
-                "delay_frames": obs.delay_frames,
-                "n_modes": result.calibration.basis.n_modes,
-                "diverged_at": -1 if result.diverged_at is None else result.diverged_at,
-            },
-            result.configuration(),
-        )
+        _write_telemetry(telemetry, result, description)
     if result.diverged_at is not None:
         message = f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
         if json_output:
@@ -288,3 +279,18 @@ def run_cmd(
         if plot is not None:
             console.print(f"figures written to {plot}/")
     return 0
+
+
+def _write_telemetry(path: Path, result, description: RunConfig) -> None:
+    """The run's telemetry with its attributes, configuration and run description."""
+    tm = telemetry_arrays(result.telemetry)
+    tm["gains"] = result.final_gains
+    obs = result.request.observation
+    attributes = {
+        "rate_hz": obs.frame_rate_hz,
+        "delay_frames": obs.delay_frames,
+        "n_modes": result.calibration.basis.n_modes,
+        "diverged_at": -1 if result.diverged_at is None else result.diverged_at,
+        "run_description": description.to_toml(),
+    }
+    write_telemetry(path, tm, attributes, result.configuration())

@@ -13,24 +13,21 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from .. import defaults
 from ..control.gain_file import gains_toml
+from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
-from ..control.structure import StructuralResonance
 from ..control.trial import gain_groups
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path, input_file
 from ..loop.offline import offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
-from ..loop.run import RunRequest
-from ..loop.simulation import DEFAULT_FORGETTING
-from ..observation import TT_CONTROLS
 from ..plots.gains import gain_figure_names, write_gain_figures
-from ..ranges import MEASURE_S, OPTIMISATION_S, OVERSAMPLING, PERIOD_S, SEQUENCE_S
+from ..ranges import MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
 from . import common
 from .common import (
     BAND,
     CACHE_DIR,
-    CONFIG,
     JSON_OUTPUT,
     NO_CACHE,
     NO_NOISE,
@@ -41,6 +38,7 @@ from .common import (
     PROBE_AMPLITUDE,
     PROBE_FREQUENCY,
     PROBE_MODE,
+    RUN_CONFIG,
     SEED,
     SEEING,
     TT_CONTROL,
@@ -49,13 +47,12 @@ from .common import (
     array_cache,
     aux_rows,
     aux_summary,
-    check_run_options,
     frames_progress,
-    observation_option,
+    loop_overrides,
     quantity_table,
-    vibration_spectrum,
+    run_description,
 )
-from .loop import gain_file_input, observation_from, parse_gains
+from .loop import gain_file_input, gain_overrides
 from .numbers import number
 from .output import console as make_console
 from .output import print_json
@@ -151,7 +148,7 @@ def _group_text(g: dict) -> str:
 
 
 def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | None, json_output: bool, cache) -> int:
-    observation = observation_option(config, mag)
+    observation = run_description(config, mag, {}).observation if config is not None or mag is not None else None
     result = offline_mgm(telemetry, observation, cache)
     if out is not None:
         atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
@@ -184,14 +181,14 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
 @app.command("gains")
 def gains_cmd(
     method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side)."),
-    config: Path | None = CONFIG,
-    mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude (default 9.7)."),
+    config: Path | None = RUN_CONFIG,
+    mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g})."),
     telemetry: Path | None = typer.Option(
         None, "--telemetry", metavar="FILE.h5", help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."
     ),
-    seeing: float = SEEING,
-    wind: float = WIND,
-    L0: float = OUTER_SCALE,
+    seeing: float | None = SEEING,
+    wind: float | None = WIND,
+    L0: float | None = OUTER_SCALE,
     duration: float | None = typer.Option(
         None,
         "--duration",
@@ -216,20 +213,20 @@ def gains_cmd(
         help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames).",
     ),
     ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
-    probe_mode: int = PROBE_MODE,
+    probe_mode: int | None = PROBE_MODE,
     probe_amplitude: float | None = PROBE_AMPLITUDE,
     probe_frequency: float | None = PROBE_FREQUENCY,
     tt_control: str | None = TT_CONTROL,
     gains: str | None = typer.Option(
         None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."
     ),
-    band: str = BAND,
-    seed: int = SEED,
+    band: str | None = BAND,
+    seed: int | None = SEED,
     no_noise: bool = NO_NOISE,
     vibrations: Path | None = VIBRATIONS,
     no_vibrations: bool = NO_VIBRATIONS,
     no_resonance: bool = NO_RESONANCE,
-    oversampling: int = common.OVERSAMPLING,
+    oversampling: int | None = common.OVERSAMPLING,
     out: Path | None = typer.Option(
         None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."
     ),
@@ -261,8 +258,14 @@ def gains_cmd(
     if plot is not None:
         check_output_folder(plot, "--plot", gain_figure_names(methods) if telemetry is None else ())
     # Every option is checked in both modes (the offline one ignores the loop's): one range per quantity.
-    check_run_options(seeing, wind, L0, band, seed)
-    OVERSAMPLING.check(oversampling, "--oversampling")
+    overrides = loop_overrides(
+        seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
+    )
+    probe = {
+        "auxiliary.probe_mode": probe_mode,
+        "auxiliary.probe_amplitude_nm": probe_amplitude,
+        "auxiliary.probe_frequency_hz": probe_frequency,
+    }
     for value, option, accepted in (
         (duration, "--duration", OPTIMISATION_S),
         (period, "--period", PERIOD_S),
@@ -271,33 +274,18 @@ def gains_cmd(
     ):
         if value is not None:
             accepted.check(value, option)
-    probe = probe_settings(probe_mode, probe_amplitude, probe_frequency)
-    loop_gains = parse_gains(gains, DEFAULT_FORGETTING)
-    vib = vibration_spectrum(no_vibrations, vibrations)
+    probe_settings(PROBE_MODE_DEFAULT if probe_mode is None else probe_mode, probe_amplitude, probe_frequency)  # errors name the options
     cache = array_cache(no_cache, cache_dir)
     if telemetry is not None:
         if method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
-        if tt_control not in (None, *TT_CONTROLS):
-            raise InputError(f"--tt-control must be 'iir' or 'int', got '{tt_control}'")
         input_file(telemetry, "telemetry file")
         return _offline(telemetry, config, mag, out, json_output, cache)
-    obs = observation_from(config, mag, tt_control)
-    # the run's own duration is not used: --duration and --measure set the phases
-    run = RunRequest(
-        obs,
-        seeing,
-        wind,
-        L0,
-        gains=loop_gains,
-        band=band,
-        seed=seed,
-        noise=not no_noise,
-        vibrations=vib,
-        oversampling=oversampling,
-        structure=None if no_resonance else StructuralResonance(),
-    )
-    requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe, measure, sequence) for m in methods}
+    description = run_description(config, mag, overrides | {k: v for k, v in probe.items() if v is not None}).resolved()
+    run = description.request()  # its duration is not used: --duration and --measure set the phases
+    obs = run.observation
+    probe_of_run = description.auxiliary.probe()
+    requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe_of_run, measure, sequence) for m in methods}
     show = not json_output and sys.stderr.isatty()
     results: dict[str, OptimizeResult] = {}
     for m, request in requests.items():
@@ -314,7 +302,7 @@ def gains_cmd(
             gains_toml(
                 final.gains,
                 f"{'MGM' if final.request.method == 'mgm' else 'trial-and-error'} gains, "
-                f'R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {seeing:g}", seed {seed}',
+                f'R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {run.seeing_arcsec:g}", seed {run.seed}',
             ),
         )
     if plot is not None:

@@ -18,9 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
+from ..optics.asm import N_ACTUATORS
 from .filters import Filter
 
-SOUL_STATE_SIZE = 672
+SOUL_STATE_SIZE = N_ACTUATORS  # one state per actuator
 
 
 @dataclass(frozen=True)

@@ -26,10 +26,10 @@ import numpy as np
 from scipy.special import jv
 
 from ..errors import InputError
+from ..optics.pupil import LBT_DIAMETER_M  # the pupil conjugated to the ASM (LBTO elab_lib)
 
 LAMBDA_REF_M = 500e-9
 MAS_PER_RAD = 180.0 / math.pi * 3600e3
-LBT_DIAMETER_M = 8.222  # the pupil conjugated to the ASM (LBTO elab_lib)
 
 
 def r0_from_seeing(seeing_arcsec: float) -> float:

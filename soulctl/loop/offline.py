@@ -35,6 +35,7 @@ given).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -48,11 +49,14 @@ from ..control.transfer import max_stable_gain
 from ..errors import InputError
 from ..observation import Observation
 from ..optics.cache import ArrayCache
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..ranges import LOOP_GAIN, PERIOD_S
+from ..run_config import ControllerSpec, RunConfig
 from .metrics import pseudo_open_loop
 from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
-from .run import RunRequest, calibration_for, nominal_loop, sampled_structure
+from .run import calibration_for, nominal_loop, sampled_structure
 from .simulation import DEFAULT_FORGETTING
+from .telemetry_file import run_description_of
 from .telemetry_schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
@@ -176,18 +180,35 @@ def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
     return int(mode)
 
 
+def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> RunConfig:
+    """The run a telemetry file records: its stored run description, else (files written
+    before soulctl stored one) what its configuration attribute holds; ``observation``, when
+    given, replaces the file's."""
+    if tm.has("run_description"):
+        description = RunConfig.from_dict(run_description_of(tm), f"telemetry file {path}")
+    else:
+        conf = tm.configuration()
+        description = RunConfig(
+            observation=observation or configuration_observation(conf, path),
+            oversampling=configuration_member(conf, "oversampling", 2, path),
+            controller=ControllerSpec(forgetting=configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)),
+            structure=configuration_structure(conf, path),
+        )
+    return description if observation is None else dataclasses.replace(description, observation=observation)
+
+
 def offline_mgm(
     path,
     observation: Observation | None = None,
     cache: ArrayCache = ArrayCache(None),
     settings: mgm.MgmSettings | None = None,
-    chi_seeing_arcsec: float = 0.8,
+    chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
 ) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
     ``observation``: the configuration to check the file against (default: the file's own)."""
     with TelemetryReader(path) as tm:
-        conf = tm.configuration()
-        observation = observation or configuration_observation(conf, path)
+        description = recorded_run(tm, observation, path)
+        observation = description.observation
         diverged = tm.attribute("diverged_at", -1)
         if diverged >= 0:
             raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
@@ -208,9 +229,7 @@ def offline_mgm(
                 f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
                 f"{observation.delay_frames:g} frames at {rate:g} Hz"
             )
-        oversampling = configuration_member(conf, "oversampling", 2, path)
-        forgetting = configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)
-        structure = configuration_structure(conf, path)
+        forgetting, structure = description.controller.forgetting, description.structure
         recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
         frames = tm.dim("frames")
         first = max(0, frames - round(MAX_WINDOW_S * rate))
@@ -227,8 +246,7 @@ def offline_mgm(
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
-        run = RunRequest(observation, oversampling=oversampling)
-        calibration = calibration_for(run, cache)
+        calibration = calibration_for(description.request(), cache)
         gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
         chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
         machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)

@@ -54,7 +54,7 @@ from ..errors import InputError
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
-from ..optics.optical_gains import CorrectionLevel, optical_gains
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, optical_gains
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
@@ -250,7 +250,7 @@ class OptimizeResult:
 
 
 def optical_gain_table(
-    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = 0.8, screens: int = 4, seed: int = 1
+    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC, screens: int = 4, seed: int = 1
 ) -> np.ndarray:
     """gamma_i of the calibration's modes at the reference correction level, cached."""
     key = cache_key("optical-gains", {"calibration": calibration.setup.key(), "seeing": seeing_arcsec, "screens": screens, "seed": seed})
@@ -486,7 +486,7 @@ def ogtl_task(
     calibration: Calibration,
     cache: ArrayCache,
     noise: np.ndarray,
-    chi_seeing_arcsec: float = 0.8,
+    chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
 ) -> OgtlTask:
     """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
     (the optical model's table), the probe's amplitude from the settings or, by default, from
@@ -510,12 +510,14 @@ def safety_net(rate_hz: float, tasks) -> SafetyNet:
     return SafetyNet(SAFETY_RUN_FRAMES, tuned, checks=checks)
 
 
-def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = 0.8) -> float:
+def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC) -> float:
     """gamma of the probed mode in the reference table: MGM's chi scale before OGTL has a reliable estimate."""
     return float(optical_gain_table(calibration, cache, seeing_arcsec)[probe_mode - 1])
 
 
-def plant_model(calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = 0.8) -> np.ndarray:
+def plant_model(
+    calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC
+) -> np.ndarray:
     """chi_i of the optimisers' plant: gamma_i / gamma_probe of the reference table with OGTL
     (OGTL holds the probed mode at 1), gamma_i without (k = 1)."""
     return mgm_chi(optical_gain_table(calibration, cache, seeing_arcsec), ogtl, probe_mode)

@@ -12,7 +12,7 @@ import numpy as np
 from .. import defaults
 from ..control.filters import Filter
 from ..control.structure import StructuralResonance
-from ..control.transfer import Loop, Plant, max_stable_gain
+from ..control.transfer import VIBRATION_HZ, Loop, Plant, max_stable_gain
 from ..control.trial import MID_GROUP_END
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -25,7 +25,6 @@ from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSE
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry, telemetry_bytes
 
-VIBRATION_HZ = 13.0
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
 

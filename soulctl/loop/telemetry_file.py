@@ -24,7 +24,9 @@ Layout (rows are frames):
                                                     strehl_estimate), /aux/<task>/frame the
                                                     first frame after each update
     attributes: rate_hz, delay_frames, n_modes, soulctl_version, diverged_at (-1 if not),
-                configuration (JSON: observation, atmosphere, gains, seed, ...)
+                configuration (JSON: observation, atmosphere, gains, seed, ...),
+                run_description (TOML: the resolved run description; `loop run --config
+                this.h5` runs the same loop again)
 The file is written to a temporary name and renamed (never half-written).
 
 ``telemetry_schema.TELEMETRY_SCHEMA`` is this layout as a table - kinds, dtypes, shapes, units
@@ -39,12 +41,14 @@ configuration when present, and reads only the rows of its window (see ``loop.of
 from __future__ import annotations
 
 import json
+import tomllib
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from .. import __version__
+from ..errors import InputError
 from ..files import atomic_write
 from .telemetry_schema import ATTRIBUTES, DATASETS, FLOAT32, TelemetryReader
 
@@ -78,6 +82,24 @@ def write_telemetry(path: str | Path, arrays: dict[str, np.ndarray], attributes:
             f.attrs["configuration"] = json.dumps(configuration)
 
     atomic_write(path, write)
+
+
+def stored_run_description(path: str | Path) -> dict:
+    """The run description stored in a telemetry file (``run_config.RunConfig.from_dict``
+    reads it); InputError when the file has none."""
+    with TelemetryReader(path) as tm:
+        return run_description_of(tm)
+
+
+def run_description_of(tm: TelemetryReader) -> dict:
+    """The stored run description of an open telemetry file, as a dict."""
+    text = tm.attribute("run_description", None)
+    if text is None:
+        raise InputError(f"telemetry file {tm.path} holds no run description (written by `loop run` before soulctl stored one)")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"telemetry file {tm.path}: attribute run_description is not TOML ({e})") from None
 
 
 def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:

@@ -128,6 +128,7 @@ ATTRIBUTES = (
     _attribute("soulctl_version", TEXT, "str"),
     _attribute("diverged_at", INTEGER, "int64", DIVERGED_AT, "the frame the loop diverged at, -1 if it did not"),
     _attribute("configuration", TEXT, "str", None, "JSON object: observation, atmosphere, gains, seed, ..."),
+    _attribute("run_description", TEXT, "str", None, "TOML: the resolved run description (soulctl.run_config), re-runnable"),
 )
 TELEMETRY_SCHEMA: dict[str, Field] = {f.name: f for f in (*DATASETS, AUX_RECORD, AUX_FRAME, *ATTRIBUTES)}
 DIMENSION_LABELS = {

@@ -32,10 +32,12 @@ from ..errors import InputError
 from .atmosphere import phase_covariance
 from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
 
+N_ACTUATORS = 672  # the LBT672 adaptive secondary
+
 
 @dataclass(frozen=True)
 class AsmGeometry:
-    n_actuators: int = 672
+    n_actuators: int = N_ACTUATORS
     n_rings: int = 14
     coupling: float = 0.15
     diameter_m: float = LBT_DIAMETER_M

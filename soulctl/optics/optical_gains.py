@@ -33,10 +33,12 @@ from .atmosphere import fft_phase_screen
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .pupil import Pupil
 
+CHI_TABLE_SEEING_ARCSEC = 0.8  # the seeing of the paper's chi_i table, the optimisers' plant model
+
 
 @dataclass(frozen=True)
 class CorrectionLevel:
-    seeing_arcsec: float = 0.8
+    seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC
     L0_m: float = 25.0
     controlled_fraction: float = 0.1
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from .. import tables
 from ..errors import InputError
+from .pupil import LBT_DIAMETER_M
 
 
 @dataclass(frozen=True)
@@ -17,7 +18,7 @@ class WfsPhotometry:
 
     zero_point_ph_s: float
     reference_subapertures: int = 40
-    pupil_diameter_m: float = 8.222
+    pupil_diameter_m: float = LBT_DIAMETER_M
     source: str = ""
 
     def __post_init__(self):

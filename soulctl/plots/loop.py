@@ -11,6 +11,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
+from ..control.transfer import VIBRATION_HZ
 from ..loop.metrics import band_wavelength
 from ..optics.pupil import LBT_DIAMETER_M
 from .transfer import save_figure
@@ -47,7 +48,7 @@ def jitter_figure(f_hz: np.ndarray, residual_mas: np.ndarray, pol_mas: np.ndarra
     keep = f_hz > 0
     ax.semilogx(f_hz[keep], pol_mas[keep], label=f"pseudo-open loop ({pol_mas[1]:.1f} mas)", color="0.35")
     ax.semilogx(f_hz[keep], residual_mas[keep], label=f"residual ({residual_mas[1]:.1f} mas)", color="C3")
-    ax.axvline(13.0, color="0.6", linestyle=":", linewidth=1)
+    ax.axvline(VIBRATION_HZ, color="0.6", linestyle=":", linewidth=1)
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("cumulative Tip/Tilt jitter [mas]")
     ax.set_title(title, fontsize=10)

@@ -7,83 +7,72 @@ options (the sweep's check)."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import traceback
 
-from .. import __version__, tables
-from ..control.structure import StructuralResonance
-from ..disturbance.vibrations import VibrationSpectrum
+from .. import __version__, defaults, tables
 from ..errors import InputError
 from ..loop.optimize import OptimizeRequest, default_period_s, optimize
 from ..loop.run import RunRequest, run
 from ..loop.run import calibration_setup as run_calibration_setup
-from ..observation import BINNINGS, Observation, observation_for_magnitude, tt_filter_roots
+from ..observation import BINNINGS, Observation
 from ..optics.cache import ArrayCache
 from ..optics.calibration import Calibration, CalibrationSetup, calibrate
+from ..run_config import RunConfig
 from .grid import case_id
 
 DEFAULTS = {
-    "seeing": 1.0,
-    "wind": 8.0,
-    "L0": 25.0,
-    "duration": 0.2,
+    "seeing": defaults.SEEING_ARCSEC,
+    "wind": defaults.WIND_M_S,
+    "L0": defaults.L0_M,
+    "duration": defaults.DURATION_S,
     "gain_method": "default",
-    "band": "H",
-    "seed": 1,
+    "band": defaults.BAND,
+    "seed": defaults.SEED,
     "noise": True,
     "vibrations": True,
     "resonance": True,
-    "oversampling": 2,
+    "oversampling": defaults.OVERSAMPLING,
 }
 METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
 STATUS = ("ok", "diverged", "failed")
+# The grid's parameters as fields of the run description (gain_method is the sweep's own).
+FIELDS = {
+    "magnitude": "star.magnitude_r",
+    "binning": "wfs.binning",
+    "frame_rate": "wfs.frame_rate_hz",
+    "tt_control": "control.tt_control",
+    "seeing": "atmosphere.seeing_arcsec",
+    "wind": "atmosphere.wind_m_s",
+    "L0": "atmosphere.L0_m",
+    "duration": "run.duration_s",
+    "band": "run.band",
+    "seed": "run.seed",
+    "oversampling": "run.oversampling",
+    "noise": "detector.noise",
+    "vibrations": "vibrations.enabled",
+    "resonance": "structure.enabled",
+}
+
+
+def case_description(case: dict) -> RunConfig:
+    """The run description of a case: its parameters as overrides of the defaults' (the
+    look-up table's configuration for the magnitude; a binning takes that binning's modes from
+    the table, a frame rate the Tip/Tilt IIR of the nearest tabulated rate, an integrator below
+    the table)."""
+    if "binning" in case and not any(r.binning == case["binning"] for r in tables.magnitude_table()):
+        raise InputError(f"binning {case['binning']} is not in the look-up table (accepted {', '.join(map(str, BINNINGS))})")
+    return RunConfig().with_values({FIELDS[k]: v for k, v in case.items() if k in FIELDS})
 
 
 def observation_for(case: dict) -> Observation:
-    """The look-up table's configuration for the magnitude, with the case's binning (and that
-    binning's sub-apertures and modes from the table), frame rate (and the Tip/Tilt IIR of the
-    nearest tabulated rate, an integrator below the table) and Tip/Tilt control."""
-    obs = observation_for_magnitude(case["magnitude"])
-    if "binning" in case and case["binning"] != obs.binning:
-        rows = [b for b in tables.magnitude_table() if b.binning == case["binning"]]
-        if not rows:
-            raise InputError(f"binning {case['binning']} is not in the look-up table (accepted {', '.join(map(str, BINNINGS))})")
-        obs = dataclasses.replace(obs, binning=case["binning"], modes=rows[0].modes)
-    if "frame_rate" in case:
-        roots = tt_filter_roots(case["frame_rate"], tables.tt_iir_table())
-        obs = dataclasses.replace(
-            obs,
-            frame_rate_hz=float(case["frame_rate"]),
-            tt_control="iir" if roots else "int",
-            tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
-            tt_zeros=roots.zeros if roots else (),
-            tt_poles=roots.poles if roots else (),
-        )
-    if case.get("tt_control") == "int":
-        obs = dataclasses.replace(obs, tt_control="int", tt_zeros=(), tt_poles=(), tt_filter_rate_hz=None)
-    elif case.get("tt_control") == "iir" and obs.tt_control != "iir":
-        raise InputError(f"tt_control iir: the roots table has no IIR filter at {obs.frame_rate_hz:g} Hz")
-    return obs
+    """The observation of a case (``case_description``)."""
+    return case_description(case).observation
 
 
 def run_request(case: dict) -> RunRequest:
     """The `loop run` request of a case (its parameters over `loop run`'s defaults)."""
-    p = {**DEFAULTS, **case}
-    return RunRequest(
-        observation_for(case),
-        p["seeing"],
-        p["wind"],
-        p["L0"],
-        p["duration"],
-        None,
-        p["band"],
-        p["seed"],
-        p["noise"],
-        VibrationSpectrum.lbt_default() if p["vibrations"] else None,
-        p["oversampling"],
-        StructuralResonance() if p["resonance"] else None,
-    )
+    return case_description(case).request()
 
 
 def calibration_setup(case: dict) -> CalibrationSetup:

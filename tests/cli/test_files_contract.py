@@ -171,9 +171,10 @@ def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, m
 
 
 INTERRUPTED = """
-import sys, time
+import os, sys, time
 from soulctl.cli import app, loop as loop_cli
 def slow(*args):
+    open(os.environ["SOULCTL_TEST_READY"], "w").close()
     time.sleep(60)
 loop_cli.write_loop_figures = slow
 sys.exit(app.main(sys.argv[1:]))
@@ -202,13 +203,24 @@ def test_an_interrupt_removes_the_temporaries_and_says_so(signum, status, word, 
     ]
     # run from tmp_path: `python -c` puts the current folder first on sys.path, and the
     # installed package (with its compiled core) must be the one imported
+    # the signal comes while the figures are made, the telemetry's temporary written: not
+    # inside h5py's writing, where a signal lands in a weakref callback and is dropped by
+    # Python (then `_Signals.check` raises it again once the command has finished)
+    ready = tmp_path / "ready"
+    env = {**os.environ, "SOULCTL_TEST_READY": str(ready)}
     p = subprocess.Popen(
-        [sys.executable, "-c", INTERRUPTED, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path
+        [sys.executable, "-c", INTERRUPTED, *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=env,
     )
     deadline = time.time() + 120
-    while not any(f.name.startswith(".soulctl-") for f in out.iterdir()):  # the telemetry's temporary, waiting for the figures
+    while not ready.exists():
         assert p.poll() is None and time.time() < deadline, p.communicate()
         time.sleep(0.05)
+    assert any(f.name.startswith(".soulctl-") for f in out.iterdir())
     p.send_signal(signum)
     _, err = p.communicate(timeout=30)
     assert p.returncode == status

@@ -78,7 +78,7 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--gains", "0.5,-0.1,0.2"], "--gains must be TT,MID,HIGH"),
         (["--tt-control", "pid"], "--tt-control must be 'iir' or 'int'"),
         (["--mag", "16.5", "--tt-control", "iir"], "no IIR filter at 250 Hz"),
-        (["--config", "missing.toml"], "configuration file not found"),
+        (["--config", "missing.toml"], "run description not found"),
         (["--mag", "12", "--config", "x.toml"], "either --config or --mag"),
         (["--plot", "no/such/dir"], "--plot must be an existing folder"),
     ],

@@ -57,7 +57,7 @@ def test_every_field_of_an_observation_file_is_checked(edit, words, tmp_path, ca
     path.write_text(text.replace(*edit))
     refused(
         *run(["loop", "run", "--config", path, "--oversampling", "1", "--duration", "0.05"], capsys, cache_dir),
-        f"configuration file {path}",
+        f"run description {path}",  # loop run reads a run description (an observation file is one)
         *words,
     )
 
