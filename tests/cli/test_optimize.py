@@ -314,3 +314,17 @@ def test_ogtl_alone_in_a_noise_dominated_loop_stays_in_bounds(capsys, cache_dir)
     og = d["auxiliary_summary"]["ogtl"]
     assert d["diverged_at_frame"] is None and 1.0 <= d["final_sensitivity"] <= og["k_max"]
     assert og["updates"] >= int(20 / default_period_s(observation_for_magnitude(17.5))) - 1 and d["metrics"]["strehl"] > 0
+
+
+def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
+    """Gains at a tenth of their usual values (0.05 on every mode): MGM must bring the residual
+    down by more than the run-to-run scatter of a paired evaluation (measured: 921 -> 657 nm)."""
+    args = ["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--seed", "2", "--gains", "0.05,0.05,0.05"]
+    args += ["--method", "mgm", "--no-ogtl", "--period", "1.1", "--duration", "3.3", "--measure", "0.3"]
+    status = main([*args, "--json", "--cache-dir", str(cache_dir)])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["after"]["residual_nm"] < 0.85 * d["before"]["residual_nm"]
+    assert d["after"]["strehl"] > d["before"]["strehl"]
+    assert sum(d["gains"][2:]) / len(d["gains"][2:]) > 0.1  # raised from the mistuned 0.05 on average
