@@ -74,7 +74,7 @@ def _status_of_cli_exception(e: Exception) -> int | None:
     recent typer releases vendor), or None if ``e`` is not one of them."""
     name = type(e).__name__
     if name == "NoArgsIsHelpError":  # `soulctl` alone: the help, and success
-        typer.echo(e.ctx.get_help())
+        typer.echo(e.ctx.get_help())  # type: ignore[attr-defined]  # click's NoArgsIsHelpError has its context
         return 0
     if name == "Exit" and hasattr(e, "exit_code"):  # --help, --version
         return e.exit_code
@@ -156,16 +156,17 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         status = _fail(str(e))
     except Interrupted as e:
-        code, name = INTERRUPT_STATUS[e.signum]
+        code, name = INTERRUPT_STATUS[signal.Signals(e.signum)]
         status = _fail(f"interrupted ({name}); {DISCARDED}", code)
     except KeyboardInterrupt:  # a SIGINT outside the handler (another thread's handler)
         status = _fail(f"interrupted (Ctrl-C); {DISCARDED}", 130)
     except OSError as e:  # the system failing under the command (a full disk): one line, not a traceback
         status = _fail(f"{e.strerror or e}", 1)
     except Exception as e:
-        status = _status_of_cli_exception(e)
-        if status is None:
+        cli_status = _status_of_cli_exception(e)
+        if cli_status is None:
             raise
+        status = cli_status
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)

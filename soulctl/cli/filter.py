@@ -221,7 +221,7 @@ def analyze_command(
         from ..plots.transfer import plot_format
 
         plot_format(plot)
-    lists = {
+    lists: dict[str, list] = {
         "--rate": _numbers(rate, "--rate", ANALYSIS_RATE_HZ),
         "--control": _values(control.lower(), "--control", "controls"),
         "--gain": _numbers(gain, "--gain", ANALYSIS_GAIN),

@@ -257,8 +257,11 @@ def run_cmd(
     show = not json_output and sys.stderr.isatty()
     progress = frames_progress("closed loop")
     with progress if show else nullcontext():
-        task = progress.add_task("loop", total=request.frames) if show else None
-        result = run(request, cache, progress=(lambda k: progress.update(task, completed=k)) if show else None, aux=aux)
+        tick = None
+        if show:
+            task = progress.add_task("loop", total=request.frames)
+            tick = lambda k: progress.update(task, completed=k)  # noqa: E731
+        result = run(request, cache, progress=tick, aux=aux)
     if telemetry is not None:
         _write_telemetry(telemetry, result, description)
     if result.diverged_at is not None:

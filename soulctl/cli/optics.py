@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from contextlib import nullcontext
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.table import Table
@@ -100,7 +101,7 @@ def atmosphere(
     r0 = atm.r0_m
     tilt = TurbulenceTipTilt(seeing_arcsec=seeing, outer_scale_m=L0, wind_speed_m_s=atm.effective_wind_speed_m_s)
     tilt_mas = math.sqrt(tilt.variance_mas2())
-    result = {
+    result: dict[str, Any] = {
         "seeing_arcsec": seeing,
         "L0_m": L0,
         "r0_500nm_m": r0,

@@ -169,16 +169,19 @@ def sweep(
             if not json_output and not asked:
                 output.console(stderr=True).print(cost.text())
             if show:
+                assert task is not None
                 progress.update(task, total=n, state=f"running {min(n, workers or n)}")
 
         def finished(row, report):
             if show:
+                assert task is not None
                 left = progress.tasks[0].total - report.computed
                 progress.update(
                     task, completed=report.computed, state=f"failed {report.failed}, diverged {report.diverged}, running {left}"
                 )
 
         report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
+    assert report.results is not None  # execute() always writes its results
     rows = list(ResultsTable.read_rows(report.results).values())
     derived = derived_table(rows) if derive_table else None
     if derived is not None:

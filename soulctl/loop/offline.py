@@ -147,9 +147,9 @@ def mode_blocks(n_modes: int, frames: int) -> list[slice]:
     return [slice(lo, min(n_modes, lo + width)) for lo in range(0, n_modes, width)]
 
 
-def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bool, path) -> list | None:
+def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bool, path) -> list:
     """Read and check /measured_modes and /command_modes over the window, block by block;
-    the blocks' data if ``keep``.  InputError for modes whose measurement is constant."""
+    the blocks' data if ``keep`` (else []).  InputError for modes whose measurement is constant."""
     kept, flat = [], []
     for cols in blocks:
         measured = tm.read("measured_modes", rows, cols)
@@ -163,7 +163,7 @@ def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bo
             f"telemetry file {path}: field measured_modes has no signal in mode {flat[0]}{more} (constant over "
             f"the window of {rows.stop - rows.start} frames): MGM needs the loop's measurements of every mode"
         )
-    return kept if keep else None
+    return kept
 
 
 def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
@@ -182,19 +182,18 @@ def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
 
 def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> RunConfig:
     """The run a telemetry file records: its stored run description, else (files written
-    before soulctl stored one) what its configuration attribute holds; ``observation``, when
-    given, replaces the file's."""
+    before soulctl stored one) what its configuration attribute holds, which is checked in
+    either case; ``observation``, when given, replaces the file's."""
+    conf = tm.configuration()
+    recorded = RunConfig(
+        observation=observation or configuration_observation(conf, path),
+        oversampling=configuration_member(conf, "oversampling", 2, path),
+        controller=ControllerSpec(forgetting=configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)),
+        structure=configuration_structure(conf, path),
+    )
     if tm.has("run_description"):
-        description = RunConfig.from_dict(run_description_of(tm), f"telemetry file {path}")
-    else:
-        conf = tm.configuration()
-        description = RunConfig(
-            observation=observation or configuration_observation(conf, path),
-            oversampling=configuration_member(conf, "oversampling", 2, path),
-            controller=ControllerSpec(forgetting=configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)),
-            structure=configuration_structure(conf, path),
-        )
-    return description if observation is None else dataclasses.replace(description, observation=observation)
+        recorded = RunConfig.from_dict(run_description_of(tm), f"telemetry file {path}")
+    return recorded if observation is None else dataclasses.replace(recorded, observation=observation)
 
 
 def offline_mgm(
@@ -215,7 +214,7 @@ def offline_mgm(
         n_modes = observation.modes
         if tm.dim("n_modes") != n_modes:
             raise InputError(
-                f"telemetry file {path}: field measured_modes has shape {tm.dataset('measured_modes').shape}, expected "
+                f"telemetry file {path}: field measured_modes has shape ({tm.dim('frames')}, {tm.dim('n_modes')}), expected "
                 f"(frames, {n_modes}) for the configuration's {n_modes} modes"
             )
         rate = tm.attribute("rate_hz")
@@ -241,7 +240,7 @@ def offline_mgm(
         if window <= n + 1:  # only with ``settings`` given: welch_settings refuses short windows
             raise InputError(f"telemetry file {path}: the window after the last change of gains or k holds {window} frames")
         sensitivity = float(k[start - first]) if k is not None else 1.0
-        ogtl = tm.has("aux/ogtl") and len(tm.group("aux/ogtl")) > 0
+        ogtl = len(tm.group("aux/ogtl") or ()) > 0
         rows = slice(start, frames)
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration

@@ -101,7 +101,7 @@ class OptimizeRequest:
         if self.period_s is None:
             object.__setattr__(self, "period_s", default_period_s(self.run.observation, self.ogtl_settings))
         if self.duration_s is None:
-            object.__setattr__(self, "duration_s", default_duration_s(self.period_s))
+            object.__setattr__(self, "duration_s", default_duration_s(self.period))
         if self.trial_sequence_s is None:
             object.__setattr__(self, "trial_sequence_s", default_sequence_s(self.run.observation))
         if self.chi_seeing_arcsec is None:
@@ -123,24 +123,44 @@ class OptimizeRequest:
             )
         if self.method == "mgm":
             self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
-            if self.duration_s < self.period_s:
-                raise InputError(
-                    f"--duration ({self.duration_s:g} s) must hold at least one MGM update period (--period {self.period_s:g} s)"
-                )
-        if self.method == "trial" and self.frames(self.trial_sequence_s) < MIN_SEQUENCE:
+            if self.duration < self.period:
+                raise InputError(f"--duration ({self.duration:g} s) must hold at least one MGM update period (--period {self.period:g} s)")
+        if self.method == "trial" and self.frames(self.sequence) < MIN_SEQUENCE:
             raise InputError(
                 f"--sequence must be at least {MIN_SEQUENCE / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
                 f"({MIN_SEQUENCE} frames), got {self.trial_sequence_s:g} s"
             )
         if self.ogtl:
-            check_probe(self.ogtl_settings, obs, self.period_s)
+            check_probe(self.ogtl_settings, obs, self.period)
 
     def frames(self, seconds: float) -> int:
         return max(1, round(seconds * self.run.observation.frame_rate_hz))
 
+    # the fields' values, resolved by __post_init__
+    @property
+    def period(self) -> float:
+        return _resolved(self.period_s)
+
+    @property
+    def duration(self) -> float:
+        return _resolved(self.duration_s)
+
+    @property
+    def sequence(self) -> float:
+        return _resolved(self.trial_sequence_s)
+
+    @property
+    def chi_seeing(self) -> float:
+        return _resolved(self.chi_seeing_arcsec)
+
     def settings_for_rate(self, rate_hz: float) -> mgm.MgmSettings:
         """MGM settings for windows of one period (see ``period_settings``)."""
-        return self.mgm_settings or period_settings(self.frames(self.period_s), self.run.observation)
+        return self.mgm_settings or period_settings(self.frames(self.period), self.run.observation)
+
+
+def _resolved(value: float | None) -> float:
+    assert value is not None  # set by __post_init__
+    return value
 
 
 def resolving_segment(rate_hz: float) -> int:
@@ -579,9 +599,9 @@ def _optimiser(
     obs = request.run.observation
     if request.method == "mgm":
         machine = mgm_machine(obs, request.run.structure, chi, request.settings_for_rate(obs.frame_rate_hz), forgetting)
-        gamma = probe_gain(calibration, cache, request.ogtl_settings.mode, request.chi_seeing_arcsec)
-        return MgmTask(request.frames(request.period_s), machine, ogtl, gamma), request.frames(request.duration_s)
-    sequence = request.frames(request.trial_sequence_s)
+        gamma = probe_gain(calibration, cache, request.ogtl_settings.mode, request.chi_seeing)
+        return MgmTask(request.frames(request.period), machine, ogtl, gamma), request.frames(request.duration)
+    sequence = request.frames(request.sequence)
     settle = max(1, sequence // 5)
     incumbents = [float(np.mean(initial[modes])) for _, modes in gain_groups(len(chi))]
     trial = TrialAndErrorTask(
@@ -617,12 +637,12 @@ def optimize(
     if not r.allow_unstable:
         check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)
-    chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing_arcsec)
+    chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing)
     loop = _new_loop(r, cal, gains, structure)
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
     loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
-    period = request.frames(request.period_s)
-    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing_arcsec) if request.ogtl else None
+    period = request.frames(request.period)
+    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing) if request.ogtl else None
     optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))

@@ -116,7 +116,7 @@ def check_stability(observation: Observation, gains: LoopGains, structure: Struc
     """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
     plant (chi = 1, the structural resonance on Tip/Tilt)."""
     if gains.modes is not None:
-        first = {}  # each distinct gain, named by the first mode that has it
+        first: dict[tuple[bool, float], int] = {}  # each distinct gain, named by the first mode that has it
         for i, g in enumerate(gains.modes):
             first.setdefault((i < 2, g), i + 1)
         groups = [("Tip/Tilt" if tt else f"mode {m}", g, tt) for (tt, g), m in first.items()]
@@ -303,7 +303,8 @@ def run(
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1
     tm = loop.telemetry.arrays()
-    metrics, spectra, image = None, {}, None
+    metrics, image = None, None
+    spectra: dict = {}
     if diverged_at is None:
         metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
         image = psf.psf

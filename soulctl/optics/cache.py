@@ -99,7 +99,7 @@ def _headers(z: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.dtype]] 
 class ArrayCache:
     """``directory=None`` disables the cache (every load misses, nothing is stored)."""
 
-    directory: Path | None
+    directory: str | Path | None
 
     def path(self, key: str) -> Path | None:
         return None if self.directory is None else Path(self.directory) / f"{key}.npz"

@@ -129,18 +129,20 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at}")
             else:
                 m = result.metrics
+                assert m is not None  # a loop that did not diverge has its metrics
                 row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
             period = optimisation_period_s(p["duration"], request.observation)
-            result = optimize(
+            optimised = optimize(
                 OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"]),
                 cache,
                 calibration=calibration,
             )
-            if result.diverged_at is not None:
-                row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at} ({p['gain_method']})")
+            if optimised.diverged_at is not None:
+                row.update(status="diverged", reason=f"loop diverged at frame {optimised.diverged_at} ({p['gain_method']})")
             else:
-                a = result.after
+                a = optimised.after
+                assert a is not None  # measured when the loop did not diverge
                 row.update(_finished(strehl=a.strehl, tt_jitter_mas=a.tt_jitter_mas, residual_nm=a.residual_nm))
     except InputError as e:
         row["reason"] = str(e)

@@ -70,9 +70,10 @@ class Estimate:
         return self.cpu_seconds / self.workers / (PARALLEL_EFFICIENCY if self.workers > 1 else 1.0)
 
     def text(self) -> str:
+        wall = self.wall_seconds
         where = (
-            f"about {duration_text(self.wall_seconds)} on {self.workers} worker{'s' if self.workers != 1 else ''}"
-            if self.workers is not None
+            f"about {duration_text(wall)} on {self.workers} worker{'s' if self.workers != 1 else ''}"
+            if wall is not None
             else "divided by the scheduler's workers"
         )
         return (

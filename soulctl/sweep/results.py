@@ -208,7 +208,7 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
     at = f"{where}, line {line}"
     if len(fields) != len(columns):
         raise InputError(f"{at}: {len(fields)} fields where the header has {len(columns)}")
-    row = {}
+    row: dict = {}
     for name, text in zip(columns, fields):
         if name not in COLUMNS:
             row[name] = text  # kept as it is
@@ -406,15 +406,17 @@ class ResultsTable:
 
     def _write(self, text: str) -> None:
         data = text.encode("utf-8")
-        size = os.fstat(self._fd).st_size
+        fd = self._fd
+        assert fd is not None  # open between start and close
+        size = os.fstat(fd).st_size
         try:
-            n = os.write(self._fd, data)
+            n = os.write(fd, data)
             if n != len(data):
                 raise OSError(errno.ENOSPC, f"short write to {self.path} ({n} of {len(data)} bytes)")
-            os.fdatasync(self._fd)
+            os.fdatasync(fd)
         except BaseException:
             try:
-                os.ftruncate(self._fd, size)  # no partial line is left behind
+                os.ftruncate(fd, size)  # no partial line is left behind
             except OSError:
                 pass
             raise

@@ -165,6 +165,7 @@ def execute(
             client = connect(stack, scheduler, workers, wait_workers_s)
         calibrations, futures = {}, {}
         for cid, case in todo:
+            assert client is not None  # connected above when there is work
             try:
                 setup = calibration_setup(case)
             except InputError as e:  # the case itself is invalid: a failed row, no task

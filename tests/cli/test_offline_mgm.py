@@ -213,6 +213,9 @@ def test_gains_above_the_nominal_limit_are_capped_and_reported(env, capsys):
         (set_attr("diverged_at", 400), "records a loop that diverged (frame 400)"),
         (set_config("structure", {"frequency_hz": 1e400}), "attribute configuration.structure.frequency_hz must be a finite number"),
         (set_config("observation", {"star": 1}), "attribute configuration.observation is not an observation"),
+        (set_attr("run_description", "[star\n"), "attribute run_description is not TOML"),
+        (set_attr("run_description", "[atmosphere]\nseeing = 1.0\n"), "[atmosphere] has the unknown key 'seeing'"),
+        (set_attr("run_description", "[run]\nseed = -1\n"), "run.seed must be in 0..2^63-1"),
     ],
 )
 def test_bad_fields_exit_2_with_one_line(env, capsys, change, message):
@@ -248,7 +251,7 @@ def test_only_the_needed_fields_and_rows_are_read(env, capsys):
 # ------------------------------------------------------------------- property-based test
 
 DATASET_NAMES = ("measured_modes", "command_modes", "gains", "sensitivity", "gain_history/frames", "gain_history/gains", "slopes", "flux")
-ATTRIBUTE_NAMES = ("rate_hz", "delay_frames", "diverged_at", "n_modes", "configuration")
+ATTRIBUTE_NAMES = ("rate_hz", "delay_frames", "diverged_at", "n_modes", "configuration", "run_description")
 CONFIG_MEMBERS = ("oversampling", "gains.forgetting", "structure", "structure.damping", "observation", "observation.control.modes")
 SPECIAL = st.sampled_from([math.nan, math.inf, -math.inf, -1.0, 0.0, 1e-300, 1e30, 1e308, -1e6, 5.0, 2**63, -(2**63)])
 NUMBER = st.one_of(SPECIAL, st.floats(allow_nan=True, allow_infinity=True), st.integers(-(2**70), 2**70))
