@@ -19,7 +19,7 @@ from ..observation import BINNINGS, Observation
 from ..optics.cache import ArrayCache
 from ..optics.calibration import Calibration, CalibrationSetup, calibrate
 from ..run_config import RunConfig
-from .grid import case_id
+from .grid import FIELDS, case_id
 
 DEFAULTS = {
     "seeing": defaults.SEEING_ARCSEC,
@@ -36,23 +36,6 @@ DEFAULTS = {
 }
 METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
 STATUS = ("ok", "diverged", "failed")
-# The grid's parameters as fields of the run description (gain_method is the sweep's own).
-FIELDS = {
-    "magnitude": "star.magnitude_r",
-    "binning": "wfs.binning",
-    "frame_rate": "wfs.frame_rate_hz",
-    "tt_control": "control.tt_control",
-    "seeing": "atmosphere.seeing_arcsec",
-    "wind": "atmosphere.wind_m_s",
-    "L0": "atmosphere.L0_m",
-    "duration": "run.duration_s",
-    "band": "run.band",
-    "seed": "run.seed",
-    "oversampling": "run.oversampling",
-    "noise": "detector.noise",
-    "vibrations": "vibrations.enabled",
-    "resonance": "structure.enabled",
-}
 
 
 def case_description(case: dict) -> RunConfig:
@@ -62,7 +45,7 @@ def case_description(case: dict) -> RunConfig:
     the table)."""
     if "binning" in case and not any(r.binning == case["binning"] for r in tables.magnitude_table()):
         raise InputError(f"binning {case['binning']} is not in the look-up table (accepted {', '.join(map(str, BINNINGS))})")
-    return RunConfig().with_values({FIELDS[k]: v for k, v in case.items() if k in FIELDS})
+    return RunConfig().with_values({FIELDS.get(k, k): v for k, v in case.items() if k != "gain_method"})
 
 
 def observation_for(case: dict) -> Observation:

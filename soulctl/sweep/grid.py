@@ -13,7 +13,10 @@ accepts): magnitude (R, the look-up table's range), seeing (arcsec), wind (m/s, 
 duration (s), binning (1-4; with it the look-up table's sub-apertures and modes for that
 binning), frame_rate (Hz; the Tip/Tilt IIR of the nearest tabulated rate, an integrator below
 750 Hz), tt_control (iir|int), gain_method (default|mgm|trial), band, seed, noise (bool),
-vibrations (bool), resonance (bool), oversampling (1-4).  gain_method = "mgm": MGM with OGTL
+vibrations (bool), resonance (bool), oversampling (1-4).  Any other field of the run
+description (``soulctl.run_config``) is a parameter by its dotted name, e.g.
+``"atmosphere.L0_m" = [20.0, 40.0]`` or ``"control.forgetting" = 1.0`` (a number, integer,
+boolean or text; checked as the run description checks it).  gain_method = "mgm": MGM with OGTL
 for ``duration`` (an update every half of it, at most 1 s), then the metrics over another
 ``duration``; "trial": the three-group scan (0.25 s per gain), then the same.
 """
@@ -33,6 +36,7 @@ from ..files import read_toml
 from ..loop.metrics import BANDS
 from ..observation import BINNINGS
 from ..ranges import Range
+from ..run_config import KEYS, RunConfig
 
 
 @dataclass(frozen=True)
@@ -85,14 +89,47 @@ PARAMETERS = {
     "oversampling": Parameter(int, ranges.OVERSAMPLING),
 }
 REQUIRED = ("magnitude",)
+# The parameters as fields of the run description (gain_method is the sweep's own).
+FIELDS = {
+    "magnitude": "star.magnitude_r",
+    "binning": "wfs.binning",
+    "frame_rate": "wfs.frame_rate_hz",
+    "tt_control": "control.tt_control",
+    "seeing": "atmosphere.seeing_arcsec",
+    "wind": "atmosphere.wind_m_s",
+    "L0": "atmosphere.L0_m",
+    "duration": "run.duration_s",
+    "band": "run.band",
+    "seed": "run.seed",
+    "oversampling": "run.oversampling",
+    "noise": "detector.noise",
+    "vibrations": "vibrations.enabled",
+    "resonance": "structure.enabled",
+}
 MAX_CASES = 100_000
 
 
 def _check(name: str, value, where: str):
     try:
-        return PARAMETERS[name].check(value, name)
+        if name in PARAMETERS:
+            return PARAMETERS[name].check(value, name)
+        return _check_field(name, value)
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
+
+
+def is_field(name: str) -> bool:
+    """A run description field given by its dotted name (a scalar one: not the layer or line tables)."""
+    section, _, key = name.partition(".")
+    return key in (KEYS.get(section) or ()) and key not in ("layer", "line")
+
+
+def _check_field(name: str, value):
+    """A dotted field's value, checked by the run description it makes of the defaults."""
+    if isinstance(value, (dict, list)) or not isinstance(value, (bool, int, float, str)):
+        raise InputError(f"{name} must be a number, an integer, true or false, or text, got {value!r}")
+    RunConfig().with_values({name: value})
+    return value
 
 
 def parse_grid(data: dict, where: str = "grid") -> list[dict]:
@@ -100,9 +137,17 @@ def parse_grid(data: dict, where: str = "grid") -> list[dict]:
     value out of its range, an empty list or a grid without cases."""
     if not data:
         raise InputError(f"{where} is empty: give at least 'magnitude = [...]'")
-    unknown = sorted(set(data) - set(PARAMETERS))
+    unknown = sorted(name for name in data if name not in PARAMETERS and not is_field(name))
     if unknown:
-        raise InputError(f"{where}: unknown parameter {', '.join(unknown)}; accepted: {', '.join(PARAMETERS)}")
+        raise InputError(
+            f"{where}: unknown parameter {', '.join(unknown)}; accepted: {', '.join(PARAMETERS)} or a run description field by "
+            "its dotted name (e.g. atmosphere.L0_m)"
+        )
+    twice = sorted(name for name in data if FIELDS.get(name) in data)
+    if twice:
+        raise InputError(f"{where}: {twice[0]} and {FIELDS[twice[0]]} are the same parameter: give one")
+    short = {f: name for name, f in FIELDS.items()}
+    data = {short.get(name, name): value for name, value in data.items()}  # one name per parameter
     missing = [k for k in REQUIRED if k not in data]
     if missing:
         raise InputError(f"{where}: needs {', '.join(missing)}")

@@ -143,7 +143,8 @@ def read_results(path: str | Path, cases: dict[str, dict] | None = None) -> Resu
         return ResultsContent(COLUMNS, complete_bytes=0)
     columns = _header(records[0][1], where)
     content = ResultsContent(columns, complete_bytes=cut)
-    extra = [c for c in columns if c not in COLUMNS]
+    grid_fields = {name for case in (cases or {}).values() for name in case}
+    extra = [c for c in columns if c not in COLUMNS and c not in grid_fields]
     if extra:
         content.notes.append(f"{where}: the columns {', '.join(extra)} are not soulctl's: kept, empty in new rows")
     for line, fields in records[1:]:
@@ -257,6 +258,13 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
 # -------------------------------------------------------------------------------- the lock
 
 
+def columns_of(cases: list[dict]) -> tuple[str, ...]:
+    """The results' columns: soulctl's, then the grid's run description fields by dotted name."""
+    dotted = dict.fromkeys(name for case in cases for name in case if name not in COLUMNS)
+    i = COLUMNS.index("strehl")
+    return (*COLUMNS[:i], *dotted, *COLUMNS[i:])
+
+
 def lock_path(folder: str | Path) -> Path:
     return Path(folder) / LOCK_NAME
 
@@ -345,7 +353,7 @@ class ResultsTable:
         self.path = Path(path)
         self.cases = {case_id(c): c for c in cases}
         self.order = {cid: i for i, cid in enumerate(self.cases)}
-        self.columns: tuple[str, ...] = COLUMNS
+        self.columns: tuple[str, ...] = columns_of(cases)
         self.rows: dict[str, dict] = {}
         self.notes: list[str] = []
         self._content: ResultsContent | None = None
@@ -364,6 +372,9 @@ class ResultsTable:
             self._content = None
             return set()
         self._content = read_results(self.path, self.cases)
+        missing = [c for c in self.columns if c not in self._content.columns]
+        if missing:
+            raise InputError(f"{self.path} has no column {missing[0]} for the grid's parameter of that name: choose another --out")
         self.columns = self._content.columns
         self.rows = dict(self._content.rows)
         self.notes = list(self._content.notes)

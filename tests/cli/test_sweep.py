@@ -589,3 +589,47 @@ def test_a_scheduler_without_workers_is_refused_within_the_wait(grid, tmp_path, 
     finally:
         scheduler.terminate()
         scheduler.wait(timeout=30)
+
+
+def test_a_run_description_field_is_a_grid_axis_by_its_dotted_name(tmp_path, capsys, cache_dir):
+    """Dotted names reach the run (the rows equal `loop run --config` with those fields), and
+    their values are columns of the results."""
+    grid = tmp_path / "grid.toml"
+    grid.write_text(TINY.replace("[16.6, 17.0, 17.5]", "17.0") + '"vibrations.scale" = [0.5, 3.0]\n"run.seed" = 3\n')
+    out_dir = tmp_path / "out"
+    status, _, err = cli(["sweep", str(grid), "--workers", "1", "--out", str(out_dir), "--json"], capsys, cache_dir)
+    assert status == 0, err
+    rows = list(ResultsTable.read_rows(out_dir / "results.csv").values())
+    assert sorted(float(r["vibrations.scale"]) for r in rows) == [0.5, 3.0] and {r["seed"] for r in rows} == {3}
+    strehls = set()
+    for row in rows:
+        description = tmp_path / "run.toml"
+        description.write_text(
+            f"[star]\nmagnitude_r = 17.0\n[wfs]\nbinning = 4\n[vibrations]\nscale = {row['vibrations.scale']}\n"
+            "[run]\noversampling = 1\nduration_s = 0.05\nseed = 3\n"
+        )
+        status, out, err = cli(["loop", "run", "--config", str(description), "--json"], capsys, cache_dir)
+        assert status == 0, err
+        assert json.loads(out)["metrics"]["strehl"] == row["strehl"]
+        strehls.add(row["strehl"])
+    assert len(strehls) == 2  # the vibrations' scale changed the run
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('magnitude = 17.0\n"atmosphere.L0" = 20.0\n', "unknown parameter atmosphere.L0"),
+        ('magnitude = 17.0\n"atmosphere.L0_m" = 0.1\n', "L0 must be in 0.5..10000 m"),
+        ('magnitude = 17.0\nseeing = 1.0\n"atmosphere.seeing_arcsec" = 0.8\n', "seeing and atmosphere.seeing_arcsec are the same"),
+        ('magnitude = 17.0\n"atmosphere.layer" = 1.0\n', "unknown parameter atmosphere.layer"),
+    ],
+)
+def test_bad_dotted_parameters_name_the_problem(text, message, tmp_path):
+    with pytest.raises(Exception) as e:
+        parse_grid(tomllib.loads(text))
+    assert message in str(e.value)
+
+
+def test_a_dotted_short_name_is_the_short_parameter():
+    cases = parse_grid(tomllib.loads('magnitude = 17.0\n"atmosphere.seeing_arcsec" = [0.8, 1.0]\n'))
+    assert [c["seeing"] for c in cases] == [0.8, 1.0] and case_id(cases[0]) == case_id({"magnitude": 17.0, "seeing": 0.8})
