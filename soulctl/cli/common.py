@@ -4,6 +4,7 @@ bar, and the two-column quantity/value table."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -11,15 +12,17 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from .. import defaults, ranges
+from .. import defaults, ranges, tables
+from ..control.gain_file import SUFFIXES, read_gain_file
 from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
 from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
+from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
+from ..ranges import LOOP_GAIN
 from ..run_config import RunConfig, read_run_config
-from .configure import parse_magnitude
 from .numbers import number
 from .output import console as make_console
 
@@ -112,6 +115,57 @@ PROBE_FREQUENCY = typer.Option(
     help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).",
 )
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+
+
+def parse_magnitude(text: str) -> float:
+    """The --mag value as a finite number inside the look-up table's range."""
+    lo, hi = tables.magnitude_range(tables.magnitude_table())
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
+    return value + 0.0  # -0 -> 0; the range is checked against the table's rows
+
+
+def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
+    """``TT,MID,HIGH`` (the paper's three groups) or a per-mode gain file
+    (``control.gain_file``: TOML ``gains = [...]``, or text/CSV lines)."""
+    if text is None:
+        return None
+    path = _gain_file(text)
+    if path is not None:
+        return LoopGains.from_modes(read_gain_file(path), forgetting)
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(LOOP_GAIN.contains(v) for v in values):
+        raise InputError(f"--gains must be TT,MID,HIGH (three numbers in {LOOP_GAIN.text()}) or a gain file, got '{text}'")
+    tip_tilt, mid, high = values
+    return LoopGains(tip_tilt, mid, high, forgetting=forgetting)
+
+
+def gain_overrides(text: str | None) -> dict:
+    """--gains as an override of the run description: control.gains (the three groups) or
+    control.mode_gains (a gain file)."""
+    g = parse_gains(text, DEFAULT_FORGETTING)
+    if g is None:
+        return {}
+    return {"control.mode_gains": list(g.modes)} if g.modes is not None else {"control.gains": [g.tip_tilt, g.mid, g.high]}
+
+
+def _gain_file(text: str) -> Path | None:
+    """--gains as a gain file (a gain file's suffix, or an existing path), else None (groups)."""
+    path = Path(text)
+    return path if path.suffix.lower() in SUFFIXES or path.exists() else None
+
+
+def gain_file_input(text: str | None) -> tuple[str, Path | None]:
+    """--gains as an input file of the command (for the output checks), or None."""
+    return ("--gains", None if text is None else _gain_file(text))
 
 
 def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=None) -> None:

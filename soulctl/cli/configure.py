@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import typer
@@ -10,23 +9,11 @@ from rich.console import Console
 from rich.table import Table
 
 from .. import tables
-from ..errors import InputError
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
+from .common import parse_magnitude
 from .output import console as make_console
 from .output import print_json
-
-
-def parse_magnitude(text: str) -> float:
-    """The --mag value as a finite number inside the look-up table's range."""
-    lo, hi = tables.magnitude_range(tables.magnitude_table())
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
-    return value + 0.0  # -0 -> 0; the range is checked against the table's rows
 
 
 def render(obs: Observation, console: Console, roots_source: str = "roots") -> None:

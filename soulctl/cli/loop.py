@@ -10,16 +10,13 @@ import typer
 from rich.console import Console
 
 from .. import defaults
-from ..control.gain_file import SUFFIXES, read_gain_file
 from ..control.trial import MID_GROUP_END, gain_groups
-from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
 from ..loop.run import run
-from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, LOOP_GAIN
+from ..ranges import DURATION_S
 from ..run_config import RunConfig
 from . import common
 from .common import (
@@ -46,6 +43,8 @@ from .common import (
     aux_summary,
     check_run_options,
     frames_progress,
+    gain_file_input,
+    gain_overrides,
     loop_overrides,
     quantity_table,
     run_description,
@@ -55,45 +54,6 @@ from .output import console as make_console
 from .output import print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
-
-
-def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
-    """``TT,MID,HIGH`` (the paper's three groups) or a per-mode gain file
-    (``control.gain_file``: TOML ``gains = [...]``, or text/CSV lines)."""
-    if text is None:
-        return None
-    path = _gain_file(text)
-    if path is not None:
-        return LoopGains.from_modes(read_gain_file(path), forgetting)
-    parts = text.split(",")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(LOOP_GAIN.contains(v) for v in values):
-        raise InputError(f"--gains must be TT,MID,HIGH (three numbers in {LOOP_GAIN.text()}) or a gain file, got '{text}'")
-    tip_tilt, mid, high = values
-    return LoopGains(tip_tilt, mid, high, forgetting=forgetting)
-
-
-def gain_overrides(text: str | None) -> dict:
-    """--gains as an override of the run description: control.gains (the three groups) or
-    control.mode_gains (a gain file)."""
-    g = parse_gains(text, DEFAULT_FORGETTING)
-    if g is None:
-        return {}
-    return {"control.mode_gains": list(g.modes)} if g.modes is not None else {"control.gains": [g.tip_tilt, g.mid, g.high]}
-
-
-def _gain_file(text: str) -> Path | None:
-    """--gains as a gain file (a gain file's suffix, or an existing path), else None (groups)."""
-    path = Path(text)
-    return path if path.suffix.lower() in SUFFIXES or path.exists() else None
-
-
-def gain_file_input(text: str | None) -> tuple[str, Path | None]:
-    """--gains as an input file of the command (for the output checks), or None."""
-    return ("--gains", None if text is None else _gain_file(text))
 
 
 def _result_dict(result) -> dict:

@@ -48,11 +48,12 @@ from .common import (
     aux_rows,
     aux_summary,
     frames_progress,
+    gain_file_input,
+    gain_overrides,
     loop_overrides,
     quantity_table,
     run_description,
 )
-from .loop import gain_file_input, gain_overrides
 from .numbers import number
 from .output import console as make_console
 from .output import print_json

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from soulctl.cli.app import main
-from soulctl.cli.loop import parse_gains
+from soulctl.cli.common import parse_gains
 from soulctl.control.structure import StructuralResonance
 from soulctl.loop.run import check_stability, sampled_structure
 from soulctl.observation import observation_for_magnitude

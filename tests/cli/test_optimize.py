@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from soulctl.cli.app import main
-from soulctl.cli.loop import parse_gains
+from soulctl.cli.common import parse_gains
 from soulctl.control import mgm
 from soulctl.control.structure import StructuralResonance
 from soulctl.loop.offline import nominal_limits
