@@ -40,7 +40,6 @@ import tomli_w
 from . import defaults, tables
 from .control.ogtl import PROBE_MODE, OgtlSettings
 from .control.structure import StructuralResonance
-from .disturbance.turbulence import r0_from_seeing
 from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
 from .errors import InputError
 from .loop.metrics import BANDS
@@ -48,7 +47,7 @@ from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest, default_gains, sampled_structure
 from .loop.simulation import DEFAULT_FORGETTING, LoopGains
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
-from .optics.atmosphere import Layer
+from .optics.atmosphere import Layer, r0_from_seeing
 from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
 
 HEADER = "# soulctl run description (soulctl loop run --print-config; read by loop run --config).\n"

@@ -26,15 +26,11 @@ import numpy as np
 from scipy.special import jv
 
 from ..errors import InputError
+from ..optics.atmosphere import LAMBDA_REF_M, phase_psd_k2, r0_from_seeing
 from ..optics.pupil import LBT_DIAMETER_M  # the pupil conjugated to the ASM (LBTO elab_lib)
+from ..ranges import SEEING_ARCSEC
 
-LAMBDA_REF_M = 500e-9
 MAS_PER_RAD = 180.0 / math.pi * 3600e3
-
-
-def r0_from_seeing(seeing_arcsec: float) -> float:
-    """Fried parameter (m) at 500 nm from the seeing FWHM (arcsec) at 500 nm."""
-    return 0.98 * LAMBDA_REF_M / (seeing_arcsec / 3600.0 * math.pi / 180.0)
 
 
 @dataclass(frozen=True)
@@ -45,8 +41,8 @@ class TurbulenceTipTilt:
     diameter_m: float = LBT_DIAMETER_M
 
     def __post_init__(self):
+        SEEING_ARCSEC.check(self.seeing_arcsec, "seeing")
         checks = (
-            ("seeing", self.seeing_arcsec, 0.05, 10.0, "arcsec"),
             ("outer scale L0", self.outer_scale_m, 0.5, 1e12, "m"),
             ("wind speed", self.wind_speed_m_s, 0.1, 100.0, "m/s"),
             ("diameter", self.diameter_m, 0.1, 100.0, "m"),
@@ -60,7 +56,7 @@ class TurbulenceTipTilt:
         return r0_from_seeing(self.seeing_arcsec)
 
     def _phase_psd(self, k2: np.ndarray) -> np.ndarray:
-        return 0.0229 * self.r0_m ** (-5.0 / 3.0) * (k2 + self.outer_scale_m**-2) ** (-11.0 / 6.0)
+        return phase_psd_k2(k2, self.r0_m, self.outer_scale_m)
 
     def _tilt_filter(self, k: np.ndarray) -> np.ndarray:
         """16 [J2(pi k D)/(pi k D)]^2, the azimuthal factor (cos^2 or sin^2) left out."""

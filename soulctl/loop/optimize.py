@@ -49,12 +49,13 @@ from ..control.ogtl import OgtlSettings
 from ..control.transfer import max_stable_gain
 from ..control.trial import gain_groups, scan_around, scan_gains
 from ..disturbance.modal_psd import cutoff_hz, modal_psd
-from ..disturbance.turbulence import LAMBDA_REF_M, LBT_DIAMETER_M, TurbulenceTipTilt
+from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
-from ..optics.atmosphere import AtmosphereConfig
+from ..optics.atmosphere import LAMBDA_REF_M, AtmosphereConfig
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, optical_gains
+from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength

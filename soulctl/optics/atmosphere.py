@@ -31,7 +31,6 @@ import numpy as np
 import scipy.fft
 from scipy import integrate, special
 
-from ..disturbance.turbulence import r0_from_seeing
 from ..errors import InputError
 from ..ranges import SEEING_ARCSEC, WIND_M_S
 
@@ -57,6 +56,11 @@ def _check_positive(name: str, value: float, unit: str, allow_inf: bool = False)
     return value
 
 
+def r0_from_seeing(seeing_arcsec: float) -> float:
+    """Fried parameter (m) at 500 nm from the seeing FWHM (arcsec) at 500 nm."""
+    return 0.98 * LAMBDA_REF_M / (seeing_arcsec / 3600.0 * math.pi / 180.0)
+
+
 def r0_at_wavelength(r0_500_m: float, wavelength_m: float) -> float:
     """Fried parameter at another wavelength: r0 ∝ lambda^(6/5)."""
     r0 = _check_positive("r0", r0_500_m, "m")
@@ -67,9 +71,14 @@ def r0_at_wavelength(r0_500_m: float, wavelength_m: float) -> float:
 def phase_psd(k, r0_m: float, L0_m: float) -> np.ndarray:
     """Von Kármán phase PSD at 500 nm, rad^2 m^2, k in cycles/m (Kolmogorov for L0 = inf;
     infinite at k = 0 then)."""
+    return phase_psd_k2(np.square(np.asarray(k, dtype=float)), r0_m, L0_m)
+
+
+def phase_psd_k2(k2, r0_m: float, L0_m: float) -> np.ndarray:
+    """``phase_psd`` of the squared spatial frequency k^2 (what 2-D grids hold)."""
     r0 = _check_positive("r0", r0_m, "m")
     L0 = _check_positive("outer scale L0", L0_m, "m", allow_inf=True)
-    k2 = np.square(np.asarray(k, dtype=float)) + (0.0 if L0 == np.inf else L0**-2)
+    k2 = np.asarray(k2, dtype=float) + (0.0 if L0 == np.inf else L0**-2)
     with np.errstate(divide="ignore"):
         return PSD_COEFFICIENT * r0 ** (-5.0 / 3.0) * k2 ** (-11.0 / 6.0)
 

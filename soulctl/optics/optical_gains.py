@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..disturbance.turbulence import r0_from_seeing
 from ..errors import InputError
 from ..files import atomic_write_text
 from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
-from .atmosphere import fft_phase_screen
+from .atmosphere import fft_phase_screen, r0_from_seeing
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .pupil import Pupil
 

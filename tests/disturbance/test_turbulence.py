@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from soulctl.disturbance.turbulence import MAS_PER_RAD, TurbulenceTipTilt, r0_from_seeing
+from soulctl.disturbance.turbulence import MAS_PER_RAD, TurbulenceTipTilt
 from soulctl.errors import InputError
+from soulctl.optics.atmosphere import r0_from_seeing
 
 D = 8.222
 
