@@ -24,6 +24,7 @@ modes during the frame, and the simulation's true residual and disturbance modes
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -290,7 +291,11 @@ class ClosedLoop:
         self.aux_loops.remove(aux)
 
     def _apply_gains(self, gains: np.ndarray) -> None:
-        self.rtc.set_gains(self.rtc_matrices.delta_from_gains(gains).astype(np.float32))
+        """The gains to the C++ RTC (Delta's diagonal, one value per state), and to the loop's
+        ``rtc_matrices``, whose Delta is then never stale."""
+        delta = self.rtc_matrices.delta_from_gains(gains)
+        self.rtc.set_gains(delta.astype(np.float32))
+        self.rtc_matrices = dataclasses.replace(self.rtc_matrices, Delta=delta)
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes

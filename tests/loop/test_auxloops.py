@@ -50,6 +50,9 @@ def test_aux_loops_read_their_window_and_write_between_two_frames(small_calibrat
     frames, gains = tm.gain_arrays()
     assert frames.tolist() == [0, 25, 50, 75, 100] and gains[:, 0].tolist() == [0.05, 0.1, 0.2, 0.4, 0.8]
     assert loop.rtc_matrices.mode_gains(np.asarray(loop.rtc.gains))[0] == pytest.approx(0.8)
+    # the loop's RTC matrices hold the Delta in force, not the one they were built with
+    np.testing.assert_allclose(loop.rtc_matrices.Delta, loop.rtc.gains, rtol=1e-7)
+    assert loop.rtc_matrices.mode_gains()[0] == pytest.approx(0.8)
 
 
 def test_probe_is_on_the_mirror_and_k_scales_the_slopes(small_calibration):
