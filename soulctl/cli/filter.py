@@ -13,7 +13,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from .. import __version__, tables
+from .. import __version__, defaults, tables
 from ..control.delay import DelayModel
 from ..control.design import DesignResult, Disturbance, design_tt_filter, roots_table_csv
 from ..control.filters import Filter
@@ -371,10 +371,18 @@ def design_command(
         help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
     ),
     wind: float = typer.Option(
-        8.0, "--wind", parser=number(WIND_M_S), metavar="M/S", help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()})."
+        defaults.WIND_M_S,
+        "--wind",
+        parser=number(WIND_M_S),
+        metavar="M/S",
+        help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()}).",
     ),
     outer_scale: float = typer.Option(
-        25.0, "--L0", parser=number(OUTER_SCALE_M), metavar="M", help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()})."
+        defaults.L0_M,
+        "--L0",
+        parser=number(OUTER_SCALE_M),
+        metavar="M",
+        help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()}).",
     ),
     vibrations: Path | None = typer.Option(
         None, "--vibrations", metavar="FILE", help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."

@@ -11,7 +11,7 @@ from typing import Any
 import typer
 from rich.table import Table
 
-from .. import tables
+from .. import defaults, tables
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
 from ..files import check_output_path
@@ -86,7 +86,9 @@ def atmosphere(
         metavar="M/S",
         help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()}).",
     ),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
+    L0: float = typer.Option(
+        defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
+    ),
     json_output: bool = _JSON,
 ) -> None:
     """Turbulence figures of the default LBT profile: r0 at 500 nm, the WFS and science bands,
@@ -202,7 +204,9 @@ def gains_cmd(
         parser=number(SEEING_ARCSEC),
         help=f"Seeing of the correction level (the paper's table: 0.8; {SEEING_ARCSEC.text()}).",
     ),
-    L0: float = typer.Option(25.0, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."),
+    L0: float = typer.Option(
+        defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
+    ),
     controlled_fraction: float = typer.Option(
         0.1, "--controlled-fraction", parser=number(FRACTION), help="Amplitude of the controlled modes left in the residual (0..1)."
     ),

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import jv
 
+from .. import defaults
 from ..errors import InputError
 from ..optics.atmosphere import LAMBDA_REF_M, phase_psd_k2, r0_from_seeing
 from ..optics.pupil import LBT_DIAMETER_M  # the pupil conjugated to the ASM (LBTO elab_lib)
@@ -35,9 +36,9 @@ MAS_PER_RAD = 180.0 / math.pi * 3600e3
 
 @dataclass(frozen=True)
 class TurbulenceTipTilt:
-    seeing_arcsec: float = 1.0
-    outer_scale_m: float = 25.0
-    wind_speed_m_s: float = 8.0
+    seeing_arcsec: float = defaults.SEEING_ARCSEC
+    outer_scale_m: float = defaults.L0_M
+    wind_speed_m_s: float = defaults.WIND_M_S
     diameter_m: float = LBT_DIAMETER_M
 
     def __post_init__(self):

@@ -28,6 +28,7 @@ import scipy.fft
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
+from .. import defaults
 from ..errors import InputError
 from .atmosphere import phase_covariance
 from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
@@ -140,7 +141,7 @@ def _covariance_kernel(pupil: Pupil, L0_m: float) -> np.ndarray:
     return phase_covariance(r, 1.0, L0_m)
 
 
-def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = 25.0, eigen_floor: float = 1e-6) -> ModalBasis:
+def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
     """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
     if not (L0_m > 0 and np.isfinite(L0_m)):
         raise InputError(f"outer scale L0 for the KL modes must be a finite number > 0 m, got {L0_m}")

@@ -31,6 +31,7 @@ import numpy as np
 import scipy.fft
 from scipy import integrate, special
 
+from .. import defaults
 from ..errors import InputError
 from ..ranges import SEEING_ARCSEC, WIND_M_S
 
@@ -307,7 +308,7 @@ class Layer:
 
     altitude_m: float = 0.0
     weight: float = 1.0
-    wind_speed_m_s: float = 8.0
+    wind_speed_m_s: float = defaults.WIND_M_S
     wind_direction_deg: float = 0.0
 
     def __post_init__(self):
@@ -343,8 +344,8 @@ def effective_wind_speed(layers) -> float:
 
 @dataclass(frozen=True)
 class AtmosphereConfig:
-    seeing_arcsec: float = 1.0  # at 500 nm, on the line of sight
-    L0_m: float = 25.0
+    seeing_arcsec: float = defaults.SEEING_ARCSEC  # at 500 nm, on the line of sight
+    L0_m: float = defaults.L0_M
     layers: tuple[Layer, ...] = (Layer(),)
 
     def __post_init__(self):
@@ -375,7 +376,9 @@ class AtmosphereConfig:
         return effective_wind_speed(self.layers)
 
     @classmethod
-    def lbt_default(cls, seeing_arcsec: float = 1.0, L0_m: float = 25.0, wind_speed_m_s: float = 8.0) -> AtmosphereConfig:
+    def lbt_default(
+        cls, seeing_arcsec: float = defaults.SEEING_ARCSEC, L0_m: float = defaults.L0_M, wind_speed_m_s: float = defaults.WIND_M_S
+    ) -> AtmosphereConfig:
         """Four layers for Mt. Graham (a proposal; half the Cn^2 at the ground as Masciadri et
         al. 2010 measured below 80 m), speeds scaled so that v_eff = wind_speed_m_s."""
         WIND_M_S.check(wind_speed_m_s, "the effective wind speed")

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .. import defaults
 from ..errors import InputError
 from ..ranges import MODES
 from .asm import AsmGeometry, ModalBasis, kl_basis
@@ -35,7 +36,7 @@ MAX_SLOPES = 2 * SUBAPERTURES_BIN1**2  # sx and sy of every sub-aperture at binn
 @dataclass(frozen=True)
 class BasisSetup:
     asm: AsmGeometry = field(default_factory=AsmGeometry)
-    L0_m: float = 25.0
+    L0_m: float = defaults.L0_M
     pixels: int = BASIS_PIXELS
 
     def key(self) -> str:

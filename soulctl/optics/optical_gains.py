@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import defaults
 from ..errors import InputError
 from ..files import atomic_write_text
 from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
@@ -38,7 +39,7 @@ CHI_TABLE_SEEING_ARCSEC = 0.8  # the seeing of the paper's chi_i table, the opti
 @dataclass(frozen=True)
 class CorrectionLevel:
     seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC
-    L0_m: float = 25.0
+    L0_m: float = defaults.L0_M
     controlled_fraction: float = 0.1
 
     def __post_init__(self):
