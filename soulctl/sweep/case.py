@@ -35,6 +35,7 @@ DEFAULTS = {
     "oversampling": defaults.OVERSAMPLING,
 }
 METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
+DESCRIPTION_KEY = "_run_description"  # the row's resolved run description (TOML), written beside the results
 STATUS = ("ok", "diverged", "failed")
 
 
@@ -104,7 +105,9 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
     row = failed_row(case, "")
     t0 = time.perf_counter()
     try:
-        request = run_request(case)
+        description = case_description(case).resolved()
+        row[DESCRIPTION_KEY] = description.to_toml()
+        request = description.request()
         cache = ArrayCache(cache_dir)
         if p["gain_method"] == "default":
             result = run(request, cache, calibration=calibration)

@@ -12,7 +12,9 @@ and handed by Dask to the cases that need it (no shared file system needed).  Ro
 appended by this process as the cases finish (``results.ResultsTable``): a worker that dies
 loses no row (Dask runs its task again elsewhere) and duplicates none (one row per case id).
 A case that fails or diverges is a row with its status and reason; the sweep goes on.  Once
-every case has its row, the file is rewritten in the grid's order."""
+every case has its row, the file is rewritten in the grid's order.  Beside the results,
+``runs/<case_id>.toml`` holds each row's resolved run description: `soulctl loop run --config`
+on it repeats the case's loop."""
 
 from __future__ import annotations
 
@@ -23,13 +25,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
-from ..files import check_output_folder, check_output_path
+from ..files import atomic_write_text, check_output_folder, check_output_path
 from ..ranges import WAIT_WORKERS_S
-from .case import calibrate_case, calibration_setup, failed_row, run_case
+from .case import DESCRIPTION_KEY, calibrate_case, calibration_setup, failed_row, run_case
 from .results import ResultsTable, check_unlocked, results_lock
 from .scheduler import CONNECT_TIMEOUT_S, probe
 
 RESULTS = "results.csv"
+RUNS_DIR = "runs"  # runs/<case_id>.toml: the resolved run description of each row
 
 
 @dataclass
@@ -153,6 +156,10 @@ def execute(
             on_start(len(todo))
 
         def record(row: dict) -> None:
+            description = row.pop(DESCRIPTION_KEY, None)
+            if description is not None:  # the run the row measured: `loop run --config` repeats it
+                (plan.out_dir / RUNS_DIR).mkdir(exist_ok=True)
+                atomic_write_text(plan.out_dir / RUNS_DIR / f"{row['case_id']}.toml", description, immediate=True)
             table.add(row)
             report.rows.append(row)
             report.computed += 1

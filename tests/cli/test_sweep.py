@@ -611,6 +611,10 @@ def test_a_run_description_field_is_a_grid_axis_by_its_dotted_name(tmp_path, cap
         status, out, err = cli(["loop", "run", "--config", str(description), "--json"], capsys, cache_dir)
         assert status == 0, err
         assert json.loads(out)["metrics"]["strehl"] == row["strehl"]
+        stored = out_dir / "runs" / f"{row['case_id']}.toml"  # the row's own resolved description
+        status, out, err = cli(["loop", "run", "--config", str(stored), "--json"], capsys, cache_dir)
+        assert status == 0, err
+        assert json.loads(out)["metrics"]["strehl"] == row["strehl"]
         strehls.add(row["strehl"])
     assert len(strehls) == 2  # the vibrations' scale changed the run
 
