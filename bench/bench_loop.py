@@ -32,11 +32,11 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl import __version__
-from soulctl.control.structure import StructuralResonance
+from soulctl.control.gains import default_gains
+from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.files import atomic_write_text
 from soulctl.loop.metrics import PsfAccumulator
-from soulctl.loop.run import default_gains, sampled_structure
 from soulctl.loop.simulation import STAGES, ClosedLoop
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig

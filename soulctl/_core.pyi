@@ -92,15 +92,15 @@ class RealTimeController:
     Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are
     fixed at construction (float32 or float64, stored as float32: a float64 value beyond float32's
     range becomes inf and is refused, see Inputs).  Delta is diagonal: set its diagonal with
-    set_gains(); it may change between any two steps.
+    set_state_gains(); it may change between any two steps.
     
     n_threads: OpenMP threads for step(), an integer in 0..64; 0 = automatic (OpenMP's maximum,
     at most 4).  Outside 0..64 is a ValueError naming the range (a bool or a float is a
     TypeError).  The controller may use fewer threads than asked (no more than the state's blocks
     can be split into; one without OpenMP): the n_threads property tells how many it uses.
     
-    Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_gains()
-    and run(gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
+    Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_state_gains()
+    and run(state_gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
     the argument and the first bad position (e.g. "slopes: values must be finite, got nan at
     index 17"), and changes nothing: the state, the gains and out= are as before the call (run()
     checks the whole block first).  A wrong dtype or shape is a ValueError naming what was
@@ -113,12 +113,12 @@ class RealTimeController:
         """
         Set the state zeta to zero.
         """
-    def run(self, slopes: numpy.ndarray, gains: typing.Any = None) -> numpy.typing.NDArray[numpy.float32]:
+    def run(self, slopes: numpy.ndarray, state_gains: typing.Any = None) -> numpy.typing.NDArray[numpy.float32]:
         """
         A block of frames for offline replays: slopes (n_steps, n_slopes) -> commands (n_steps, n_commands).
-        gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.
+        state_gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.
         """
-    def set_gains(self, delta: numpy.ndarray) -> None:
+    def set_state_gains(self, delta: numpy.ndarray) -> None:
         """
         Set the diagonal of Delta (float32, n_states); used from the next step on.
         """
@@ -127,7 +127,7 @@ class RealTimeController:
         One frame: slopes (float32, n_slopes) -> commands (float32, n_commands).
         """
     @property
-    def gains(self) -> numpy.typing.NDArray[numpy.float32]:
+    def state_gains(self) -> numpy.typing.NDArray[numpy.float32]:
         """
         The diagonal of Delta (a copy).
         """

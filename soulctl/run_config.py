@@ -38,14 +38,14 @@ from pathlib import Path
 import tomli_w
 
 from . import defaults, tables
+from .control.gains import DEFAULT_FORGETTING, LoopGains, default_gains
 from .control.ogtl import PROBE_MODE, OgtlSettings
-from .control.structure import StructuralResonance
+from .control.structure import StructuralResonance, sampled_structure
 from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
 from .errors import InputError
 from .loop.metrics import BANDS
 from .loop.optimize import LiveOptimisers
-from .loop.run import RunRequest, default_gains, sampled_structure
-from .loop.simulation import DEFAULT_FORGETTING, LoopGains
+from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.atmosphere import Layer, r0_from_seeing
 from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
@@ -103,7 +103,7 @@ class AtmosphereSpec:
 @dataclass(frozen=True, kw_only=True)
 class ControllerSpec:
     """The modal gains: ``gains`` the paper's three groups (Tip/Tilt, modes 3-120, 121-last) or
-    ``mode_gains`` one per mode (neither: ``loop.run.default_gains``), and the leaky
+    ``mode_gains`` one per mode (neither: ``control.gains.default_gains``), and the leaky
     integrators' forgetting factor (1: pure integrators)."""
 
     gains: tuple[float, ...] = ()

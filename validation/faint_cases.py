@@ -30,16 +30,17 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
 from soulctl.loop.auxloops import summary as aux_summary
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, optimize
-from soulctl.loop.run import RunRequest, default_gains, run, sampled_structure
-from soulctl.loop.simulation import LoopGains
+from soulctl.loop.run import run
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.plots.gains import write_gain_figures
+from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
 from gain_optimisation import observation, settling_time  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
+AT_1_ARCSEC = AtmosphereSpec(seeing_arcsec=1.0)  # the paper's faint cases
 PAPER = {"R13": (0.58, "0.61-0.67"), "R16.5": (0.18, "0.19-0.23")}
 
 
@@ -56,7 +57,9 @@ def r165_observation():
 def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
     rows = []
     for seed in seeds:
-        r = optimize(OptimizeRequest(RunRequest(obs, 1.0, band=band, seed=seed), "mgm", measure_s=1.0), cache)
+        r = optimize(
+            OptimizeRequest(RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, band=band, seed=seed).request(), "mgm", measure_s=1.0), cache
+        )
         rows.append(
             {
                 "seed": seed,
@@ -84,8 +87,10 @@ def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
 
 
 def transient(obs, seconds: float, cache) -> dict:
-    start = default_gains(obs, sampled_structure(RunRequest(obs).structure, obs.frame_rate_hz))
-    low = RunRequest(obs, 1.0, band="FeII", gains=LoopGains(0.1 * start.tip_tilt, 0.1 * start.mid, 0.1 * start.high))
+    start = RunConfig(observation=obs).resolved().controller.gains
+    low = RunConfig(
+        observation=obs, atmosphere=AT_1_ARCSEC, band="FeII", controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
+    ).request()
     r = optimize(OptimizeRequest(low, "mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
     (RESULTS / "transient_r13").mkdir(parents=True, exist_ok=True)
     write_gain_figures(RESULTS / "transient_r13", {"mgm": r})
@@ -103,7 +108,9 @@ def transient(obs, seconds: float, cache) -> dict:
 
 def ogtl_alone(seconds: float, cache) -> dict:
     obs = observation_for_magnitude(17.5)
-    result = run(RunRequest(obs, 1.0, duration_s=seconds), cache, aux=LiveOptimisers(mgm=False, ogtl=True))
+    result = run(
+        RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, duration_s=seconds).request(), cache, aux=LiveOptimisers(mgm=False, ogtl=True)
+    )
     og = result.telemetry.aux_arrays("ogtl")
     k = og.get("sensitivity", np.array([1.0]))
     s = aux_summary({name: result.telemetry.aux_arrays(name) for name in result.telemetry.aux})

@@ -26,12 +26,13 @@ from rich.table import Table
 
 from soulctl import tables
 from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import LoopGains, default_gains
+from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, optimize
-from soulctl.loop.run import RunRequest, default_gains, sampled_structure
-from soulctl.loop.simulation import LoopGains
 from soulctl.observation import observation_for_magnitude, tt_filter_roots
 from soulctl.optics.cache import ArrayCache
+from soulctl.run_config import AtmosphereSpec, RunConfig
 
 CASES = [
     # label, magnitude, rate, seeing, wind, paper
@@ -92,7 +93,9 @@ def main() -> None:
     for i in picked:
         label, mag, rate, seeing, wind, paper = CASES[i]
         obs = observation(mag, rate)
-        run = RunRequest(obs, seeing, wind, band="FeII", seed=args.seed)
+        run = RunConfig(
+            observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing, wind_m_s=wind), band="FeII", seed=args.seed
+        ).request()
         row = {"case": label, "paper": paper, "observation": obs.to_dict()}
         t0 = time.perf_counter()
         row["trial"] = summary(optimize(OptimizeRequest(run, "trial", measure_s=args.measure_s), cache))

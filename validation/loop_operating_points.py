@@ -22,10 +22,12 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import default_gains
 from soulctl.files import atomic_write_text
-from soulctl.loop.run import RunRequest, default_gains, run
+from soulctl.loop.run import run
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
+from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
 
 CASES = [
     # label, magnitude, rate, binning, modes, tt_control, tt_gain (None: default), seeing, band, paper
@@ -49,6 +51,13 @@ def observation(mag, rate, binning, modes, tt):
     return obs
 
 
+def _run(obs, seeing: float, duration: float, gains, band: str, seed: int):
+    """A case's run: its observation and gains, defaults elsewhere."""
+    controller = ControllerSpec(gains=(gains.tip_tilt, gains.mid, gains.high))
+    atmosphere = AtmosphereSpec(seeing_arcsec=seeing)
+    return RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed).request()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--duration", type=float, default=2.0)
@@ -67,7 +76,7 @@ def main() -> None:
             gains = dataclasses.replace(gains, tip_tilt=g_tt)
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
-            r = run(RunRequest(obs, seeing_arcsec=seeing, duration_s=args.duration, gains=gains, band=band, seed=seed), cache)
+            r = run(_run(obs, seeing, args.duration, gains, band, seed), cache)
             m = r.metrics
             rows.append(
                 {

@@ -33,9 +33,9 @@ from rich.table import Table
 from soulctl.cli.common import default_cache_dir
 from soulctl.loop.auxloops import summary
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize
-from soulctl.loop.run import RunRequest
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
+from soulctl.run_config import AtmosphereSpec, RunConfig
 
 MAGS = (8.0, 9.7, 10.9, 11.9, 13.0, 14.5, 15.5, 16.5, 17.5, 18.5)
 SEEINGS = (0.6, 1.0, 1.5)
@@ -45,13 +45,18 @@ TOLERANCE = 0.01
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
 
 
+def _run(obs, seeing: float, seed: int):
+    """The run of a point: the look-up table's observation, defaults elsewhere."""
+    return RunConfig(observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing), seed=seed).request()
+
+
 def run_case(mag: float, seeing: float, seed: int, variant: str, cache_dir: str) -> dict:
     """One `optimize gains` point; the row of the results."""
     method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
     t0 = time.perf_counter()
     obs = observation_for_magnitude(mag)
     duration = DURATION_PERIODS * default_period_s(obs)
-    request = OptimizeRequest(RunRequest(obs, seeing, seed=seed), method, duration, None, ogtl, measure_s=MEASURE_S)
+    request = OptimizeRequest(_run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S)
     r = optimize(request, ArrayCache(cache_dir))
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
     return {

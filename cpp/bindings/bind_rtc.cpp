@@ -52,15 +52,15 @@ The SOUL RTC equation:  zeta(k) = Lambda zeta(k-1) + Delta Xi s(k),  c(k) = Sigm
 Lambda (n_states x n_states), Xi (n_states x n_slopes) and Sigma (n_commands x n_states) are
 fixed at construction (float32 or float64, stored as float32: a float64 value beyond float32's
 range becomes inf and is refused, see Inputs).  Delta is diagonal: set its diagonal with
-set_gains(); it may change between any two steps.
+set_state_gains(); it may change between any two steps.
 
 n_threads: OpenMP threads for step(), an integer in 0..64; 0 = automatic (OpenMP's maximum,
 at most 4).  Outside 0..64 is a ValueError naming the range (a bool or a float is a
 TypeError).  The controller may use fewer threads than asked (no more than the state's blocks
 can be split into; one without OpenMP): the n_threads property tells how many it uses.
 
-Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_gains()
-and run(gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
+Inputs: every float array given must be finite -- Lambda, Xi, Sigma, the gains of set_state_gains()
+and run(state_gains=), the slopes of step() and run().  A NaN or infinity raises ValueError naming
 the argument and the first bad position (e.g. "slopes: values must be finite, got nan at
 index 17"), and changes nothing: the state, the gains and out= are as before the call (run()
 checks the whole block first).  A wrong dtype or shape is a ValueError naming what was
@@ -69,13 +69,13 @@ expected and what was given.  Calling a method of an object whose __init__ never
 )doc")
         .def(py::init(&make_rtc), py::arg("Lambda"), py::arg("Xi"), py::arg("Sigma"), py::arg_v("n_threads", py::int_(0), "0"))
         .def(
-            "set_gains",
+            "set_state_gains",
             method([](RealTimeController& r, const py::array& delta) {
-                auto d = float32_input(delta, {r.n_states()}, "gains");
-                r.set_gains(d.data());
+                auto d = float32_input(delta, {r.n_states()}, "state_gains");
+                r.set_state_gains(d.data());
             }),
             py::arg("delta"), "Set the diagonal of Delta (float32, n_states); used from the next step on.")
-        .def_property_readonly("gains", method([](const RealTimeController& r) { return vec(r.gains()); }),
+        .def_property_readonly("state_gains", method([](const RealTimeController& r) { return vec(r.state_gains()); }),
                                "The diagonal of Delta (a copy).")
         .def_property_readonly("state", method([](const RealTimeController& r) { return vec(r.state()); }),
                                "The state zeta after the last step (a copy).")
@@ -100,16 +100,16 @@ expected and what was given.  Calling a method of an object whose __init__ never
                 const float* g = nullptr;
                 py::array_t<float, py::array::c_style> gk;
                 if (!gains.is_none()) {
-                    if (!py::isinstance<py::array>(gains)) throw py::value_error("gains: expected a numpy array");
-                    gk = float32_input(py::reinterpret_borrow<py::array>(gains), {n, r.n_states()}, "gains");
+                    if (!py::isinstance<py::array>(gains)) throw py::value_error("state_gains: expected a numpy array");
+                    gk = float32_input(py::reinterpret_borrow<py::array>(gains), {n, r.n_states()}, "state_gains");
                     g = gk.data();
                 }
                 r.run(s.data(), static_cast<int>(n), c.mutable_data(), g);
                 return c;
             }),
-            py::arg("slopes"), py::arg("gains") = py::none(),
+            py::arg("slopes"), py::arg("state_gains") = py::none(),
             "A block of frames for offline replays: slopes (n_steps, n_slopes) -> commands (n_steps, n_commands).\n"
-            "gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.")
+            "state_gains, optional (n_steps, n_states): Delta at each step.  Continues from the current state.")
         .def_property_readonly("n_states", method(&RealTimeController::n_states))
         .def_property_readonly("n_slopes", method(&RealTimeController::n_slopes))
         .def_property_readonly("n_commands", method(&RealTimeController::n_commands))

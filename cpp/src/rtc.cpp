@@ -146,8 +146,8 @@ RealTimeController::RealTimeController(const RowMatrixXf& lambda, const RowMatri
     zout_ = Eigen::VectorXf::Zero(sigma_cols_.size());
 }
 
-void RealTimeController::set_gains(const float* delta) {
-    require_finite(delta, n_states_, "gains");
+void RealTimeController::set_state_gains(const float* delta) {
+    require_finite(delta, n_states_, "state_gains");
     delta_ = Eigen::Map<const Eigen::VectorXf>(delta, n_states_);
 }
 
@@ -222,7 +222,7 @@ void RealTimeController::run(const float* S, int n_steps, float* C, const float*
     // The whole block is checked before the first step, so that a refused block leaves the
     // state as it was.
     require_finite(S, static_cast<std::ptrdiff_t>(n_steps) * n_slopes_, "slopes", n_slopes_);
-    if (gains) require_finite(gains, static_cast<std::ptrdiff_t>(n_steps) * n_states_, "gains", n_states_);
+    if (gains) require_finite(gains, static_cast<std::ptrdiff_t>(n_steps) * n_states_, "state_gains", n_states_);
     using MapR = Eigen::Map<const RowMatrixXf>;
     using MapW = Eigen::Map<RowMatrixXf>;
     const int chunk = 1024;

@@ -13,12 +13,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from .. import defaults, ranges, tables
-from ..control.gain_file import SUFFIXES, read_gain_file
+from ..control.gains import DEFAULT_FORGETTING, SUFFIXES, LoopGains, read_gain_file
 from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
 from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
-from ..loop.simulation import DEFAULT_FORGETTING, LoopGains
 from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN
@@ -131,7 +130,7 @@ def parse_magnitude(text: str) -> float:
 
 def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:
     """``TT,MID,HIGH`` (the paper's three groups) or a per-mode gain file
-    (``control.gain_file``: TOML ``gains = [...]``, or text/CSV lines)."""
+    (``control.gains``: TOML ``gains = [...]``, or text/CSV lines)."""
     if text is None:
         return None
     path = _gain_file(text)

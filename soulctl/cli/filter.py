@@ -221,28 +221,7 @@ def analyze_command(
         from ..plots.transfer import plot_format
 
         plot_format(plot)
-    lists: dict[str, list] = {
-        "--rate": _numbers(rate, "--rate", ANALYSIS_RATE_HZ),
-        "--control": _values(control.lower(), "--control", "controls"),
-        "--gain": _numbers(gain, "--gain", ANALYSIS_GAIN),
-        "--system": _values(system.lower(), "--system", "delay models"),
-        "--chi": _numbers(chi, "--chi", OPTICAL_GAIN),
-        "--forgetting": _numbers(forgetting, "--forgetting", FORGETTING),
-    }
-    for c in lists["--control"]:
-        if c not in CONTROLS:
-            raise InputError(f"--control must be iir, int or leaky, got '{c}'")
-    for s in lists["--system"]:
-        if s not in SYSTEMS:
-            raise InputError(f"--system must be soul or flao, got '{s}'")
-    if delay_frames is not None:
-        lists["--delay-frames"] = _numbers(delay_frames, "--delay-frames", DELAY_FRAMES)
-    if delay_ms is not None:
-        lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", Range(0.0, DELAY_FRAMES.hi * 1e3 / ANALYSIS_RATE_HZ.lo, "ms"))
-    if label is not None:
-        lists["--label"] = _values(label, "--label", "names")
-        if max(map(len, lists["--label"])) > MAX_LABEL:
-            raise InputError(f"--label: a name must be at most {MAX_LABEL} characters long")
+    lists = _analysis_lists(rate, control, gain, system, chi, forgetting, delay_frames, delay_ms, label)
     z, p = _roots(zeros, "--zeros"), _roots(poles, "--poles")
     if (zeros is not None or poles is not None) and not p:
         raise InputError("--poles needs at least one pole (a control filter is an IIR filter)")
@@ -268,6 +247,34 @@ def analyze_command(
         if not all_stable:
             console.print(styled("at least one loop is unstable (exit status 3)", "bold red"))
     return 0 if all_stable else UNSTABLE_EXIT
+
+
+def _analysis_lists(rate, control, gain, system, chi, forgetting, delay_frames, delay_ms, label) -> dict[str, list]:
+    """The comma lists of `filter analyze`, each checked (one controller per position, see
+    ``_broadcast``)."""
+    lists: dict[str, list] = {
+        "--rate": _numbers(rate, "--rate", ANALYSIS_RATE_HZ),
+        "--control": _values(control.lower(), "--control", "controls"),
+        "--gain": _numbers(gain, "--gain", ANALYSIS_GAIN),
+        "--system": _values(system.lower(), "--system", "delay models"),
+        "--chi": _numbers(chi, "--chi", OPTICAL_GAIN),
+        "--forgetting": _numbers(forgetting, "--forgetting", FORGETTING),
+    }
+    for c in lists["--control"]:
+        if c not in CONTROLS:
+            raise InputError(f"--control must be iir, int or leaky, got '{c}'")
+    for s in lists["--system"]:
+        if s not in SYSTEMS:
+            raise InputError(f"--system must be soul or flao, got '{s}'")
+    if delay_frames is not None:
+        lists["--delay-frames"] = _numbers(delay_frames, "--delay-frames", DELAY_FRAMES)
+    if delay_ms is not None:
+        lists["--delay-ms"] = _numbers(delay_ms, "--delay-ms", Range(0.0, DELAY_FRAMES.hi * 1e3 / ANALYSIS_RATE_HZ.lo, "ms"))
+    if label is not None:
+        lists["--label"] = _values(label, "--label", "names")
+        if max(map(len, lists["--label"])) > MAX_LABEL:
+            raise InputError(f"--label: a name must be at most {MAX_LABEL} characters long")
+    return lists
 
 
 def _delay(lists: dict, i: int, rate: float) -> float:
@@ -455,60 +462,62 @@ def design_command(
             results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
 
     if out is not None:
-        header = (
-            f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
-            f"epsilon {epsilon:g}, seeing {seeing:g} arcsec, wind {wind:g} m/s, L0 {outer_scale:g} m, "
-            f"noise {noise:g} mas/frame, {resonance_line:g} mas line at {RESONANCE_HZ:g} Hz, seed {seed};\n"
-            f"vibrations: {disturbance.vibrations.source};\n"
-            f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"
-            "H(z) = g * prod(1 - zero_k z^-1) / prod(1 - pole_l z^-1); gains at design: "
-            + ", ".join(f"{x.rate_hz:g} Hz {x.iir.filter.gain:.3f}" for x in results)
-        )
-        atomic_write_text(out, roots_table_csv(results, header))
+        atomic_write_text(out, roots_table_csv(results, _design_header(results, disturbance, epsilon, delay_ms, seed)))
     if plot is not None:
-        from ..plots.transfer import Curve, save_figure, transfer_figure
-
-        colors = ["C0", "C1", "C2", "C3", "C4", "C5", "C6", "C7"]
-        curves = []
-        for i, x in enumerate(results):
-            col = colors[i % len(colors)]
-            curves.append(
-                Curve(f"IIR {x.rate_hz:g} Hz g={x.iir.filter.gain:.2f}", Loop(x.iir.filter, Plant(x.delay_frames), x.rate_hz), col)
-            )
-            curves.append(
-                Curve(
-                    f"INT {x.rate_hz:g} Hz g={x.integrator.filter.gain:.2f}",
-                    Loop(x.integrator.filter, Plant(x.delay_frames), x.rate_hz),
-                    col,
-                    "--",
-                )
-            )
-        save_figure(
-            transfer_figure(curves, "Designed Tip/Tilt IIR filters (solid) and the best integrators (dashed)", epsilon=epsilon), plot
-        )
+        _plot_designs(results, epsilon, plot)
     if json_output:
-        turb = disturbance.turbulence
-        print_json(
-            {
-                "designs": [x.to_dict() for x in results],
-                "disturbance": {
-                    "seeing_arcsec": turb.seeing_arcsec,
-                    "wind_m_s": turb.wind_speed_m_s,
-                    "outer_scale_m": turb.outer_scale_m,
-                    "vibrations": disturbance.vibrations.source,
-                    "noise_mas": noise,
-                    "resonance_line_mas": resonance_line,
-                    "resonance_hz": RESONANCE_HZ,
-                },
-                "seed": seed,
-            }
-        )
+        print_json({"designs": [x.to_dict() for x in results], "disturbance": _disturbance_dict(disturbance), "seed": seed})
     else:
         console = make_console()
         _render_design(results, disturbance, console)
         for path in (out, plot):
             if path is not None:
                 console.print(f"written {path}")
+
+
+def _design_header(results: list, disturbance: Disturbance, epsilon: float, delay_ms: float | None, seed: int) -> str:
+    """The roots table's header: what the filters were designed for."""
+    turb = disturbance.turbulence
+    return (
+        f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
+        f"epsilon {epsilon:g}, seeing {turb.seeing_arcsec:g} arcsec, wind {turb.wind_speed_m_s:g} m/s, "
+        f"L0 {turb.outer_scale_m:g} m, noise {disturbance.noise_mas:g} mas/frame, {disturbance.resonance_mas:g} mas line "
+        f"at {RESONANCE_HZ:g} Hz, seed {seed};\n"
+        f"vibrations: {disturbance.vibrations.source};\n"
+        f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"
+        "H(z) = g * prod(1 - zero_k z^-1) / prod(1 - pole_l z^-1); gains at design: "
+        + ", ".join(f"{x.rate_hz:g} Hz {x.iir.filter.gain:.3f}" for x in results)
+    )
+
+
+def _disturbance_dict(disturbance: Disturbance) -> dict:
+    turb = disturbance.turbulence
+    return {
+        "seeing_arcsec": turb.seeing_arcsec,
+        "wind_m_s": turb.wind_speed_m_s,
+        "outer_scale_m": turb.outer_scale_m,
+        "vibrations": disturbance.vibrations.source,
+        "noise_mas": disturbance.noise_mas,
+        "resonance_line_mas": disturbance.resonance_mas,
+        "resonance_hz": RESONANCE_HZ,
+    }
+
+
+def _plot_designs(results: list, epsilon: float, plot: Path) -> None:
+    """The designed IIRs (solid) and the best integrators (dashed), one colour per rate."""
+    from ..plots.transfer import Curve, save_figure, transfer_figure
+
+    colors = ["C0", "C1", "C2", "C3", "C4", "C5", "C6", "C7"]
+    curves = []
+    for i, x in enumerate(results):
+        col = colors[i % len(colors)]
+        plant = Plant(x.delay_frames)
+        curves.append(Curve(f"IIR {x.rate_hz:g} Hz g={x.iir.filter.gain:.2f}", Loop(x.iir.filter, plant, x.rate_hz), col))
+        curves.append(
+            Curve(f"INT {x.rate_hz:g} Hz g={x.integrator.filter.gain:.2f}", Loop(x.integrator.filter, plant, x.rate_hz), col, "--")
+        )
+    title = "Designed Tip/Tilt IIR filters (solid) and the best integrators (dashed)"
+    save_figure(transfer_figure(curves, title, epsilon=epsilon), plot)
 
 
 def _design_delay(delay_ms: float, rate: float) -> float:

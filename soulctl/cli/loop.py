@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 
 from .. import defaults
-from ..control.trial import MID_GROUP_END, gain_groups
+from ..control.gains import MID_GROUP_END, gain_groups
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
 from ..loop.run import run
@@ -194,17 +194,8 @@ def run_cmd(
     overrides = loop_overrides(
         seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
     )
-    aux_values = {
-        "run.duration_s": duration,
-        "control.allow_unstable": allow_unstable or None,
-        "auxiliary.mgm": mgm or None,
-        "auxiliary.ogtl": ogtl or None,
-        "auxiliary.period_s": period,
-        "auxiliary.probe_mode": probe_mode,
-        "auxiliary.probe_amplitude_nm": probe_amplitude,
-        "auxiliary.probe_frequency_hz": probe_frequency,
-    }
-    description = run_description(config, mag, overrides | {k: v for k, v in aux_values.items() if v is not None}).resolved()
+    aux_values = _run_overrides(duration, allow_unstable, mgm, ogtl, period, probe_mode, probe_amplitude, probe_frequency)
+    description = run_description(config, mag, overrides | aux_values).resolved()
     if print_config:
         print_json(description.to_dict()) if json_output else print(description.to_toml(), end="")
         return 0
@@ -214,14 +205,7 @@ def run_cmd(
     if aux is not None:
         aux.check(obs, request.duration_s)
     cache = array_cache(no_cache, cache_dir)
-    show = not json_output and sys.stderr.isatty()
-    progress = frames_progress("closed loop")
-    with progress if show else nullcontext():
-        tick = None
-        if show:
-            task = progress.add_task("loop", total=request.frames)
-            tick = lambda k: progress.update(task, completed=k)  # noqa: E731
-        result = run(request, cache, progress=tick, aux=aux)
+    result = _run_with_progress(request, cache, aux, show=not json_output and sys.stderr.isatty())
     if telemetry is not None:
         _write_telemetry(telemetry, result, description)
     if result.diverged_at is not None:
@@ -242,6 +226,32 @@ def run_cmd(
         if plot is not None:
             console.print(f"figures written to {plot}/")
     return 0
+
+
+def _run_overrides(duration, allow_unstable: bool, mgm: bool, ogtl: bool, period, probe_mode, probe_amplitude, probe_frequency) -> dict:
+    """The run description's fields that `loop run`'s own options set (given ones only)."""
+    values = {
+        "run.duration_s": duration,
+        "control.allow_unstable": allow_unstable or None,
+        "auxiliary.mgm": mgm or None,
+        "auxiliary.ogtl": ogtl or None,
+        "auxiliary.period_s": period,
+        "auxiliary.probe_mode": probe_mode,
+        "auxiliary.probe_amplitude_nm": probe_amplitude,
+        "auxiliary.probe_frequency_hz": probe_frequency,
+    }
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def _run_with_progress(request, cache, aux, show: bool):
+    """``run`` with a progress bar when ``show``."""
+    progress = frames_progress("closed loop")
+    with progress if show else nullcontext():
+        tick = None
+        if show:
+            task = progress.add_task("loop", total=request.frames)
+            tick = lambda k: progress.update(task, completed=k)  # noqa: E731
+        return run(request, cache, progress=tick, aux=aux)
 
 
 def _write_telemetry(path: Path, result, description: RunConfig) -> None:

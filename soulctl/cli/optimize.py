@@ -8,16 +8,14 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from .. import defaults
-from ..control.gain_file import gains_toml
+from ..control.gains import gains_toml, group_summary
 from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
-from ..control.trial import gain_groups
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path, input_file
 from ..loop.offline import offline_mgm
@@ -66,21 +64,6 @@ METHOD_CHOICES = METHODS + ("both",)
 def probe_settings(mode: int, amplitude: float | None, frequency: float | None) -> OgtlSettings:
     """The OGTL probe of the --probe-* options (checked by OgtlSettings)."""
     return OgtlSettings(mode=mode, amplitude_nm=amplitude, frequency_hz=frequency)
-
-
-def group_summary(gains: np.ndarray) -> list[dict]:
-    """Per paper group: name, mean, min, max of the gains."""
-    return [
-        {
-            "group": name,
-            "modes": f"{m.start + 1}-{min(m.stop, len(gains)) if m.stop else len(gains)}",
-            "mean": float(np.mean(gains[m])),
-            "min": float(np.min(gains[m])),
-            "max": float(np.max(gains[m])),
-        }
-        for name, m in gain_groups(len(gains))
-        if len(gains[m])
-    ]
 
 
 def _result_dict(result: OptimizeResult) -> dict:
@@ -179,6 +162,41 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
     return 0
 
 
+def _check_phases(duration: float | None, period: float | None, measure: float | None, sequence: float | None) -> None:
+    """The phases' options, each in its range (None: the operating point's default)."""
+    for value, option, accepted in (
+        (duration, "--duration", OPTIMISATION_S),
+        (period, "--period", PERIOD_S),
+        (measure, "--measure", MEASURE_S),
+        (sequence, "--sequence", SEQUENCE_S),
+    ):
+        if value is not None:
+            accepted.check(value, option)
+
+
+def _optimize_each(requests: dict[str, OptimizeRequest], cache, show: bool) -> dict[str, OptimizeResult]:
+    """Each method's optimisation, with a progress bar when ``show``."""
+    results: dict[str, OptimizeResult] = {}
+    for m, request in requests.items():
+        progress = frames_progress("trial-and-error" if m == "trial" else "MGM")
+        with progress if show else nullcontext():
+            task = progress.add_task(m, total=None) if show else None
+            tick = (lambda done, total, p=progress, t=task: p.update(t, completed=done, total=total)) if show else None
+            results[m] = optimize(request, cache, progress=tick)
+    return results
+
+
+def _gain_file_text(result: OptimizeResult) -> str:
+    """The gain file of an optimisation, its operating point in the comment."""
+    run = result.request.run
+    obs = run.observation
+    method = "MGM" if result.request.method == "mgm" else "trial-and-error"
+    return gains_toml(
+        result.gains,
+        f'{method} gains, R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {run.seeing_arcsec:g}", seed {run.seed}',
+    )
+
+
 @app.command("gains")
 def gains_cmd(
     method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side)."),
@@ -267,14 +285,7 @@ def gains_cmd(
         "auxiliary.probe_amplitude_nm": probe_amplitude,
         "auxiliary.probe_frequency_hz": probe_frequency,
     }
-    for value, option, accepted in (
-        (duration, "--duration", OPTIMISATION_S),
-        (period, "--period", PERIOD_S),
-        (measure, "--measure", MEASURE_S),
-        (sequence, "--sequence", SEQUENCE_S),
-    ):
-        if value is not None:
-            accepted.check(value, option)
+    _check_phases(duration, period, measure, sequence)
     probe_settings(PROBE_MODE_DEFAULT if probe_mode is None else probe_mode, probe_amplitude, probe_frequency)  # errors name the options
     cache = array_cache(no_cache, cache_dir)
     if telemetry is not None:
@@ -284,28 +295,13 @@ def gains_cmd(
         return _offline(telemetry, config, mag, out, json_output, cache)
     description = run_description(config, mag, overrides | {k: v for k, v in probe.items() if v is not None}).resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases
-    obs = run.observation
     probe_of_run = description.auxiliary.probe()
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe_of_run, measure, sequence) for m in methods}
-    show = not json_output and sys.stderr.isatty()
-    results: dict[str, OptimizeResult] = {}
-    for m, request in requests.items():
-        progress = frames_progress("trial-and-error" if m == "trial" else "MGM")
-        with progress if show else nullcontext():
-            task = progress.add_task(m, total=None) if show else None
-            tick = (lambda done, total, p=progress, t=task: p.update(t, completed=done, total=total)) if show else None
-            results[m] = optimize(request, cache, progress=tick)
+    results = _optimize_each(requests, cache, show=not json_output and sys.stderr.isatty())
     diverged = [m for m, x in results.items() if x.diverged_at is not None]
     final = results["mgm" if "mgm" in results else "trial"]
     if out is not None and not diverged:
-        atomic_write_text(
-            out,
-            gains_toml(
-                final.gains,
-                f"{'MGM' if final.request.method == 'mgm' else 'trial-and-error'} gains, "
-                f'R = {obs.magnitude_r:g}, {obs.frame_rate_hz:g} Hz, seeing {run.seeing_arcsec:g}", seed {run.seed}',
-            ),
-        )
+        atomic_write_text(out, _gain_file_text(final))
     if plot is not None:
         write_gain_figures(plot, results)
     if json_output:

@@ -130,15 +130,7 @@ def sweep(
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
     cases = read_grid(grid)
-    if workers is not None:
-        Range(1, LOCAL_WORKERS_PER_CORE * local_workers(), integer=True).check(
-            workers, f"--workers ({LOCAL_WORKERS_PER_CORE} per core at most)"
-        )
-    if scheduler is not None and workers is not None:
-        raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
-    if scheduler is not None:
-        dask_scheduler.parse_address(scheduler)
-    WAIT_WORKERS.check(wait_workers, "--wait-workers")
+    _check_cluster(scheduler, workers, wait_workers)
     outputs = [name for name, wanted in ((DERIVED, derive_table), (FIGURE, plot)) if wanted]
     plan = plan_sweep(cases, out, resume, outputs)
     if scheduler is not None and plan.todo:
@@ -148,6 +140,36 @@ def sweep(
     if asked:  # a dialogue on the terminal: the estimate and the question
         _confirm(cost.text())
     cache = None if no_cache else str(cache_dir or default_cache_dir())
+    report = _execute_with_progress(plan, cost, asked, scheduler, workers, cache, wait_workers, json_output)
+    assert report.results is not None  # execute() always writes its results
+    rows = list(ResultsTable.read_rows(report.results).values())
+    derived = derived_table(rows) if derive_table else None
+    if derived is not None:
+        atomic_write_text(out / DERIVED, lut_csv(derived))
+    if plot:
+        strehl_vs_magnitude(rows, out / FIGURE)
+    if json_output:
+        output.print_json(_json_report(report, cost, derived))
+    else:
+        _render_report(report, rows, derived)
+    return 0
+
+
+def _check_cluster(scheduler: str | None, workers: int | None, wait_workers: float) -> None:
+    """--scheduler, --workers and --wait-workers: each in its range, not --workers with --scheduler."""
+    if workers is not None:
+        Range(1, LOCAL_WORKERS_PER_CORE * local_workers(), integer=True).check(
+            workers, f"--workers ({LOCAL_WORKERS_PER_CORE} per core at most)"
+        )
+    if scheduler is not None and workers is not None:
+        raise InputError("--workers sizes the local cluster; with --scheduler the scheduler's workers run the cases")
+    if scheduler is not None:
+        dask_scheduler.parse_address(scheduler)
+    WAIT_WORKERS.check(wait_workers, "--wait-workers")
+
+
+def _execute_with_progress(plan, cost, asked: bool, scheduler, workers, cache, wait_workers: float, json_output: bool):
+    """``execute`` with a progress bar on a terminal; the estimate printed once the run starts."""
     show = not json_output and sys.stderr.isatty()
     progress = Progress(
         TextColumn("sweep"),
@@ -181,29 +203,25 @@ def sweep(
                 )
 
         report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
-    assert report.results is not None  # execute() always writes its results
-    rows = list(ResultsTable.read_rows(report.results).values())
-    derived = derived_table(rows) if derive_table else None
-    if derived is not None:
-        atomic_write_text(out / DERIVED, lut_csv(derived))
-    if plot:
-        strehl_vs_magnitude(rows, out / FIGURE)
-    if json_output:
-        output.print_json(
-            {
-                "total": report.total,
-                "skipped": report.skipped,
-                "computed": report.computed,
-                "failed": report.failed,
-                "diverged": report.diverged,
-                "results": str(report.results),
-                "estimate": cost.as_json(),
-                "notes": report.notes,
-                "rows": [_json_row(r) for r in report.rows],
-                "derived_table": derived,
-            }
-        )
-        return 0
+    return report
+
+
+def _json_report(report, cost, derived) -> dict:
+    return {
+        "total": report.total,
+        "skipped": report.skipped,
+        "computed": report.computed,
+        "failed": report.failed,
+        "diverged": report.diverged,
+        "results": str(report.results),
+        "estimate": cost.as_json(),
+        "notes": report.notes,
+        "rows": [_json_row(r) for r in report.rows],
+        "derived_table": derived,
+    }
+
+
+def _render_report(report, rows: list[dict], derived) -> None:
     console = output.console()
     for note in report.notes:
         console.print(f"note: {note}")
@@ -216,4 +234,3 @@ def sweep(
             console.print(f"  case {r['case_id']} {r['status']}: {r['reason']}")
     if derived is not None:
         _render_derived(rows, derived, console)
-    return 0

@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import InputError
 from ..optics.asm import N_ACTUATORS
 from .filters import Filter
+from .gains import mode_gains, state_gains
 
 SOUL_STATE_SIZE = N_ACTUATORS  # one state per actuator
 
@@ -55,18 +56,11 @@ class RTCMatrices:
         g = np.asarray(gains, dtype=float)
         if g.shape != (self.n_modes,):
             raise InputError(f"gains: expected {self.n_modes} values (one per mode), got shape {g.shape}")
-        delta = np.zeros(self.n_states)
-        for b in self.blocks:
-            delta[b.offset : b.offset + b.n_states] = g[b.mode]
-        return delta
+        return state_gains(self.blocks, self.n_states, g)
 
     def mode_gains(self, delta: np.ndarray | None = None) -> np.ndarray:
         """One gain per mode read from Delta (zero for uncontrolled modes)."""
-        d = self.Delta if delta is None else np.asarray(delta)
-        g = np.zeros(self.n_modes)
-        for b in self.blocks:
-            g[b.mode] = d[b.offset]
-        return g
+        return mode_gains(self.blocks, self.n_modes, self.Delta if delta is None else delta)
 
     def controller(self, n_threads: int = 0):
         """The C++ real-time controller with these matrices and gains.
@@ -75,7 +69,7 @@ class RTCMatrices:
         from .._core import RealTimeController
 
         rtc = RealTimeController(self.Lambda, self.Xi, self.Sigma, n_threads=n_threads)
-        rtc.set_gains(self.Delta.astype(np.float32))
+        rtc.set_state_gains(self.Delta.astype(np.float32))
         return rtc
 
 

@@ -55,3 +55,9 @@ class StructuralResonance:
         b, a = self.coefficients(rate_hz)
         zi = np.exp(-2j * np.pi * np.asarray(f_hz, dtype=float) / rate_hz)
         return np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi)
+
+
+def sampled_structure(structure: StructuralResonance | None, rate_hz: float) -> StructuralResonance | None:
+    """The structural resonance if the loop samples it (f0 below Nyquist), else None: a loop at
+    250 Hz does not see a 127 Hz mode (its detector and hold filter it; not modelled)."""
+    return structure if structure is not None and structure.frequency_hz < rate_hz / 2 else None

@@ -18,18 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 
-MID_GROUP_END = 120  # modes 3-120 (1-based) are the middle group
 SIGNIFICANCE = 2.0  # a scanned gain replaces the incumbent when better by this many merit scatters
-
-
-def gain_groups(n_modes: int) -> list[tuple[str, slice]]:
-    """The paper's three groups (0-based slices), without the empty ones."""
-    groups = [
-        ("tip-tilt", slice(0, min(2, n_modes))),
-        ("modes 3-120", slice(2, min(MID_GROUP_END, n_modes))),
-        (f"modes 121-{n_modes}", slice(MID_GROUP_END, n_modes)),
-    ]
-    return [(name, s) for name, s in groups if s.stop > s.start]
 
 
 def scan_gains(upper: float, n_values: int = 8, lowest_fraction: float = 0.05) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..control import mgm, ogtl, trial
 from ..control.delay import fractional_taps
+from ..control.gains import gain_groups
 from ..errors import InputError
 from .auxloop import AuxLoop, ModalProbe, RtcParameters, TelemetryWindow
 from .metrics import pseudo_open_loop
@@ -168,7 +169,7 @@ class TrialAndErrorTask(AuxLoop):
         shapes: Sequence[np.ndarray] | None = None,
     ):
         super().__init__(settle + measure)
-        self.groups = trial.gain_groups(n_modes)
+        self.groups = gain_groups(n_modes)
         if len(scans) != len(self.groups):
             raise InputError(f"trial-and-error needs one gain scan per group ({len(self.groups)}), got {len(scans)}")
         self.scans = [np.asarray(s, dtype=float) for s in scans]

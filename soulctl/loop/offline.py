@@ -43,8 +43,9 @@ import numpy as np
 
 from ..control import mgm
 from ..control.delay import fractional_taps
+from ..control.gains import DEFAULT_FORGETTING, nominal_loop
 from ..control.ogtl import PROBE_MODE
-from ..control.structure import StructuralResonance
+from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import max_stable_gain
 from ..errors import InputError
 from ..observation import Observation
@@ -54,8 +55,7 @@ from ..ranges import LOOP_GAIN, PERIOD_S
 from ..run_config import ControllerSpec, RunConfig
 from .metrics import pseudo_open_loop
 from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
-from .run import calibration_for, nominal_loop, sampled_structure
-from .simulation import DEFAULT_FORGETTING
+from .run import calibration_for
 from .telemetry_file import run_description_of
 from .telemetry_schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
 

@@ -45,9 +45,20 @@ import numpy as np
 from ..control import mgm
 from ..control import ogtl as ogtl_model
 from ..control.delay import fractional_taps
+from ..control.gains import (
+    DEFAULT_FORGETTING,
+    LoopGains,
+    capped_gains,
+    check_stability,
+    default_gains,
+    gain_groups,
+    nominal_loop,
+    unit_loops,
+)
 from ..control.ogtl import OgtlSettings
+from ..control.structure import sampled_structure
 from ..control.transfer import max_stable_gain
-from ..control.trial import gain_groups, scan_around, scan_gains
+from ..control.trial import scan_around, scan_gains
 from ..disturbance.modal_psd import cutoff_hz, modal_psd
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
@@ -59,8 +70,8 @@ from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import RunRequest, calibration_for, check_memory, check_stability, closing_frames, default_gains, nominal_loop, sampled_structure
-from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, mode_filters
+from .run import RunRequest, calibration_for, check_memory, closing_frames
+from .simulation import ClosedLoop, LoopDiverged
 
 METHODS = ("trial", "mgm")
 MIN_SEGMENT = 64  # frames: the shortest Welch segment MGM accepts ...
@@ -299,7 +310,7 @@ def mgm_machine(
 ) -> mgm.ModalGainMachine:
     """MGM for the observation's filters (unit gain), plant chi_i z^-d and, on Tip/Tilt, the
     structural resonance when the frame rate samples it."""
-    unit, ba = _unit_loops(observation, structure, forgetting, len(chi))
+    unit, ba = unit_loops(observation, structure, forgetting, len(chi))
     d = observation.delay_frames if delay_frames is None else delay_frames
     return mgm.ModalGainMachine(tuple(unit), chi, d, observation.frame_rate_hz, settings, ba)
 
@@ -394,18 +405,6 @@ class LiveOptimisers:
         return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
 
 
-def capped_gains(
-    gains: np.ndarray, observation, structure, chi: np.ndarray, forgetting: float, fraction: float = INITIAL_GAIN_FRACTION
-) -> np.ndarray:
-    """The initial gains, each capped at ``fraction`` of its maximum stable gain for the
-    optimisers' plant (chi_i z^-d, the structure on Tip/Tilt): gains chosen for chi = 1 would
-    be multiplied by chi_i = gamma_i / gamma_30 once OGTL has converged, several times 1 for
-    the low orders of a poorly corrected loop."""
-    unit, ba = _unit_loops(observation, structure, forgetting, len(chi))
-    limits = mgm.gain_limits(unit, chi, observation.delay_frames, observation.frame_rate_hz, 0.0, ba)
-    return np.minimum(gains, fraction * limits)
-
-
 MODEL_SEGMENT = 8192  # frequency grid of the model PSD: fine enough for the lowest cut-offs (0.1 Hz at 1700 Hz)
 
 
@@ -434,7 +433,9 @@ def initial_gains(
     obs = request.observation
     chi_worst = plant_model(calibration, cache, ogtl, probe_mode, ogtl_model.WORST_SEEING_ARCSEC)
     gamma = optical_gain_table(calibration, cache, request.seeing_arcsec)
-    capped = capped_gains(gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting)
+    capped = capped_gains(
+        gains.per_mode(len(chi)), obs, request.structure, np.maximum(chi, chi_worst), gains.forgetting, INITIAL_GAIN_FRACTION
+    )
     atmosphere = request.atmosphere()
     model = noise_aware_gains(
         obs,
@@ -472,7 +473,7 @@ def noise_aware_gains(
     rate = observation.frame_rate_hz
     n = len(chi)
     f = np.fft.rfftfreq(MODEL_SEGMENT, 1.0 / rate)[1:]
-    unit, ba = _unit_loops(observation, structure, forgetting, n)
+    unit, ba = unit_loops(observation, structure, forgetting, n)
     L1 = mgm.unit_open_loops(unit, chi, observation.delay_frames, rate, f, ba)
     upper = mgm.gain_limits(unit, chi, observation.delay_frames, rate, mgm.MgmSettings().margin, ba)
     nm2 = np.asarray(basis_variance[:n]) * atmosphere.r0_m ** (-5.0 / 3.0) * (LAMBDA_REF_M * 1e9 / (2 * math.pi)) ** 2
@@ -489,16 +490,6 @@ def noise_aware_gains(
     noisy = signal < np.asarray(pol_noise_nm) ** 2
     noisy[:2] = True  # Tip/Tilt: its model (turbulence and vibration lines) is trusted whatever its SNR
     return np.where(noisy, g, np.inf)
-
-
-def _unit_loops(observation, structure, forgetting: float, n_modes: int) -> tuple[list, tuple | None]:
-    """The optimisers' unit-gain filters per mode and the (b, a) of the structural resonance
-    on Tip/Tilt when the frame rate samples it (else None)."""
-    rate = observation.frame_rate_hz
-    unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), n_modes)
-    sampled = sampled_structure(structure, rate)
-    ba = None if sampled is None else tuple(tuple(map(float, x)) for x in sampled.coefficients(rate))
-    return unit, ba
 
 
 def ogtl_task(
@@ -626,20 +617,26 @@ def _run_optimiser(loop: ClosedLoop, optimiser: MgmTask | TrialAndErrorTask, fra
         ran += optimiser.period_frames
 
 
-def optimize(
-    request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None, calibration: Calibration | None = None
-) -> OptimizeResult:
-    """Run the phases (see the module docstring).  ``progress(done, total)`` per frame;
-    ``calibration``: the request's, already computed."""
+@dataclass
+class _Session:
+    """What the live phases of one optimisation work with (``optimize``)."""
+
+    loop: ClosedLoop
+    aux: list  # OGTL (when on) and the live metrics, from the settling phase on
+    optimiser: MgmTask | TrialAndErrorTask
+    n_opt: int  # frames of the optimisation phase
+    net: SafetyNet
+    period: int  # frames per update
+    frames: dict  # closing, settle (at most), measure, skip
+
+
+def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gains: LoopGains, chi: np.ndarray) -> _Session:
+    """The loop at its initial gains and the tasks beside it; the phases' lengths in frames:
+    closing is stretched so that *before* ends on an update boundary (the optimiser starts with
+    OGTL's updates and MGM's windows are whole periods: tasks run when frame % period == 0)."""
     r = request.run
     obs = r.observation
-    structure = sampled_structure(r.structure, obs.frame_rate_hz)
-    gains = r.gains or default_gains(obs, structure)
-    if not r.allow_unstable:
-        check_stability(obs, gains, structure)
-    cal = calibration or calibration_for(r, cache)
-    chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing)
-    loop = _new_loop(r, cal, gains, structure)
+    loop = _new_loop(r, cal, gains, sampled_structure(r.structure, obs.frame_rate_hz))
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
     loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
     period = request.frames(request.period)
@@ -647,20 +644,68 @@ def optimize(
     optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
     aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
-    net = safety_net(obs.frame_rate_hz, aux + [optimiser])
-    initial = loop.rtc_parameters.gains
     n_measure = request.frames(request.measure_s)
     n_settle = OGTL_MAX_SETTLING_PERIODS * period if request.ogtl else 0  # at most
-    # closing is stretched so that *before* ends on an update boundary: the optimiser starts
-    # with OGTL's updates and MGM's windows are whole periods (tasks run when frame % period == 0)
     n_close = closing_frames(obs.frame_rate_hz)
     n_close += (-(n_close + n_settle + n_measure)) % period
     skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
-    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + n_measure)
-    total = n_close + n_settle + 2 * n_measure + n_opt + n_evaluation
+    frames = {"closing": n_close, "settle": n_settle, "measure": n_measure, "skip": skip}
+    return _Session(loop, aux, optimiser, n_opt, safety_net(obs.frame_rate_hz, aux + [optimiser]), period, frames)
+
+
+def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[PhaseMetrics, tuple[int, int]]:
+    """A measurement phase in the run: its metrics and its frames."""
+    psf = PsfAccumulator(loop.pupil, wavelength)
+    start, skip = loop.frame, s.frames["skip"]
+    loop.run(s.frames["measure"], psf=psf, skip=skip, progress=tick)
+    return _phase_metrics(loop, psf, start + skip, loop.frame), (start, loop.frame)
+
+
+def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -> None:
+    """Closing, OGTL's settling, *before*, the optimisation, *after*, in the run's own loop."""
+    loop = s.loop
+    loop.run(s.frames["closing"], progress=tick)
+    result.phases["closing"] = (0, loop.frame)
+    for task in s.aux + [s.net]:
+        loop.add_aux_loop(task)
+    if s.frames["settle"]:
+        for i in range(OGTL_MAX_SETTLING_PERIODS):
+            loop.run(s.period, progress=tick)
+            if i + 1 >= OGTL_SETTLING_PERIODS and _settled(loop.telemetry.aux["ogtl"]):
+                break
+        result.phases["settling"] = (result.phases["closing"][1], loop.frame)
+    result.during_run["before"], result.phases["before"] = _measure(loop, s, wavelength, tick)
+    k_before = loop.rtc_parameters.sensitivity
+    start = loop.frame
+    loop.remove_aux_loop(s.net)  # the net acts after the optimiser in an update
+    loop.add_aux_loop(s.optimiser)
+    loop.add_aux_loop(s.net)
+    _run_optimiser(loop, s.optimiser, s.n_opt, tick)
+    loop.remove_aux_loop(s.optimiser)
+    result.phases["optimisation"] = (start, loop.frame)
+    result.gains = loop.rtc_parameters.gains
+    result.during_run["after"], result.phases["after"] = _measure(loop, s, wavelength, tick)
+    result.sensitivities = (k_before, loop.rtc_parameters.sensitivity)
+
+
+def optimize(
+    request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None, calibration: Calibration | None = None
+) -> OptimizeResult:
+    """Run the phases (see the module docstring), then evaluate the initial and the final gains
+    paired (``evaluate``).  ``progress(done, total)`` per frame; ``calibration``: the
+    request's, already computed."""
+    r = request.run
+    obs = r.observation
+    gains = r.gains or default_gains(obs, sampled_structure(r.structure, obs.frame_rate_hz))
+    if not r.allow_unstable:
+        check_stability(obs, gains, sampled_structure(r.structure, obs.frame_rate_hz))
+    cal = calibration or calibration_for(r, cache)
+    chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing)
+    s = _session(request, cal, cache, gains, chi)
+    f = s.frames
+    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + f["measure"])
+    total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     check_memory(total, cal, "--duration")
-    wavelength = band_wavelength(r.band)
-    psf_before, psf_after = PsfAccumulator(loop.pupil, wavelength), PsfAccumulator(loop.pupil, wavelength)
     done = 0
 
     def tick(_):
@@ -669,46 +714,20 @@ def optimize(
         if progress is not None:
             progress(done, total)
 
-    result = OptimizeResult(request, initial, initial, None, None, loop, chi)
+    initial = s.loop.rtc_parameters.gains
+    result = OptimizeResult(request, initial, initial, None, None, s.loop, chi)
     t0 = time.perf_counter()
     try:
-        loop.run(n_close, progress=tick)
-        result.phases["closing"] = (0, n_close)
-        for task in aux + [net]:
-            loop.add_aux_loop(task)
-        if n_settle:
-            for i in range(OGTL_MAX_SETTLING_PERIODS):
-                loop.run(period, progress=tick)
-                if i + 1 >= OGTL_SETTLING_PERIODS and _settled(loop.telemetry.aux["ogtl"]):
-                    break
-            result.phases["settling"] = (n_close, loop.frame)
-        start = loop.frame
-        loop.run(n_measure, psf=psf_before, skip=skip, progress=tick)
-        result.during_run["before"] = _phase_metrics(loop, psf_before, start + skip, loop.frame)
-        result.phases["before"] = (start, loop.frame)
-        k_before = loop.rtc_parameters.sensitivity
-        start = loop.frame
-        loop.remove_aux_loop(net)  # the net acts after the optimiser in an update
-        loop.add_aux_loop(optimiser)
-        loop.add_aux_loop(net)
-        _run_optimiser(loop, optimiser, n_opt, tick)
-        loop.remove_aux_loop(optimiser)
-        result.phases["optimisation"] = (start, loop.frame)
-        result.gains = loop.rtc_parameters.gains
-        start = loop.frame
-        loop.run(n_measure, psf=psf_after, skip=skip, progress=tick)
-        result.during_run["after"] = _phase_metrics(loop, psf_after, start + skip, loop.frame)
-        result.phases["after"] = (start, loop.frame)
-        result.sensitivities = (k_before, loop.rtc_parameters.sensitivity)
+        _live_phases(s, result, band_wavelength(r.band), tick)
     except LoopDiverged as e:
         result.diverged_at = e.frame
-        result.gains = loop.rtc_parameters.gains
+        result.gains = s.loop.rtc_parameters.gains
     if result.diverged_at is None:
         try:
             result.before = evaluate(request, cal, gains, initial, result.sensitivities[0], tick)
             result.after = evaluate(request, cal, gains, result.gains, result.sensitivities[1], tick)
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
-    result.safety_events = net.events
+    result.safety_events = s.net.events
     result.seconds = time.perf_counter() - t0
     return result

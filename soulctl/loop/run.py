@@ -10,10 +10,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .. import defaults
-from ..control.filters import Filter
-from ..control.structure import StructuralResonance
-from ..control.transfer import VIBRATION_HZ, Loop, Plant, max_stable_gain
-from ..control.trial import MID_GROUP_END
+from ..control.gains import LoopGains, check_stability, default_gains
+from ..control.structure import StructuralResonance, sampled_structure
+from ..control.transfer import VIBRATION_HZ
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..observation import Observation
@@ -23,7 +22,7 @@ from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, cali
 from ..optics.pwfs import PyramidConfig
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
-from .simulation import DEFAULT_FORGETTING, ClosedLoop, LoopDiverged, LoopGains, Telemetry, telemetry_bytes
+from .simulation import ClosedLoop, LoopDiverged, Telemetry, telemetry_bytes
 
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
@@ -79,67 +78,6 @@ class RunRequest:
 def closing_frames(rate_hz: float) -> int:
     """Frames the loop runs at k = 1, without auxiliary loops, before they start."""
     return max(MIN_CLOSING_FRAMES, round(CLOSING_S * rate_hz))
-
-
-def sampled_structure(structure: StructuralResonance | None, rate_hz: float) -> StructuralResonance | None:
-    """The structural resonance if the loop samples it (f0 below Nyquist), else None: a loop at
-    250 Hz does not see a 127 Hz mode (its detector and hold filter it; not modelled)."""
-    return structure if structure is not None and structure.frequency_hz < rate_hz / 2 else None
-
-
-def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structure: StructuralResonance | None) -> Loop:
-    """The loop of one mode as the analysis sees it (chi = 1): Tip/Tilt with the observation's
-    filter and the structural resonance, other modes leaky integrators."""
-    rate = observation.frame_rate_hz
-    d = observation.delay_frames
-    if tip_tilt:
-        f = Filter.iir(observation.tt_zeros, observation.tt_poles, gain) if observation.tt_control == "iir" else Filter.integrator(gain)
-        plant = Plant.with_structure(d, structure, rate) if structure is not None else Plant(d)
-    else:
-        f = Filter.leaky(DEFAULT_FORGETTING, gain)
-        plant = Plant(d)
-    return Loop(f, plant, rate)
-
-
-def default_gains(observation: Observation, structure: StructuralResonance | None = StructuralResonance()) -> LoopGains:
-    """Tip/Tilt: 0.69 with the IIR (the paper's optimised 1700 Hz gain) capped at 0.7 of its
-    maximum stable gain elsewhere, or half the integrator's maximum stable gain; modes 3-120:
-    half, modes 121-last: 0.4 of the leaky integrator's.  Starting points, not optima
-    (`optimize gains` tunes them)."""
-    g_tt = max_stable_gain(nominal_loop(observation, 0.1, True, structure))
-    g_ho = max_stable_gain(nominal_loop(observation, 0.1, False, structure))
-    tt = min(0.69, 0.7 * g_tt) if observation.tt_control == "iir" else 0.5 * g_tt
-    return LoopGains(round(tt, 3), round(0.5 * g_ho, 3), round(0.4 * g_ho, 3))
-
-
-def check_stability(observation: Observation, gains: LoopGains, structure: StructuralResonance | None) -> None:
-    """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
-    plant (chi = 1, the structural resonance on Tip/Tilt)."""
-    if gains.modes is not None:
-        first: dict[tuple[bool, float], int] = {}  # each distinct gain, named by the first mode that has it
-        for i, g in enumerate(gains.modes):
-            first.setdefault((i < 2, g), i + 1)
-        groups = [("Tip/Tilt" if tt else f"mode {m}", g, tt) for (tt, g), m in first.items()]
-    else:
-        n = observation.modes  # the groups this observation has (modes 121-last only beyond 120)
-        groups = [("Tip/Tilt", gains.tip_tilt, True)] + [
-            (name, g, False)
-            for name, g, first in (
-                (f"modes 3-{min(n, MID_GROUP_END)}", gains.mid, 3),
-                (f"modes {MID_GROUP_END + 1}-last", gains.high, MID_GROUP_END + 1),
-            )
-            if n >= first
-        ]
-    for name, g, tt in groups:
-        if g <= 0:
-            continue
-        loop = nominal_loop(observation, g, tt, structure)
-        if not loop.is_stable():
-            g_max = max_stable_gain(loop)
-            raise InputError(
-                f"{name} gain {g:g} is unstable at {observation.frame_rate_hz:g} Hz "
-                f"(maximum stable gain {g_max:.3f}); --allow-unstable runs it anyway"
-            )
 
 
 @dataclass
@@ -259,6 +197,21 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
     return calibrate(calibration_setup(request), cache)
 
 
+def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n_close: int, tasks, progress) -> None:
+    """The run's frames; with auxiliary loops (``tasks``), the loop closes at k = 1 for
+    ``n_close`` frames before they start."""
+    if tasks is not None:
+        loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
+        for task in tasks:
+            loop.add_aux_loop(task)
+    loop.run(
+        request.frames - n_close,
+        psf=psf,
+        skip=max(0, request.skip - n_close),
+        progress=None if progress is None else (lambda k: progress(n_close + k)),
+    )
+
+
 def run(
     request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None, calibration: Calibration | None = None
 ) -> RunResult:
@@ -278,27 +231,17 @@ def run(
     loop = ClosedLoop(
         obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure
     )
-    n_close, start_aux = 0, None
+    n_close, tasks = 0, None
     if aux is not None:
         tasks, initial = aux(request, gains, cal, cache, loop)
         loop.set_gains(initial)
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, closing_frames(obs.frame_rate_hz))
-        start_aux = tasks
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
     try:
-        if start_aux is not None:  # the loop closes at k = 1, then the auxiliary loops start
-            loop.run(n_close, psf=psf, skip=request.skip, progress=progress)
-            for task in start_aux:
-                loop.add_aux_loop(task)
-        loop.run(
-            request.frames - n_close,
-            psf=psf,
-            skip=max(0, request.skip - n_close),
-            progress=None if progress is None else (lambda k: progress(n_close + k)),
-        )
+        _close_and_run(loop, request, psf, n_close, tasks, progress)
     except LoopDiverged as e:
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1

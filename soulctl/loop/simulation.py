@@ -24,31 +24,25 @@ modes during the frame, and the simulation's true residual and disturbance modes
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import lfilter
 from threadpoolctl import threadpool_limits
 
-from ..control.filters import Filter
-from ..control.rtc import build_rtc
+from ..control.gains import LoopGains, mode_filters
 from ..control.structure import StructuralResonance
-from ..control.trial import MID_GROUP_END  # the paper's gain groups: 1-2, 3-120, 121-last
-from ..disturbance.turbulence import MAS_PER_RAD
-from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
-from ..errors import InputError
+from ..disturbance.vibrations import VibrationSpectrum
 from ..observation import Observation
-from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
+from ..optics.atmosphere import AtmosphereConfig
 from ..optics.calibration import Calibration
 from ..optics.detector import Detector
 from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
+from .stages import Controller, Disturbance, Mirror
 
 
 class LoopDiverged(RuntimeError):
@@ -62,8 +56,6 @@ class LoopDiverged(RuntimeError):
         self.residual_nm = residual_nm
 
 
-DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
-VIBRATION_BLOCK = 4096  # frames of vibrations drawn at a time
 # Stages of a frame, timed in ClosedLoop.stage_seconds (plus "metrics": the PSF in run()).
 STAGES = (
     "atmosphere",
@@ -73,63 +65,9 @@ STAGES = (
     "slopes",
     "rtc",
     "telemetry",
-)  # the paper's gain groups: modes 1-2, 3-120, 121-last
+)
 
 
-@dataclass(frozen=True)
-class LoopGains:
-    tip_tilt: float
-    mid: float
-    high: float
-    forgetting: float = DEFAULT_FORGETTING
-    modes: tuple[float, ...] | None = None  # one gain per mode (a gain file): overrides the groups
-
-    def __post_init__(self):
-        for name in ("tip_tilt", "mid", "high"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0 <= v <= 10):
-                raise InputError(f"gain {name} must be a number in 0..10, got {v}")
-        if not (0 <= self.forgetting <= 1):
-            raise InputError(f"forgetting factor must be in 0..1, got {self.forgetting}")
-        if self.modes is not None and not all(math.isfinite(v) and 0 <= v <= 10 for v in self.modes):
-            raise InputError("per-mode gains must be numbers in 0..10")
-
-    @classmethod
-    def from_modes(cls, gains, forgetting: float = DEFAULT_FORGETTING) -> LoopGains:
-        g = tuple(float(x) for x in gains)
-        if len(g) < 2:
-            raise InputError(f"a per-mode gain list needs at least the 2 Tip/Tilt gains, got {len(g)}")
-        mid = g[2:MID_GROUP_END] or (0.0,)
-        high = g[MID_GROUP_END:] or (0.0,)
-        return cls(g[0], float(np.mean(mid)), float(np.mean(high)), forgetting, g)
-
-    def per_mode(self, n_modes: int) -> np.ndarray:
-        if self.modes is not None:
-            if len(self.modes) != n_modes:
-                raise InputError(f"the gain file has {len(self.modes)} gains but {n_modes} modes are controlled")
-            return np.array(self.modes)
-        g = np.full(n_modes, self.high)
-        g[2:MID_GROUP_END] = self.mid
-        g[:2] = self.tip_tilt
-        return g
-
-
-def mode_filters(observation: Observation, gains: LoopGains, n_modes: int) -> list[Filter]:
-    """Tip/Tilt: the observation's IIR (unit-gain zeros/poles, times the Tip/Tilt gain) or an
-    integrator; the other modes leaky integrators."""
-    g = gains.per_mode(n_modes)
-
-    def tip_tilt(gain: float) -> Filter:
-        if observation.tt_control == "iir":
-            return Filter.iir(observation.tt_zeros, observation.tt_poles, gain)
-        return Filter.integrator(gain)
-
-    return [tip_tilt(float(g[0])), tip_tilt(float(g[1]))] + [Filter.leaky(gains.forgetting, float(gi)) for gi in g[2:]]
-
-
-# Memory of the telemetry kept per frame beyond its arrays' bytes (the arrays' Python objects and
-# the lists' slots; measured 1.2 kB at 20x20, 250 modes), and the peak over the lists' own
-# size: at the end of a run the lists, their arrays and the file's conversions coexist.
 TELEMETRY_OBJECT_BYTES = 1500
 TELEMETRY_PEAK_FACTOR = 3
 
@@ -161,6 +99,11 @@ class Telemetry:
     gain_history: list = field(default_factory=list, repr=False)
     # Auxiliary loops' records: name -> [{"frame": f, ...}], f the first frame after the update.
     aux: dict = field(default_factory=dict, repr=False)
+
+    def append_frame(self, **values) -> None:
+        """One frame's records (every per-frame field)."""
+        for name, value in values.items():
+            getattr(self, name).append(value)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Per-frame records as arrays (rows = frames)."""
@@ -196,72 +139,40 @@ class ClosedLoop:
         aux_loops: Sequence[AuxLoop] = (),
         sensitivity: float = 1.0,
     ):
-        self.observation = observation
-        self.calibration = calibration
+        self.observation, self.calibration = observation, calibration
         self.rate_hz = observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
         atm_seed, vib_seed, noise_seed = self.rng.integers(0, 2**63, size=3)
         self.noise_rng = np.random.default_rng(noise_seed) if noise else None
-        self.vibration_rng = np.random.default_rng(vib_seed)
         pyramid = Pyramid(calibration.setup.pyramid)
-        pupil = pyramid.pupil
+        self.pupil = pupil = pyramid.pupil
         photons = photons_in_beam(observation.photometry, observation.magnitude_r, self.rate_hz, pupil.n_valid * pupil.pixel_scale_m**2)
+        # the stages, in the order of a frame (``step``)
+        self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), np.random.default_rng(vib_seed))
+        self.mirror = Mirror(calibration, pupil, structure, self.rate_hz)
         self.sensor = WavefrontSensor(pyramid, detector, photons)
-        self.pupil = pupil
-        self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, int(atm_seed)) if atmosphere else None
-        self.vibrations, dropped = vibrations.below_nyquist(self.rate_hz) if vibrations is not None else (None, ())
-        # What the loop changed of what it was given, for the run's report.
-        self.notes: tuple[str, ...] = tuple(
-            f"the {line.frequency_hz:g} Hz vibration line is left out: at or above the {self.rate_hz / 2:g} Hz Nyquist frequency "
-            "of the loop (a real system aliases or filters it)"
-            for line in dropped
-        )
-        basis = calibration.basis
-        # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
-        # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.
-        self.influence = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
-        self._influence_t = self.influence.T.tocsr()
-        self._M_t = np.ascontiguousarray(basis.M.T)
-        self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
-        # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the
-        # projection is linear, so P d = P r + (P F) c + (P shapes_tt) y + piston P 1, with
-        # small dense matrices instead of a second projection of all pupil pixels per frame.
-        n_valid = pupil.n_valid
-        self._project_mirror = self._M_t @ (self._influence_t @ self.influence).toarray() / n_valid
-        self._project_tt = self._M_t @ (self._influence_t @ self.shapes_tt) / n_valid
-        self._project_piston = self.project(np.ones(n_valid))
+        self.n_modes = calibration.basis.n_modes
+        self.controller = Controller(mode_filters(observation, gains, self.n_modes), calibration)
+        self.delay = DelayLine(calibration.basis.M.shape[0], observation.delay_frames if delay_frames is None else delay_frames)
+        self.telemetry = Telemetry(self.rate_hz)
         self._reconstructor32 = calibration.reconstructor.astype(np.float32)  # R s of float32 slopes
-        self.n_modes = basis.n_modes
-        self.filters = mode_filters(observation, gains, self.n_modes)
-        self.rtc_matrices = build_rtc(self.filters, calibration.reconstructor, basis.M)
-        self.rtc = self.rtc_matrices.controller(n_threads=1)
-        d = observation.delay_frames if delay_frames is None else delay_frames
-        self.delay = DelayLine(basis.M.shape[0], d)
-        # A tilt of 1 mas is a unit-RMS ramp of RMS(x) * 1 mas (in rad) * 1e9 nm.
-        tip, tilt = pupil.tilt()
-        x, _ = pupil.coordinates()
-        nm_per_mas = float(np.sqrt(np.mean((x - x.mean()) ** 2))) * 1e9 / MAS_PER_RAD
-        self._tilt_opd_per_mas = np.stack([tip, tilt]) * nm_per_mas
-        self.mas_per_nm_tt = 1.0 / nm_per_mas
-        # The structure's Tip/Tilt, excited by the mirror's own Tip/Tilt (control.structure).
-        self.structure = structure
-        if structure is not None:
-            self._structure_ba = structure.coefficients(self.rate_hz)
-            self._structure_state = np.zeros((2, 2))  # lfilter state per axis (order 2)
         self.divergence_ratio = divergence_ratio
         self._disturbance_peak = 0.0  # largest disturbance RMS so far (nm): the divergence scale
-        self.telemetry = Telemetry(self.rate_hz)
         self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.frame = 0
-        self._vibration_source: VibrationSource | None = None
-        self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self._apply_gains, sensitivity)
+        self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity)
         self.telemetry.gain_history.append((0, self.rtc_parameters.gains))
-        self.aux_loops = list(aux_loops)
+        self.aux_loops: list[AuxLoop] = []
         self._parameters_since = 0  # first frame at the current gains and k
-        self._probe_shape: tuple[int, np.ndarray] | None = None
-        for aux in self.aux_loops:
-            aux.start(self.rtc_parameters, self.rate_hz)
-            self.telemetry.aux[aux.name] = []
+        for aux in aux_loops:
+            self.add_aux_loop(aux)
+
+    # what the stages hold, as the loop's callers read it
+    notes = property(lambda self: self.disturbance.notes)
+    mas_per_nm_tt = property(lambda self: self.disturbance.mas_per_nm_tt)
+    rtc = property(lambda self: self.controller.rtc)
+    rtc_matrices = property(lambda self: self.controller.rtc_matrices)
+    filters = property(lambda self: self.controller.filters)
 
     def add_aux_loop(self, aux: AuxLoop) -> None:
         """Start an auxiliary loop from the next frame on."""
@@ -290,36 +201,13 @@ class ClosedLoop:
     def remove_aux_loop(self, aux: AuxLoop) -> None:
         self.aux_loops.remove(aux)
 
-    def _apply_gains(self, gains: np.ndarray) -> None:
-        """The gains to the C++ RTC (Delta's diagonal, one value per state), and to the loop's
-        ``rtc_matrices``, whose Delta is then never stale."""
-        delta = self.rtc_matrices.delta_from_gains(gains)
-        self.rtc.set_gains(delta.astype(np.float32))
-        self.rtc_matrices = dataclasses.replace(self.rtc_matrices, Delta=delta)
-
     def project(self, opd: np.ndarray) -> np.ndarray:
-        """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
-        are orthonormal on the pupil)."""
-        return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
-
-    def _vibration_tt(self, k: int) -> np.ndarray:
-        """Tip/Tilt vibrations (mas) at frame k, drawn in blocks of VIBRATION_BLOCK frames (the
-        same series however the frames are split between ``run`` calls)."""
-        if self.vibrations is None:
-            return np.zeros(2)
-        if self._vibration_source is None:
-            self._vibration_source = VibrationSource(self.vibrations, self.rate_hz, self.vibration_rng)
-            self._vibration_series, self._vibration_first = self._vibration_source.next(VIBRATION_BLOCK), 0
-        while k >= self._vibration_first + len(self._vibration_series):
-            self._vibration_first += len(self._vibration_series)
-            self._vibration_series = self._vibration_source.next(VIBRATION_BLOCK)
-        return self._vibration_series[k - self._vibration_first]
+        """Modal coefficients (nm) of an OPD on the pupil pixels (``stages.Mirror.project``)."""
+        return self.mirror.project(opd)
 
     def disturbance_opd(self, k: int) -> np.ndarray:
         """OPD (nm) on the pupil pixels at frame k: turbulence + Tip/Tilt vibrations."""
-        t = k / self.rate_hz
-        phi = self.atmosphere.opd_nm(t)[self.pupil.mask] if self.atmosphere else np.zeros(self.pupil.n_valid)
-        return phi + self._vibration_tt(k) @ self._tilt_opd_per_mas
+        return self.disturbance.opd(k)
 
     def step(self) -> np.ndarray:
         """One frame; returns the residual OPD on the pupil pixels (nm).  The time spent in
@@ -327,18 +215,10 @@ class ClosedLoop:
         clock = time.perf_counter
         t0 = clock()
         k = self.frame
-        disturbance = self.disturbance_opd(k)
+        disturbance = self.disturbance.opd(k)
         t1 = clock()
         applied = self.delay.applied()
-        mirror = self.influence @ applied
-        y = np.zeros(2)  # the structure's Tip/Tilt (nm)
-        if self.structure is not None:
-            b, a = self._structure_ba
-            u = self.calibration.basis.M_inv[:2] @ applied  # the mirror's Tip/Tilt (nm)
-            for axis in range(2):
-                out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
-                y[axis] = out[0]
-            mirror = mirror + self.shapes_tt @ y
+        mirror, y = self.mirror.shape(applied)
         residual = disturbance - mirror
         piston = residual.mean()
         residual -= piston
@@ -357,25 +237,23 @@ class ClosedLoop:
         if k_slopes != 1.0:
             slopes *= np.float32(k_slopes)
         t5 = clock()
-        commands = self.rtc.step(slopes)
-        probe = self.rtc_parameters.probe
-        if probe is not None:
-            commands += np.float32(probe.value(k, self.rate_hz)) * self._mode_commands(probe.mode)
+        commands = self.controller.commands(slopes, self.rtc_parameters.probe, k, self.rate_hz)
         self.delay.push(commands)
         t6 = clock()
-        tm = self.telemetry
-        residual_modes = self.project(residual)
-        tm.residual_modes.append(residual_modes)
-        tm.disturbance_modes.append(residual_modes + self._project_mirror @ applied + self._project_tt @ y + piston * self._project_piston)
-        tm.slopes.append(slopes)
-        tm.commands.append(commands.copy())
-        tm.measured_modes.append(self._reconstructor32 @ slopes)
-        tm.command_modes.append(self.calibration.basis.M_inv @ commands)
-        tm.mirror_modes.append(self.calibration.basis.M_inv @ applied)
+        residual_modes = self.mirror.project(residual)
         rms = float(np.sqrt(np.mean(residual**2)))
-        tm.residual_rms_nm.append(rms)
-        tm.sensitivity.append(k_slopes)
-        tm.flux.append(float(frame.sum()))
+        self.telemetry.append_frame(
+            residual_modes=residual_modes,
+            disturbance_modes=self.mirror.disturbance_modes(residual_modes, applied, y, piston),
+            slopes=slopes,
+            commands=commands.copy(),
+            measured_modes=self._reconstructor32 @ slopes,
+            command_modes=self.calibration.basis.M_inv @ commands,
+            mirror_modes=self.calibration.basis.M_inv @ applied,
+            residual_rms_nm=rms,
+            sensitivity=k_slopes,
+            flux=float(frame.sum()),
+        )
         t7 = clock()
         for stage, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5, t7 - t6)):
             self.stage_seconds[stage] += dt
@@ -385,12 +263,6 @@ class ClosedLoop:
             raise LoopDiverged(k, rms)
         self._run_aux_loops()
         return residual
-
-    def _mode_commands(self, mode: int) -> np.ndarray:
-        """Actuator commands of one mode (float32), kept for the probe's next frames."""
-        if self._probe_shape is None or self._probe_shape[0] != mode:
-            self._probe_shape = (mode, self.calibration.basis.M[:, mode].astype(np.float32))
-        return self._probe_shape[1]
 
     def window(self, frames: int) -> TelemetryWindow:
         """The last ``frames`` frames, but none from before the latest change of gains or k."""

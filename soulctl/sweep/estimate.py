@@ -23,7 +23,7 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-from ..control.trial import gain_groups
+from ..control.gains import gain_groups
 from ..errors import InputError
 from ..loop.optimize import EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS, TRIAL_VALUES, default_sequence_s
 from ..loop.run import closing_frames

@@ -131,22 +131,7 @@ def execute(
     report = SweepReport(total=plan.total, skipped=plan.skipped, results=table.path)
     with ExitStack() as stack:
         client = connect(stack, scheduler, workers, wait_workers_s) if plan.todo else None
-        created = not plan.out_dir.exists()
-        try:
-            plan.out_dir.mkdir(exist_ok=True)
-        except OSError as e:
-            raise InputError(f"--out: cannot create the folder {plan.out_dir}: {e.strerror or e}") from None
-        try:
-            stack.enter_context(results_lock(plan.out_dir))
-            # under the lock, the file as it is now (another sweep may have written it since the plan)
-            if os.path.lexists(table.path) and not plan.resume:
-                raise InputError(f"{table.path} exists: --resume to complete it, or choose another --out")
-            done = table.resume() if plan.resume else set()
-        except BaseException:
-            if created:  # as it was: no folder (the lock released first)
-                stack.close()
-                _remove_empty(plan.out_dir)
-            raise
+        done = _open_folder(stack, plan)
         todo = [(cid, c) for cid, c in table.cases.items() if cid not in done]
         report.skipped = len(done)
         report.notes = list(table.notes)
@@ -155,45 +140,82 @@ def execute(
         if on_start:
             on_start(len(todo))
 
-        def record(row: dict) -> None:
-            description = row.pop(DESCRIPTION_KEY, None)
-            if description is not None:  # the run the row measured: `loop run --config` repeats it
-                (plan.out_dir / RUNS_DIR).mkdir(exist_ok=True)
-                atomic_write_text(plan.out_dir / RUNS_DIR / f"{row['case_id']}.toml", description, immediate=True)
-            table.add(row)
-            report.rows.append(row)
-            report.computed += 1
-            report.failed += row["status"] == "failed"
-            report.diverged += row["status"] == "diverged"
-            if on_row:
-                on_row(row, report)
-
+        record = _recorder(plan, report, on_row)
         if todo and client is None:  # rows removed since the plan (an edited file): start the cluster now
             client = connect(stack, scheduler, workers, wait_workers_s)
-        calibrations, futures = {}, {}
-        for cid, case in todo:
+        if todo:
             assert client is not None  # connected above when there is work
-            try:
-                setup = calibration_setup(case)
-            except InputError as e:  # the case itself is invalid: a failed row, no task
-                record(failed_row(case, str(e)))
-                continue
-            key = setup.key()
-            if key not in calibrations:
-                calibrations[key] = client.submit(calibrate_case, setup, cache_dir, key=f"calibration-{key}", pure=False)
-            futures[client.submit(run_case, case, calibrations[key], cache_dir, key=f"case-{cid}", pure=False)] = case
-        if futures:
-            from dask.distributed import as_completed
-
-            for future in as_completed(futures):
-                case = futures[future]
-                try:
-                    row = future.result()
-                except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
-                    row = failed_row(case, f"{type(e).__name__}: {e}")
-                record(row)
+            _submit_and_collect(client, todo, cache_dir, record)
         table.write_ordered()  # every case has its row: the grid's order
     return report
+
+
+def _open_folder(stack: ExitStack, plan: SweepPlan) -> set:
+    """Create the sweep's folder and take its lock; the case ids already done (--resume).  On
+    an error a folder this call created is removed again."""
+    table = plan.table
+    created = not plan.out_dir.exists()
+    try:
+        plan.out_dir.mkdir(exist_ok=True)
+    except OSError as e:
+        raise InputError(f"--out: cannot create the folder {plan.out_dir}: {e.strerror or e}") from None
+    try:
+        stack.enter_context(results_lock(plan.out_dir))
+        # under the lock, the file as it is now (another sweep may have written it since the plan)
+        if os.path.lexists(table.path) and not plan.resume:
+            raise InputError(f"{table.path} exists: --resume to complete it, or choose another --out")
+        return table.resume() if plan.resume else set()
+    except BaseException:
+        if created:  # as it was: no folder (the lock released first)
+            stack.close()
+            _remove_empty(plan.out_dir)
+        raise
+
+
+def _recorder(plan: SweepPlan, report: SweepReport, on_row) -> Callable[[dict], None]:
+    """What takes a finished row: its run description to runs/<case_id>.toml, the row to the
+    results and the report."""
+
+    def record(row: dict) -> None:
+        description = row.pop(DESCRIPTION_KEY, None)
+        if description is not None:  # the run the row measured: `loop run --config` repeats it
+            (plan.out_dir / RUNS_DIR).mkdir(exist_ok=True)
+            atomic_write_text(plan.out_dir / RUNS_DIR / f"{row['case_id']}.toml", description, immediate=True)
+        plan.table.add(row)
+        report.rows.append(row)
+        report.computed += 1
+        report.failed += row["status"] == "failed"
+        report.diverged += row["status"] == "diverged"
+        if on_row:
+            on_row(row, report)
+
+    return record
+
+
+def _submit_and_collect(client, todo: list, cache_dir: str | None, record: Callable[[dict], None]) -> None:
+    """One calibration task per distinct set-up, one task per case on it; rows recorded as the
+    cases finish (an invalid case or a failed task is a failed row)."""
+    calibrations, futures = {}, {}
+    for cid, case in todo:
+        try:
+            setup = calibration_setup(case)
+        except InputError as e:  # the case itself is invalid: a failed row, no task
+            record(failed_row(case, str(e)))
+            continue
+        key = setup.key()
+        if key not in calibrations:
+            calibrations[key] = client.submit(calibrate_case, setup, cache_dir, key=f"calibration-{key}", pure=False)
+        futures[client.submit(run_case, case, calibrations[key], cache_dir, key=f"case-{cid}", pure=False)] = case
+    if futures:
+        from dask.distributed import as_completed
+
+        for future in as_completed(futures):
+            case = futures[future]
+            try:
+                row = future.result()
+            except Exception as e:  # e.g. the calibration failed, or the task's workers kept dying
+                row = failed_row(case, f"{type(e).__name__}: {e}")
+            record(row)
 
 
 def _remove_empty(folder: Path) -> None:

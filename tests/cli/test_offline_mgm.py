@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from soulctl.cli.app import main
 from soulctl.cli.common import parse_gains
-from soulctl.control.structure import StructuralResonance
-from soulctl.loop.run import check_stability, sampled_structure
+from soulctl.control.gains import check_stability
+from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.observation import observation_for_magnitude
 from soulctl.ranges import LOOP_GAIN
 

@@ -11,11 +11,11 @@ import pytest
 from soulctl.cli.app import main
 from soulctl.cli.common import parse_gains
 from soulctl.control import mgm
-from soulctl.control.structure import StructuralResonance
+from soulctl.control.gains import LoopGains, check_stability
+from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
-from soulctl.loop.run import RunRequest, check_stability, closing_frames, sampled_structure
-from soulctl.loop.simulation import LoopGains
+from soulctl.loop.run import RunRequest, closing_frames
 from soulctl.loop.telemetry_file import read_telemetry
 from soulctl.observation import observation_for_magnitude
 

@@ -345,7 +345,8 @@ def test_a_run_whose_telemetry_would_not_fit_in_memory_is_refused(capsys, cache_
 def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
     import tracemalloc
 
-    from soulctl.loop.run import RunRequest, calibration_for, default_gains
+    from soulctl.control.gains import default_gains
+    from soulctl.loop.run import RunRequest, calibration_for
     from soulctl.loop.simulation import TELEMETRY_PEAK_FACTOR, ClosedLoop, telemetry_bytes
     from soulctl.optics.atmosphere import AtmosphereConfig
 

@@ -3,13 +3,8 @@
 import numpy as np
 import pytest
 
-from soulctl.control.trial import best_gain, chosen_gain, gain_groups, merit_scatter, scan_around, scan_gains
+from soulctl.control.trial import best_gain, chosen_gain, merit_scatter, scan_around, scan_gains
 from soulctl.errors import InputError
-
-
-def test_groups_are_the_papers_three():
-    assert [(n, s.start, s.stop) for n, s in gain_groups(500)] == [("tip-tilt", 0, 2), ("modes 3-120", 2, 120), ("modes 121-500", 120, 500)]
-    assert [s.stop for _, s in gain_groups(54)] == [2, 54]
 
 
 def test_best_gain_is_the_vertex_of_the_parabola_not_the_best_sample():

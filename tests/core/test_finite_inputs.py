@@ -72,7 +72,7 @@ def test_run_checks_the_whole_block_before_the_first_step(bad):
     mats, rng = leaky_rtc()
     rtc = mats.controller()
     rtc.run(rng.normal(size=(5, 20)).astype(np.float32))
-    state, gains = rtc.state, rtc.gains
+    state, gains = rtc.state, rtc.state_gains
     block = rng.normal(size=(8, 20)).astype(np.float32)
     block[6, 4] = bad  # late in the block: the first steps must not have run either
     with pytest.raises(ValueError, match=message("slopes", bad, "[6, 4]")):
@@ -80,29 +80,29 @@ def test_run_checks_the_whole_block_before_the_first_step(bad):
     np.testing.assert_array_equal(rtc.state, state)
     per_step = np.tile(gains, (8, 1))
     per_step[5, 3] = bad
-    with pytest.raises(ValueError, match=message("gains", bad, "[5, 3]")):
-        rtc.run(np.zeros((8, 20), np.float32), gains=per_step)
+    with pytest.raises(ValueError, match=message("state_gains", bad, "[5, 3]")):
+        rtc.run(np.zeros((8, 20), np.float32), state_gains=per_step)
     np.testing.assert_array_equal(rtc.state, state)
-    np.testing.assert_array_equal(rtc.gains, gains)
+    np.testing.assert_array_equal(rtc.state_gains, gains)
 
 
 @pytest.mark.parametrize("bad", BAD)
-def test_set_gains_names_the_first_bad_value(bad):
+def test_set_state_gains_names_the_first_bad_value(bad):
     mats, _ = leaky_rtc()
     rtc = mats.controller()
-    before = rtc.gains
+    before = rtc.state_gains
     g = before.copy()
     g[[4, 9]] = bad
-    with pytest.raises(ValueError, match=message("gains", bad, "index 4")):
-        rtc.set_gains(g)
-    np.testing.assert_array_equal(rtc.gains, before)
+    with pytest.raises(ValueError, match=message("state_gains", bad, "index 4")):
+        rtc.set_state_gains(g)
+    np.testing.assert_array_equal(rtc.state_gains, before)
 
 
 def test_finite_extremes_are_accepted():
     """The rule is finiteness, not a range: the largest float32 values pass the check."""
     big = np.finfo(np.float32).max
     rtc = RealTimeController(np.zeros((2, 2)), np.eye(2, 3), np.eye(2))
-    rtc.set_gains(np.array([big, -big], np.float32))
+    rtc.set_state_gains(np.array([big, -big], np.float32))
     rtc.step(np.array([0.0, 0.0, -big], np.float32))
     np.testing.assert_array_equal(rtc.state, [0.0, 0.0])
 

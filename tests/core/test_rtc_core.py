@@ -75,10 +75,10 @@ def test_run_equals_steps_with_changing_gains():
     stepped = mats.controller()
     one_by_one = []
     for s, g in zip(slopes, gains):
-        stepped.set_gains(g)
+        stepped.set_state_gains(g)
         one_by_one.append(stepped.step(s))
     batched = mats.controller()
-    replay = batched.run(slopes, gains=gains)
+    replay = batched.run(slopes, state_gains=gains)
     assert_float32_close(replay, np.array(one_by_one))
     np.testing.assert_allclose(batched.state, stepped.state, rtol=1e-4, atol=1e-4 * np.max(np.abs(stepped.state)))
     assert_float32_accurate(replay, mats, slopes, gains)
@@ -104,10 +104,10 @@ def test_gain_change_takes_effect_from_the_next_step():
     rtc = mats.controller()
     s = np.array([1.0, 0.0], np.float32)
     assert rtc.step(s)[0] == pytest.approx(0.5)
-    rtc.set_gains(np.array([0.2], np.float32))
+    rtc.set_state_gains(np.array([0.2], np.float32))
     assert rtc.state[0] == pytest.approx(0.5)  # setting Delta changes nothing by itself
     assert rtc.step(s)[0] == pytest.approx(0.7)  # 0.5 + 0.2 * 1
-    rtc.set_gains(np.array([0.0], np.float32))
+    rtc.set_state_gains(np.array([0.0], np.float32))
     assert rtc.step(s)[0] == pytest.approx(0.7)  # zero gain: the integrator holds
 
 
@@ -122,7 +122,7 @@ def test_gain_change_on_iir_scales_only_new_inputs():
     ref = mats.controller()
     rtc.step(impulse)
     ref.step(impulse)
-    rtc.set_gains(np.full(8, 3.0, np.float32))
+    rtc.set_state_gains(np.full(8, 3.0, np.float32))
     # With no new input the response to the past impulse is unchanged by the new gain.
     for _ in range(20):
         np.testing.assert_allclose(rtc.step(zero), ref.step(zero), rtol=1e-6, atol=1e-7)
@@ -162,7 +162,7 @@ def test_sigma_and_xi_with_unexpected_dense_lambda_still_exact():
     S = rng.normal(size=(nc, n))
     d = rng.uniform(0, 1, n).astype(np.float32)
     rtc = RealTimeController(L, X, S, n_threads=2)
-    rtc.set_gains(d)
+    rtc.set_state_gains(d)
     assert rtc.structure["block_sizes"] == [n]
     slopes = rng.normal(size=(50, ns)).astype(np.float32)
 
@@ -180,12 +180,12 @@ def test_errors_name_expected_and_given_shapes():
         rtc.step(np.zeros(59, np.float32))
     with pytest.raises(ValueError, match=r"^slopes: expected dtype float32, got float64$"):
         rtc.step(np.zeros(60))
-    with pytest.raises(ValueError, match=r"^gains: expected shape \(40,\), got \(39,\)$"):
-        rtc.set_gains(np.zeros(39, np.float32))
+    with pytest.raises(ValueError, match=r"^state_gains: expected shape \(40,\), got \(39,\)$"):
+        rtc.set_state_gains(np.zeros(39, np.float32))
     with pytest.raises(ValueError, match=r"slopes: expected shape \(any, 60\), got \(5, 61\)"):
         rtc.run(np.zeros((5, 61), np.float32))
     with pytest.raises(ValueError, match=r"gains: expected shape \(5, 40\), got \(5, 39\)"):
-        rtc.run(np.zeros((5, 60), np.float32), gains=np.zeros((5, 39), np.float32))
+        rtc.run(np.zeros((5, 60), np.float32), state_gains=np.zeros((5, 39), np.float32))
     with pytest.raises(ValueError, match=r"out: expected dtype float32"):
         rtc.step(np.zeros(60, np.float32), out=np.zeros(30))
     with pytest.raises(ValueError, match=r"Lambda must be square"):
@@ -204,16 +204,16 @@ def test_non_finite_gains_are_refused_and_leave_delta_unchanged():
     rng = np.random.default_rng(18)
     mats = mixed_rtc(rng)
     rtc = mats.controller()
-    before = rtc.gains
+    before = rtc.state_gains
     bad = before.copy()
     bad[3] = np.nan
-    with pytest.raises(ValueError, match="gains: values must be finite"):
-        rtc.set_gains(bad)
-    np.testing.assert_array_equal(rtc.gains, before)
+    with pytest.raises(ValueError, match="state_gains: values must be finite"):
+        rtc.set_state_gains(bad)
+    np.testing.assert_array_equal(rtc.state_gains, before)
     per_step = np.tile(before, (4, 1))
     per_step[2, 0] = np.inf
-    with pytest.raises(ValueError, match="gains: values must be finite"):
-        rtc.run(np.zeros((4, 60), np.float32), gains=per_step)
+    with pytest.raises(ValueError, match="state_gains: values must be finite"):
+        rtc.run(np.zeros((4, 60), np.float32), state_gains=per_step)
     with pytest.raises(ValueError, match="out: expected a numpy array"):
         rtc.step(np.zeros(60, np.float32), out=[0.0] * 30)
 

@@ -34,8 +34,8 @@ CALLS = {
     },
     "RealTimeController": {
         "step": "{}.step(np.ones(3, np.float32), out=np.empty(4, np.float32))",
-        "run": "{}.run(np.ones((5, 3), np.float32), gains=np.ones((5, 2), np.float32))",
-        "set_gains": "{}.set_gains(np.ones(2, np.float32))",
+        "run": "{}.run(np.ones((5, 3), np.float32), state_gains=np.ones((5, 2), np.float32))",
+        "set_state_gains": "{}.set_state_gains(np.ones(2, np.float32))",
         "reset": "{}.reset()",
     },
 }

@@ -7,10 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from soulctl.control.gains import LoopGains
 from soulctl.control.trial import scan_gains
 from soulctl.loop.auxloop import AuxLoop
 from soulctl.loop.auxloops import OgtlTask, SafetyNet, TrialAndErrorTask
-from soulctl.loop.simulation import ClosedLoop, LoopDiverged, LoopGains
+from soulctl.loop.simulation import ClosedLoop, LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate, calibration_sensor, mode_maps, push_pull
@@ -49,9 +50,9 @@ def test_aux_loops_read_their_window_and_write_between_two_frames(small_calibrat
     assert tm.aux_arrays("recorder")["frame"].tolist() == [25, 50, 75, 100]
     frames, gains = tm.gain_arrays()
     assert frames.tolist() == [0, 25, 50, 75, 100] and gains[:, 0].tolist() == [0.05, 0.1, 0.2, 0.4, 0.8]
-    assert loop.rtc_matrices.mode_gains(np.asarray(loop.rtc.gains))[0] == pytest.approx(0.8)
+    assert loop.rtc_matrices.mode_gains(np.asarray(loop.rtc.state_gains))[0] == pytest.approx(0.8)
     # the loop's RTC matrices hold the Delta in force, not the one they were built with
-    np.testing.assert_allclose(loop.rtc_matrices.Delta, loop.rtc.gains, rtol=1e-7)
+    np.testing.assert_allclose(loop.rtc_matrices.Delta, loop.rtc.state_gains, rtol=1e-7)
     assert loop.rtc_matrices.mode_gains()[0] == pytest.approx(0.8)
 
 

@@ -6,8 +6,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from soulctl.control.gains import default_gains
+from soulctl.control.structure import sampled_structure
 from soulctl.loop.optimize import OptimizeRequest, evaluate
-from soulctl.loop.run import RunRequest, default_gains, sampled_structure
+from soulctl.loop.run import RunRequest
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig

@@ -4,10 +4,10 @@ import dataclasses
 
 import pytest
 
-from soulctl.control.structure import StructuralResonance
+from soulctl.control.gains import LoopGains, check_stability, default_gains
+from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.errors import InputError
-from soulctl.loop.run import RunRequest, check_stability, default_gains, sampled_structure
-from soulctl.loop.simulation import LoopGains
+from soulctl.loop.run import RunRequest
 from soulctl.observation import observation_for_magnitude
 
 

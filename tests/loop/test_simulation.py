@@ -9,11 +9,12 @@ import pytest
 from scipy.signal import welch
 
 from soulctl.control.filters import Filter
+from soulctl.control.gains import LoopGains
 from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
 from soulctl.loop.metrics import pseudo_open_loop
-from soulctl.loop.simulation import ClosedLoop, LoopDiverged, LoopGains
+from soulctl.loop.simulation import ClosedLoop, LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate

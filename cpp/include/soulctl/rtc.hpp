@@ -5,7 +5,7 @@
 // any two steps.  Working precision is float32.
 //
 // Every float input must be finite (soulctl/finite.hpp): Lambda, Xi, Sigma, the gains of
-// set_gains() and run(), the slopes of step() and run().  A NaN or infinity throws
+// set_state_gains() and run(), the slopes of step() and run().  A NaN or infinity throws
 // std::invalid_argument naming the argument before anything changes, so one bad frame never
 // poisons the integrators: the state, Delta and the outputs are as before the call.
 //
@@ -50,8 +50,8 @@ public:
     int n_commands() const { return n_commands_; }
     int n_threads() const { return n_threads_; }
 
-    void set_gains(const float* delta);  // n_states finite values, the diagonal of Delta
-    const Eigen::VectorXf& gains() const { return delta_; }
+    void set_state_gains(const float* delta);  // n_states finite values, the diagonal of Delta
+    const Eigen::VectorXf& state_gains() const { return delta_; }
     const Eigen::VectorXf& state() const { return zeta_; }
     void reset();
 

@@ -1,0 +1,160 @@
+"""The stages of the simulated closed loop, one job each; ``simulation.ClosedLoop`` wires them
+and runs them in the order of the real system (disturbance -> mirror and structure -> sensor ->
+controller -> delay line -> telemetry -> auxiliary loops).
+
+* ``Disturbance``: the OPD the telescope delivers at frame k, frozen-flow turbulence plus the
+  Tip/Tilt vibrations (drawn in blocks, so a loop run in pieces is the same loop).
+* ``Mirror``: the adaptive secondary's shape for the applied commands, F c, plus the 127 Hz
+  structure excited by its own Tip/Tilt (``control.structure``), and the projections of pupil
+  OPDs on the modes.
+* ``Controller``: the per-mode filters assembled into Lambda, Xi, Sigma, Delta and run by the
+  C++ RTC (the paper's zeta(k) = Lambda zeta(k-1) + Delta Xi s(k), c(k) = Sigma zeta(k)), plus
+  the OGTL probe added to the commands.
+The sensor (``optics.sensor.WavefrontSensor``) and the delay line (``delay_line.DelayLine``)
+are stages of their own modules.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.signal import lfilter
+
+from ..control.rtc import build_rtc
+from ..control.structure import StructuralResonance
+from ..disturbance.turbulence import MAS_PER_RAD
+from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
+from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
+from ..optics.calibration import Calibration
+from ..optics.pupil import Pupil
+
+VIBRATION_BLOCK = 4096  # vibration samples drawn at a time
+
+
+class Disturbance:
+    """Turbulence + Tip/Tilt vibrations on the pupil pixels (nm) at frame k."""
+
+    def __init__(
+        self,
+        atmosphere: AtmosphereConfig | None,
+        vibrations: VibrationSpectrum | None,
+        pupil: Pupil,
+        rate_hz: float,
+        atmosphere_seed: int,
+        vibration_rng: np.random.Generator,
+    ):
+        self.pupil, self.rate_hz, self.vibration_rng = pupil, rate_hz, vibration_rng
+        self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, atmosphere_seed) if atmosphere else None
+        self.vibrations, dropped = vibrations.below_nyquist(rate_hz) if vibrations is not None else (None, ())
+        # What the loop changed of what it was given, for the run's report.
+        self.notes: tuple[str, ...] = tuple(
+            f"the {line.frequency_hz:g} Hz vibration line is left out: at or above the {rate_hz / 2:g} Hz Nyquist frequency "
+            "of the loop (a real system aliases or filters it)"
+            for line in dropped
+        )
+        # A tilt of 1 mas is a unit-RMS ramp of RMS(x) * 1 mas (in rad) * 1e9 nm.
+        tip, tilt = pupil.tilt()
+        x, _ = pupil.coordinates()
+        nm_per_mas = float(np.sqrt(np.mean((x - x.mean()) ** 2))) * 1e9 / MAS_PER_RAD
+        self.tilt_opd_per_mas = np.stack([tip, tilt]) * nm_per_mas
+        self.mas_per_nm_tt = 1.0 / nm_per_mas
+        self._source: VibrationSource | None = None
+        self._series, self._first = np.zeros((0, 2)), 0
+
+    def tip_tilt_mas(self, k: int) -> np.ndarray:
+        """Tip/Tilt vibrations (mas) at frame k, drawn in blocks of VIBRATION_BLOCK frames."""
+        if self.vibrations is None:
+            return np.zeros(2)
+        if self._source is None:
+            self._source = VibrationSource(self.vibrations, self.rate_hz, self.vibration_rng)
+            self._series, self._first = self._source.next(VIBRATION_BLOCK), 0
+        while k >= self._first + len(self._series):
+            self._first += len(self._series)
+            self._series = self._source.next(VIBRATION_BLOCK)
+        return self._series[k - self._first]
+
+    def opd(self, k: int) -> np.ndarray:
+        """OPD (nm) on the pupil pixels at frame k."""
+        t = k / self.rate_hz
+        phi = self.atmosphere.opd_nm(t)[self.pupil.mask] if self.atmosphere else np.zeros(self.pupil.n_valid)
+        return phi + self.tip_tilt_mas(k) @ self.tilt_opd_per_mas
+
+
+class Mirror:
+    """The adaptive secondary with its structure, and the modal projections of pupil OPDs."""
+
+    def __init__(self, calibration: Calibration, pupil: Pupil, structure: StructuralResonance | None, rate_hz: float):
+        basis = calibration.basis
+        self.basis, self.pupil, self.structure = basis, pupil, structure
+        # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
+        # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.
+        self.influence = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
+        self._influence_t = self.influence.T.tocsr()
+        self._M_t = np.ascontiguousarray(basis.M.T)
+        self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
+        # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the
+        # projection is linear, so P d = P r + (P F) c + (P shapes_tt) y + piston P 1, with
+        # small dense matrices instead of a second projection of all pupil pixels per frame.
+        n_valid = pupil.n_valid
+        self._project_mirror = self._M_t @ (self._influence_t @ self.influence).toarray() / n_valid
+        self._project_tt = self._M_t @ (self._influence_t @ self.shapes_tt) / n_valid
+        self._project_piston = self.project(np.ones(n_valid))
+        if structure is not None:
+            self._structure_ba = structure.coefficients(rate_hz)
+            self._structure_state = np.zeros((2, 2))  # lfilter state per axis (order 2)
+
+    def shape(self, applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the mirror's OPD on the pupil pixels, the structure's Tip/Tilt in nm) for the
+        applied commands; the structure's state advances one frame."""
+        mirror = self.influence @ applied
+        y = np.zeros(2)
+        if self.structure is not None:
+            b, a = self._structure_ba
+            u = self.basis.M_inv[:2] @ applied  # the mirror's Tip/Tilt (nm)
+            for axis in range(2):
+                out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
+                y[axis] = out[0]
+            mirror = mirror + self.shapes_tt @ y
+        return mirror, y
+
+    def project(self, opd: np.ndarray) -> np.ndarray:
+        """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
+        are orthonormal on the pupil)."""
+        return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
+
+    def disturbance_modes(self, residual_modes: np.ndarray, applied: np.ndarray, y: np.ndarray, piston: float) -> np.ndarray:
+        """The disturbance's modes from the residual's (see ``__init__``)."""
+        return residual_modes + self._project_mirror @ applied + self._project_tt @ y + piston * self._project_piston
+
+
+class Controller:
+    """The RTC: one filter per mode (``control.gains.mode_filters``) in the C++ core, the gains as
+    Delta's diagonal (``rtc_matrices.Delta`` always the one in force), the OGTL probe added to
+    the commands."""
+
+    def __init__(self, filters: list, calibration: Calibration):
+        self.filters = filters
+        self.basis = calibration.basis
+        self.rtc_matrices = build_rtc(filters, calibration.reconstructor, calibration.basis.M)
+        self.rtc = self.rtc_matrices.controller(n_threads=1)
+        self._probe_shape: tuple[int, np.ndarray] | None = None
+
+    def apply_gains(self, gains: np.ndarray) -> None:
+        """One gain per mode to the C++ RTC (Delta's diagonal, one value per state)."""
+        delta = self.rtc_matrices.delta_from_gains(gains)
+        self.rtc.set_state_gains(delta.astype(np.float32))
+        self.rtc_matrices = dataclasses.replace(self.rtc_matrices, Delta=delta)
+
+    def commands(self, slopes: np.ndarray, probe, k: int, rate_hz: float) -> np.ndarray:
+        """c(k) for the slopes s(k), plus the probe's mode at frame k when there is one."""
+        commands = self.rtc.step(slopes)
+        if probe is not None:
+            commands += np.float32(probe.value(k, rate_hz)) * self._mode_commands(probe.mode)
+        return commands
+
+    def _mode_commands(self, mode: int) -> np.ndarray:
+        """Actuator commands of one mode (float32), kept for the probe's next frames."""
+        if self._probe_shape is None or self._probe_shape[0] != mode:
+            self._probe_shape = (mode, self.basis.M[:, mode].astype(np.float32))
+        return self._probe_shape[1]
