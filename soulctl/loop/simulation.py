@@ -42,7 +42,7 @@ from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
-from .stages import Controller, Disturbance, Mirror
+from .stages import AuxScheduler, Controller, Disturbance, Mirror
 
 
 class LoopDiverged(RuntimeError):
@@ -161,9 +161,7 @@ class ClosedLoop:
         self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.frame = 0
         self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity)
-        self.telemetry.gain_history.append((0, self.rtc_parameters.gains))
-        self.aux_loops: list[AuxLoop] = []
-        self._parameters_since = 0  # first frame at the current gains and k
+        self.scheduler = AuxScheduler(self.rtc_parameters, self.telemetry)
         for aux in aux_loops:
             self.add_aux_loop(aux)
 
@@ -176,30 +174,15 @@ class ClosedLoop:
 
     def add_aux_loop(self, aux: AuxLoop) -> None:
         """Start an auxiliary loop from the next frame on."""
-        aux.start(self.rtc_parameters, self.rate_hz)
-        self.aux_loops.append(aux)
-        self.telemetry.aux.setdefault(aux.name, [])
-        self._record_gains()
-        self._parameters_since = self.frame
+        self.scheduler.add(aux, self.frame, self.rate_hz)
 
     def set_gains(self, gains: np.ndarray) -> None:
         """New modal gains from the next frame on (recorded in the gain history)."""
         self.rtc_parameters.set_gains(gains)
-        self._record_gains()
-        self._parameters_since = self.frame
-
-    def _record_gains(self) -> None:
-        """Add the current gains to the history if they changed (one entry per frame)."""
-        history = self.telemetry.gain_history
-        gains = self.rtc_parameters.gains
-        if np.array_equal(history[-1][1], gains):
-            return
-        if history[-1][0] == self.frame:
-            history.pop()
-        history.append((self.frame, gains))
+        self.scheduler.changed(self.frame)
 
     def remove_aux_loop(self, aux: AuxLoop) -> None:
-        self.aux_loops.remove(aux)
+        self.scheduler.remove(aux)
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels (``stages.Mirror.project``)."""
@@ -261,13 +244,13 @@ class ClosedLoop:
         self._disturbance_peak = max(self._disturbance_peak, float(np.std(disturbance)), 10.0)
         if not np.isfinite(rms) or rms > self.divergence_ratio * self._disturbance_peak:
             raise LoopDiverged(k, rms)
-        self._run_aux_loops()
+        self.scheduler.run_due(self.frame, self.window, self.rtc.reset)
         return residual
 
     def window(self, frames: int) -> TelemetryWindow:
         """The last ``frames`` frames, but none from before the latest change of gains or k."""
         tm = self.telemetry
-        start = max(self.frame - frames, self._parameters_since)
+        start = max(self.frame - frames, self.scheduler.since)
         rows = slice(start, self.frame)
         return TelemetryWindow(
             first_frame=start,
@@ -281,25 +264,6 @@ class ClosedLoop:
             gains=self.rtc_parameters.gains,
             sensitivity=self.rtc_parameters.sensitivity,
         )
-
-    def _run_aux_loops(self) -> None:
-        due = [aux for aux in self.aux_loops if self.frame % aux.period_frames == 0]
-        if not due:
-            return
-        params = self.rtc_parameters
-        before = (params.gains, params.sensitivity)
-        # Every task of this update reads the same data, at the gains and k that made it.
-        windows = [self.window(aux.period_frames) for aux in due]
-        for aux, window in zip(due, windows):
-            record = aux.update(window, params)
-            if record:
-                self.telemetry.aux[aux.name].append({"frame": self.frame, **record})
-        if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity or params.reset_requested:
-            self._parameters_since = self.frame
-            self._record_gains()
-        if params.reset_requested:
-            self.rtc.reset()
-            params.reset_requested = False
 
     def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into

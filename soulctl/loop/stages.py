@@ -10,6 +10,9 @@ controller -> delay line -> telemetry -> auxiliary loops).
 * ``Controller``: the per-mode filters assembled into Lambda, Xi, Sigma, Delta and run by the
   C++ RTC (the paper's zeta(k) = Lambda zeta(k-1) + Delta Xi s(k), c(k) = Sigma zeta(k)), plus
   the OGTL probe added to the commands.
+* ``AuxScheduler``: the auxiliary loops beside the RTC (OGTL, MGM, trial-and-error, the live
+  metrics, the safety net): which run at a frame, the window each reads, their records, and
+  the history of the gains in force.
 The sensor (``optics.sensor.WavefrontSensor``) and the delay line (``delay_line.DelayLine``)
 are stages of their own modules.
 """
@@ -17,6 +20,7 @@ are stages of their own modules.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 from scipy.signal import lfilter
@@ -28,6 +32,7 @@ from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
 from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
 from ..optics.calibration import Calibration
 from ..optics.pupil import Pupil
+from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 
 VIBRATION_BLOCK = 4096  # vibration samples drawn at a time
 
@@ -158,3 +163,55 @@ class Controller:
         if self._probe_shape is None or self._probe_shape[0] != mode:
             self._probe_shape = (mode, self.basis.M[:, mode].astype(np.float32))
         return self._probe_shape[1]
+
+
+class AuxScheduler:
+    """The auxiliary loops' schedule: a task runs when frame % its period == 0, on the last
+    period's telemetry but none of it from before the latest change of gains or k (``since``);
+    every task of one update reads the same data, at the gains and k that made it.  Keeps the
+    telemetry's gain history (one entry per frame at which the gains changed)."""
+
+    def __init__(self, parameters: RtcParameters, telemetry):
+        self.parameters, self.telemetry = parameters, telemetry
+        self.loops: list[AuxLoop] = []
+        self.since = 0  # first frame at the current gains and k
+        telemetry.gain_history.append((0, parameters.gains))
+
+    def add(self, aux: AuxLoop, frame: int, rate_hz: float) -> None:
+        """Start ``aux`` from the next frame on."""
+        aux.start(self.parameters, rate_hz)
+        self.loops.append(aux)
+        self.telemetry.aux.setdefault(aux.name, [])
+        self.changed(frame)
+
+    def remove(self, aux: AuxLoop) -> None:
+        self.loops.remove(aux)
+
+    def changed(self, frame: int) -> None:
+        """The gains or k may have changed at ``frame``: windows start there, gains recorded."""
+        self.since = frame
+        history = self.telemetry.gain_history
+        gains = self.parameters.gains
+        if np.array_equal(history[-1][1], gains):
+            return
+        if history[-1][0] == frame:
+            history.pop()
+        history.append((frame, gains))
+
+    def run_due(self, frame: int, window: Callable[[int], TelemetryWindow], reset_rtc: Callable[[], None]) -> None:
+        """The tasks due at ``frame``; ``window(frames)`` gives a task its data."""
+        due = [aux for aux in self.loops if frame % aux.period_frames == 0]
+        if not due:
+            return
+        params = self.parameters
+        before = (params.gains, params.sensitivity)
+        windows = [window(aux.period_frames) for aux in due]
+        for aux, data in zip(due, windows):
+            record = aux.update(data, params)
+            if record:
+                self.telemetry.aux[aux.name].append({"frame": frame, **record})
+        if not np.array_equal(before[0], params.gains) or before[1] != params.sensitivity or params.reset_requested:
+            self.changed(frame)
+        if params.reset_requested:
+            reset_rtc()
+            params.reset_requested = False

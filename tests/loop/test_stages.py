@@ -1,6 +1,9 @@
 """The closed loop's stages, each alone: the disturbance (vibrations drawn in blocks, the tilt
 scale), the mirror (shape and projection are inverse on the controlled modes; the structure's
-structure rings on a step, with no static response) and the controller (one frame of an integrator)."""
+structure rings on a step, with no static response), the controller (one frame of an integrator)
+and the auxiliary loops' scheduler (which task runs when, on which window, the gain history)."""
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -8,7 +11,8 @@ import pytest
 from soulctl.control.filters import Filter
 from soulctl.control.structure import StructuralResonance
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
-from soulctl.loop.stages import Controller, Disturbance, Mirror
+from soulctl.loop.auxloop import AuxLoop, RtcParameters
+from soulctl.loop.stages import AuxScheduler, Controller, Disturbance, Mirror
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
 
@@ -73,3 +77,41 @@ def test_controller_one_frame_of_an_integrator(calibration):
     controller.apply_gains(gains)
     np.testing.assert_allclose(controller.rtc_matrices.mode_gains(), gains)
     np.testing.assert_allclose(controller.rtc.state_gains, controller.rtc_matrices.Delta, rtol=1e-7)
+
+
+class _Halver(AuxLoop):
+    """Halves the gains at its 2nd update and asks for a reset at its 3rd."""
+
+    name = "halver"
+
+    def update(self, window, rtc):
+        self.updates = getattr(self, "updates", 0) + 1
+        if self.updates == 2:
+            rtc.set_gains(rtc.gains / 2)
+        if self.updates == 3:
+            rtc.request_reset()
+        return {"window": window}
+
+
+def test_scheduler_runs_tasks_on_their_period_and_windows_start_at_the_last_change():
+    params = RtcParameters(3, np.full(3, 0.4), lambda g: None)
+    telemetry = SimpleNamespace(gain_history=[], aux={})
+    scheduler = AuxScheduler(params, telemetry)
+    task = _Halver(5)
+    scheduler.add(task, 0, RATE_HZ)
+    resets, asked = [], []
+
+    def window(frames):
+        asked.append(frames)
+        return max(frame - frames, scheduler.since)  # the first frame the window would hold
+
+    for frame in range(1, 21):
+        scheduler.run_due(frame, window, lambda f=frame: resets.append(f))
+    assert [r["frame"] for r in telemetry.aux["halver"]] == [5, 10, 15, 20] and asked == [5] * 4
+    assert [r["window"] for r in telemetry.aux["halver"]] == [0, 5, 10, 15]
+    assert scheduler.since == 15 and resets == [15]  # the reset of the 3rd update counts as a change
+    frames, gains = zip(*telemetry.gain_history)
+    assert frames == (0, 10) and np.allclose(gains[1], 0.2)
+    scheduler.remove(task)
+    scheduler.run_due(25, window, lambda: None)
+    assert len(telemetry.aux["halver"]) == 4
