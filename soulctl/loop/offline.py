@@ -196,6 +196,27 @@ def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> 
     return recorded if observation is None else dataclasses.replace(recorded, observation=observation)
 
 
+def _check_recording(tm, observation: Observation, path) -> None:
+    """The file's modes, frame rate and delay are the configuration's (InputError naming the field)."""
+    n_modes = observation.modes
+    if tm.dim("n_modes") != n_modes:
+        raise InputError(
+            f"telemetry file {path}: field measured_modes has shape ({tm.dim('frames')}, {tm.dim('n_modes')}), expected "
+            f"(frames, {n_modes}) for the configuration's {n_modes} modes"
+        )
+    rate = tm.attribute("rate_hz")
+    if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
+        raise InputError(
+            f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
+        )
+    delay = tm.attribute("delay_frames")
+    if abs(delay - observation.delay_frames) > 1e-6:
+        raise InputError(
+            f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
+            f"{observation.delay_frames:g} frames at {rate:g} Hz"
+        )
+
+
 def offline_mgm(
     path,
     observation: Observation | None = None,
@@ -211,23 +232,8 @@ def offline_mgm(
         diverged = tm.attribute("diverged_at", -1)
         if diverged >= 0:
             raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
-        n_modes = observation.modes
-        if tm.dim("n_modes") != n_modes:
-            raise InputError(
-                f"telemetry file {path}: field measured_modes has shape ({tm.dim('frames')}, {tm.dim('n_modes')}), expected "
-                f"(frames, {n_modes}) for the configuration's {n_modes} modes"
-            )
-        rate = tm.attribute("rate_hz")
-        if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
-            raise InputError(
-                f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
-            )
-        delay = tm.attribute("delay_frames")
-        if abs(delay - observation.delay_frames) > 1e-6:
-            raise InputError(
-                f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
-                f"{observation.delay_frames:g} frames at {rate:g} Hz"
-            )
+        _check_recording(tm, observation, path)
+        n_modes, rate, delay = observation.modes, tm.attribute("rate_hz"), tm.attribute("delay_frames")
         forgetting, structure = description.controller.forgetting, description.structure
         recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
         frames = tm.dim("frames")

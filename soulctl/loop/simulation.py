@@ -139,8 +139,7 @@ class ClosedLoop:
         aux_loops: Sequence[AuxLoop] = (),
         sensitivity: float = 1.0,
     ):
-        self.observation, self.calibration = observation, calibration
-        self.rate_hz = observation.frame_rate_hz
+        self.observation, self.calibration, self.rate_hz = observation, calibration, observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
         atm_seed, vib_seed, noise_seed = self.rng.integers(0, 2**63, size=3)
         self.noise_rng = np.random.default_rng(noise_seed) if noise else None
@@ -156,10 +155,9 @@ class ClosedLoop:
         self.delay = DelayLine(calibration.basis.M.shape[0], observation.delay_frames if delay_frames is None else delay_frames)
         self.telemetry = Telemetry(self.rate_hz)
         self._reconstructor32 = calibration.reconstructor.astype(np.float32)  # R s of float32 slopes
-        self.divergence_ratio = divergence_ratio
-        self._disturbance_peak = 0.0  # largest disturbance RMS so far (nm): the divergence scale
-        self.stage_seconds = dict.fromkeys(STAGES + ("metrics",), 0.0)
-        self.frame = 0
+        # the divergence test's ratio and scale, the largest disturbance RMS so far (nm)
+        self.divergence_ratio, self._disturbance_peak = divergence_ratio, 0.0
+        self.frame, self.stage_seconds = 0, dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity)
         self.scheduler = AuxScheduler(self.rtc_parameters, self.telemetry)
         for aux in aux_loops:
