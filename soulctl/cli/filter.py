@@ -371,7 +371,7 @@ def design_command(
     ),
     epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
     seeing: float = typer.Option(
-        1.0,
+        defaults.SEEING_ARCSEC,
         "--seeing",
         parser=number(SEEING_ARCSEC),
         metavar="ARCSEC",
@@ -395,14 +395,14 @@ def design_command(
         None, "--vibrations", metavar="FILE", help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."
     ),
     noise: float = typer.Option(
-        1.0,
+        Disturbance.noise_mas,
         "--noise",
         parser=number(NOISE_MAS),
         metavar="MAS",
         help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()}).",
     ),
     resonance_line: float = typer.Option(
-        2.0,
+        Disturbance.resonance_mas,
         "--resonance-line",
         parser=number(NOISE_MAS),
         metavar="MAS",
@@ -414,7 +414,9 @@ def design_command(
         parser=number(Range(0.0, math.inf, "ms")),
         help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames).",
     ),
-    seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."),
+    seed: int = typer.Option(
+        defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."
+    ),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs."),

@@ -19,7 +19,8 @@ from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
-from ..optics.optical_gains import CorrectionLevel, optical_gains
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, optical_gains
+from ..optics.optical_gains import SCREENS as GAIN_SCREENS
 from ..optics.pwfs import PyramidConfig
 from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
@@ -65,7 +66,7 @@ _MODULATION = typer.Option(
     help=f"Modulation radius in lambda/D ({MODULATION_LAMBDA_OVER_D.text()}; default 3).",
 )
 _OVERSAMPLING = typer.Option(
-    2, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4)."
+    defaults.OVERSAMPLING, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4)."
 )
 _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
@@ -73,14 +74,14 @@ _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the
 @app.command("atmosphere")
 def atmosphere(
     seeing: float = typer.Option(
-        1.0,
+        defaults.SEEING_ARCSEC,
         "--seeing",
         parser=number(SEEING_ARCSEC),
         metavar="ARCSEC",
         help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
     ),
     wind: float = typer.Option(
-        8.0,
+        defaults.WIND_M_S,
         "--wind",
         parser=number(WIND_M_S),
         metavar="M/S",
@@ -198,17 +199,20 @@ def calibrate_cmd(
 @app.command("gains")
 def gains_cmd(
     seeing: float = typer.Option(
-        0.8,
+        CHI_TABLE_SEEING_ARCSEC,
         "--seeing",
         metavar="ARCSEC",
         parser=number(SEEING_ARCSEC),
-        help=f"Seeing of the correction level (the paper's table: 0.8; {SEEING_ARCSEC.text()}).",
+        help=f"Seeing of the correction level (the paper's table: {CHI_TABLE_SEEING_ARCSEC:g}; {SEEING_ARCSEC.text()}).",
     ),
     L0: float = typer.Option(
         defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
     ),
     controlled_fraction: float = typer.Option(
-        0.1, "--controlled-fraction", parser=number(FRACTION), help="Amplitude of the controlled modes left in the residual (0..1)."
+        CorrectionLevel.controlled_fraction,
+        "--controlled-fraction",
+        parser=number(FRACTION),
+        help="Amplitude of the controlled modes left in the residual (0..1).",
     ),
     config: Path | None = CONFIG,
     mag: str | None = _MAG,
@@ -217,9 +221,12 @@ def gains_cmd(
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
     screens: int = typer.Option(
-        4, "--screens", parser=number(SCREENS), help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40)."
+        GAIN_SCREENS,
+        "--screens",
+        parser=number(SCREENS),
+        help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40).",
     ),
-    seed: int = typer.Option(1, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()})."),
+    seed: int = typer.Option(defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()})."),
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,

@@ -218,7 +218,7 @@ def gains_cmd(
     ),
     period: float | None = PERIOD,
     measure: float = typer.Option(
-        0.5,
+        defaults.MEASURE_S,
         "--measure",
         metavar="S",
         parser=number(MEASURE_S),

@@ -65,7 +65,7 @@ from ..errors import InputError
 from ..optics.atmosphere import LAMBDA_REF_M, AtmosphereConfig
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
-from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, optical_gains
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
 from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
@@ -287,7 +287,7 @@ class OptimizeResult:
 
 
 def optical_gain_table(
-    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC, screens: int = 4, seed: int = 1
+    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC, screens: int = SCREENS, seed: int = 1
 ) -> np.ndarray:
     """gamma_i of the calibration's modes at the reference correction level, cached."""
     key = cache_key("optical-gains", {"calibration": calibration.setup.key(), "seeing": seeing_arcsec, "screens": screens, "seed": seed})

@@ -34,6 +34,7 @@ from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .pupil import Pupil
 
 CHI_TABLE_SEEING_ARCSEC = 0.8  # the seeing of the paper's chi_i table, the optimisers' plant model
+SCREENS = 4  # residual phase realisations averaged per table
 
 
 @dataclass(frozen=True)
@@ -117,7 +118,7 @@ def read_optical_gains(path: str | Path) -> np.ndarray:
     return gains
 
 
-def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: int = 4, seed: int = 1) -> OpticalGainTable:
+def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: int = SCREENS, seed: int = 1) -> OpticalGainTable:
     """The modal optical gains of ``calibration``'s sensor and modes at ``level`` (see the
     module docstring): ``2 n_modes n_screens`` noiseless PWFS frames."""
     if not (1 <= n_screens <= 1000):
