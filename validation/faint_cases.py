@@ -10,6 +10,7 @@ loop (issue: MGM and OGTL that never drive the loop unstable).  Not in CI (~15 m
 * OGTL alone at R17.5 for 60 s: k within [1, k_max], the loop closed.
 
 Run:  python validation/faint_cases.py [--seeds 1,2,3] [--transient-s 60] [--ogtl-s 60] [--out FILE]
+      [--only R13,R16.5,ogtl,transient]
 """
 
 from __future__ import annotations
@@ -133,16 +134,23 @@ def main() -> None:
     p.add_argument("--transient-s", type=float, default=60.0)
     p.add_argument("--ogtl-s", type=float, default=60.0)
     p.add_argument("--out", type=Path, default=RESULTS / "faint_cases.json")
+    p.add_argument("--only", default=None, help="comma list of R13, R16.5, ogtl, transient (default: all)")
     a = p.parse_args()
     cache = ArrayCache(default_cache_dir())
     seeds = [int(s) for s in a.seeds.split(",")]
     t0 = time.perf_counter()
-    out = {
-        "R13": paper_case("R13", observation(13.0, 980.0), "FeII", seeds, cache),
-        "R16.5": paper_case("R16.5", r165_observation(), "Ks", seeds, cache),
-        "ogtl": ogtl_alone(a.ogtl_s, cache),
-        "transient": transient(observation(13.0, 980.0), a.transient_s, cache),
+    parts = {
+        "R13": lambda: paper_case("R13", observation(13.0, 980.0), "FeII", seeds, cache),
+        "R16.5": lambda: paper_case("R16.5", r165_observation(), "Ks", seeds, cache),
+        "ogtl": lambda: ogtl_alone(a.ogtl_s, cache),
+        "transient": lambda: transient(observation(13.0, 980.0), a.transient_s, cache),
     }
+    only = list(parts) if a.only is None else a.only.split(",")
+    if set(only) - set(parts):
+        p.error(f"--only takes {', '.join(parts)}")
+    # the parts not run now are kept from the file (a re-run of one part keeps the others)
+    out = json.loads(a.out.read_text()) if a.out.exists() and a.only is not None else {}
+    out.update({name: parts[name]() for name in only})
     out["wall_s"] = time.perf_counter() - t0
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(a.out, json.dumps(out, indent=1, default=float))
