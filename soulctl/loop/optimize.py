@@ -701,9 +701,10 @@ def optimize(
     request's, already computed."""
     r = request.run
     obs = r.observation
-    gains = r.gains or default_gains(obs, sampled_structure(r.structure, obs.frame_rate_hz))
+    structure = sampled_structure(r.structure, obs.frame_rate_hz)
+    gains = r.gains or default_gains(obs, structure)
     if not r.allow_unstable:
-        check_stability(obs, gains, sampled_structure(r.structure, obs.frame_rate_hz))
+        check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)
     chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing)
     s = _session(request, cal, cache, gains, chi)
