@@ -208,6 +208,12 @@ def loop_overrides(
     return {k: v for k, v in values.items() if v is not None} | gains
 
 
+def probe_overrides(mode: int | None, amplitude: float | None, frequency: float | None) -> dict:
+    """The --probe-* options as overrides of the run description's fields (given ones only)."""
+    values = {"auxiliary.probe_mode": mode, "auxiliary.probe_amplitude_nm": amplitude, "auxiliary.probe_frequency_hz": frequency}
+    return {k: v for k, v in values.items() if v is not None}
+
+
 def run_description(config: Path | None, mag: str | None, overrides: dict) -> RunConfig:
     """The run of --config (a run description or a telemetry file) or --mag (the table's star;
     the default star without either), with the other options' overrides applied."""

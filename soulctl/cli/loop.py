@@ -46,6 +46,7 @@ from .common import (
     gain_file_input,
     gain_overrides,
     loop_overrides,
+    probe_overrides,
     quantity_table,
     run_description,
 )
@@ -236,11 +237,8 @@ def _run_overrides(duration, allow_unstable: bool, mgm: bool, ogtl: bool, period
         "auxiliary.mgm": mgm or None,
         "auxiliary.ogtl": ogtl or None,
         "auxiliary.period_s": period,
-        "auxiliary.probe_mode": probe_mode,
-        "auxiliary.probe_amplitude_nm": probe_amplitude,
-        "auxiliary.probe_frequency_hz": probe_frequency,
     }
-    return {k: v for k, v in values.items() if v is not None}
+    return {k: v for k, v in values.items() if v is not None} | probe_overrides(probe_mode, probe_amplitude, probe_frequency)
 
 
 def _run_with_progress(request, cache, aux, show: bool):

@@ -49,6 +49,7 @@ from .common import (
     gain_file_input,
     gain_overrides,
     loop_overrides,
+    probe_overrides,
     quantity_table,
     run_description,
 )
@@ -280,11 +281,6 @@ def gains_cmd(
     overrides = loop_overrides(
         seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
     )
-    probe = {
-        "auxiliary.probe_mode": probe_mode,
-        "auxiliary.probe_amplitude_nm": probe_amplitude,
-        "auxiliary.probe_frequency_hz": probe_frequency,
-    }
     _check_phases(duration, period, measure, sequence)
     probe_settings(PROBE_MODE_DEFAULT if probe_mode is None else probe_mode, probe_amplitude, probe_frequency)  # errors name the options
     cache = array_cache(no_cache, cache_dir)
@@ -293,7 +289,7 @@ def gains_cmd(
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
         input_file(telemetry, "telemetry file")
         return _offline(telemetry, config, mag, out, json_output, cache)
-    description = run_description(config, mag, overrides | {k: v for k, v in probe.items() if v is not None}).resolved()
+    description = run_description(config, mag, overrides | probe_overrides(probe_mode, probe_amplitude, probe_frequency)).resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases
     probe_of_run = description.auxiliary.probe()
     requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe_of_run, measure, sequence) for m in methods}
