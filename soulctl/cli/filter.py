@@ -42,6 +42,7 @@ from ..ranges import (
     Range,
 )
 from .numbers import number
+from .option_table import command
 from .output import console as make_console
 from .output import print_json, styled
 
@@ -175,34 +176,40 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
     console.print(t)
 
 
-def analyze_command(
-    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()})."),
-    control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s)."),
-    gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help=f"Loop gain(s) ({ANALYSIS_GAIN.text()})."),
+@dataclass(frozen=True)
+class AnalyzeOptions:
+    """The options of `filter analyze` (an option table: see ``option_table``)."""
+
+    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()}).")
+    control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s).")
+    gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help=f"Loop gain(s) ({ANALYSIS_GAIN.text()}).")
     delay_frames: str | None = typer.Option(
         None, "--delay-frames", metavar="D[,D…]", help=f"Loop delay in frames ({DELAY_FRAMES.text()}, fractional allowed)."
-    ),
+    )
     delay_ms: str | None = typer.Option(
         None, "--delay-ms", metavar="T[,T…]", help=f"Loop delay in ms (>= 0; at most {DELAY_FRAMES.hi:g} frames at the rate)."
-    ),
+    )
     system: str = typer.Option(
         "soul", "--system", metavar="soul|flao[,…]", help="Delay model when no delay is given (tables/delay_model.toml)."
-    ),
-    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()})."),
-    forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1)."),
+    )
+    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()}).")
+    forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1).")
     zeros: str | None = typer.Option(
         None,
         "--zeros",
         metavar="B1,B2,…",
         help=f"IIR zeros (default: the roots table; modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX}).",
-    ),
+    )
     poles: str | None = typer.Option(
         None, "--poles", metavar="A1,A2,…", help=f"IIR poles, at least one (modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."
-    ),
-    label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot."),
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
-    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot."),
-) -> int:
+    )
+    label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot.")
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot.")
+
+
+@command(AnalyzeOptions)
+def analyze_command(o: AnalyzeOptions) -> int:
     """Margins, rejection and bandwidth of one or more control loops.
 
     Lists (comma-separated, at most 16) compare controllers side by side: each option takes one
@@ -214,39 +221,43 @@ def analyze_command(
     --control iir,int,int --gain 0.69,0.21,0.39 --system soul,soul,flao
     --label SOUL-IIR,SOUL-INT,FLAO-INT --plot tf.png
     """
-    if delay_frames is not None and delay_ms is not None:
-        raise InputError("give --delay-frames or --delay-ms, not both")
-    if plot is not None:
-        check_output_path(plot, "--plot")
-        from ..plots.transfer import plot_format
-
-        plot_format(plot)
-    lists = _analysis_lists(rate, control, gain, system, chi, forgetting, delay_frames, delay_ms, label)
-    z, p = _roots(zeros, "--zeros"), _roots(poles, "--poles")
-    if (zeros is not None or poles is not None) and not p:
-        raise InputError("--poles needs at least one pole (a control filter is an IIR filter)")
-    if p and "iir" not in lists["--control"]:
-        raise InputError("--zeros/--poles apply to --control iir")
-    n = _broadcast(lists)
-    loops = [_analyzed(lists, i, z, p) for i in range(n)]
-
-    if plot is not None:
+    loops = _analyzed_loops(o)
+    if o.plot is not None:
         from ..plots.transfer import Curve, save_figure, transfer_figure
 
-        save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), plot)
+        save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), o.plot)
     all_stable = all(a.analysis.stable for a in loops)
-    if json_output:
+    if o.json_output:
         print_json(
             {"controllers": [a.to_dict() for a in loops], "stable": all_stable, "vibration_hz": VIBRATION_HZ, "resonance_hz": RESONANCE_HZ}
         )
     else:
         console = make_console()
         _render_analysis(loops, console)
-        if plot is not None:
-            console.print(f"written {plot}")
+        if o.plot is not None:
+            console.print(f"written {o.plot}")
         if not all_stable:
             console.print(styled("at least one loop is unstable (exit status 3)", "bold red"))
     return 0 if all_stable else UNSTABLE_EXIT
+
+
+def _analyzed_loops(o: AnalyzeOptions) -> list[AnalyzedLoop]:
+    """The controllers of `filter analyze`, every option checked (and --plot) before any work."""
+    if o.delay_frames is not None and o.delay_ms is not None:
+        raise InputError("give --delay-frames or --delay-ms, not both")
+    if o.plot is not None:
+        check_output_path(o.plot, "--plot")
+        from ..plots.transfer import plot_format
+
+        plot_format(o.plot)
+    lists = _analysis_lists(o.rate, o.control, o.gain, o.system, o.chi, o.forgetting, o.delay_frames, o.delay_ms, o.label)
+    z, p = _roots(o.zeros, "--zeros"), _roots(o.poles, "--poles")
+    if (o.zeros is not None or o.poles is not None) and not p:
+        raise InputError("--poles needs at least one pole (a control filter is an IIR filter)")
+    if p and "iir" not in lists["--control"]:
+        raise InputError("--zeros/--poles apply to --control iir")
+    n = _broadcast(lists)
+    return [_analyzed(lists, i, z, p) for i in range(n)]
 
 
 def _analysis_lists(rate, control, gain, system, chi, forgetting, delay_frames, delay_ms, label) -> dict[str, list]:
@@ -362,65 +373,71 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
     )
 
 
-def design_command(
+@dataclass(frozen=True)
+class DesignOptions:
+    """The options of `filter design` (an option table: see ``option_table``)."""
+
     rate: str = typer.Option(
         "1700,1350,1000,750",
         "--rate",
         metavar="HZ[,HZ…]",
         help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four.",
-    ),
-    epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1."),
+    )
+    epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1.")
     seeing: float = typer.Option(
         defaults.SEEING_ARCSEC,
         "--seeing",
         parser=number(SEEING_ARCSEC),
         metavar="ARCSEC",
         help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
-    ),
+    )
     wind: float = typer.Option(
         defaults.WIND_M_S,
         "--wind",
         parser=number(WIND_M_S),
         metavar="M/S",
         help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()}).",
-    ),
+    )
     outer_scale: float = typer.Option(
         defaults.L0_M,
         "--L0",
         parser=number(OUTER_SCALE_M),
         metavar="M",
         help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()}).",
-    ),
+    )
     vibrations: Path | None = typer.Option(
         None, "--vibrations", metavar="FILE", help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."
-    ),
+    )
     noise: float = typer.Option(
         Disturbance.noise_mas,
         "--noise",
         parser=number(NOISE_MAS),
         metavar="MAS",
         help=f"White measurement noise, RMS per frame and axis ({NOISE_MAS.text()}).",
-    ),
+    )
     resonance_line: float = typer.Option(
         Disturbance.resonance_mas,
         "--resonance-line",
         parser=number(NOISE_MAS),
         metavar="MAS",
         help=f"RMS of the 127 Hz line that keeps |T(127 Hz)| low ({NOISE_MAS.text()}).",
-    ),
+    )
     delay_ms: float | None = typer.Option(
         None,
         "--delay-ms",
         parser=number(Range(0.0, math.inf, "ms")),
         help=f"Loop delay in ms for all rates (default: SOUL's delay model; at most {DESIGN_DELAY_FRAMES.hi:g} frames).",
-    ),
+    )
     seed: int = typer.Option(
         defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."
-    ),
-    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots')."),
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
-    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs."),
-) -> None:
+    )
+    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots').")
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs.")
+
+
+@command(DesignOptions)
+def design_command(o: DesignOptions) -> int:
     """Design Tip/Tilt IIR filters (4 zeros, 4 poles with one at z = 1, and the gain) that
     minimise the residual Tip/Tilt variance — temporal error on turbulence and vibrations plus
     noise propagation — under the modulus-margin constraint |1 + H P| > ε, side by side with
@@ -428,53 +445,60 @@ def design_command(
 
     Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
     """
-    rates = _numbers(rate, "--rate", DESIGN_RATE_HZ, limit=MAX_DESIGN_RATES)
-    if len(set(rates)) != len(rates):
-        raise InputError(f"--rate lists a frame rate twice: {rate}")
-    EPSILON.check(epsilon, "--epsilon")
-    for value, name, accepted in (
-        (seeing, "--seeing", SEEING_ARCSEC),
-        (wind, "--wind", WIND_M_S),
-        (outer_scale, "--L0", OUTER_SCALE_M),
-        (noise, "--noise", NOISE_MAS),
-        (resonance_line, "--resonance-line", NOISE_MAS),
-        (seed, "--seed", SEED),
-    ):
-        accepted.check(value, name)
-    delays = [None if delay_ms is None else _design_delay(delay_ms, r) for r in rates]
-    for path, option in ((out, "--out"), (plot, "--plot")):
-        if path is not None:
-            check_output_path(path, option, [("--vibrations", vibrations)])
-    if out is not None and plot is not None and same_file(out, plot):
-        raise InputError(f"--out and --plot name the same file {out}")
-    if plot is not None:
-        from ..plots.transfer import plot_format
-
-        plot_format(plot)
+    rates, delays = _design_inputs(o)
     disturbance = Disturbance(
-        turbulence=TurbulenceTipTilt(seeing, outer_scale, wind),
-        vibrations=VibrationSpectrum.read(vibrations) if vibrations is not None else VibrationSpectrum.lbt_default(),
-        noise_mas=noise,
-        resonance_mas=resonance_line,
+        turbulence=TurbulenceTipTilt(o.seeing, o.outer_scale, o.wind),
+        vibrations=VibrationSpectrum.read(o.vibrations) if o.vibrations is not None else VibrationSpectrum.lbt_default(),
+        noise_mas=o.noise,
+        resonance_mas=o.resonance_line,
     )
     err = make_console(stderr=True)
     results = []
     for r, d in zip(rates, delays):
-        with nullcontext() if json_output else err.status(f"designing the {r:g} Hz filter…"):
-            results.append(design_tt_filter(r, disturbance, epsilon, delay_frames=d, seed=seed))
-
-    if out is not None:
-        atomic_write_text(out, roots_table_csv(results, _design_header(results, disturbance, epsilon, delay_ms, seed)))
-    if plot is not None:
-        _plot_designs(results, epsilon, plot)
-    if json_output:
-        print_json({"designs": [x.to_dict() for x in results], "disturbance": _disturbance_dict(disturbance), "seed": seed})
+        with nullcontext() if o.json_output else err.status(f"designing the {r:g} Hz filter…"):
+            results.append(design_tt_filter(r, disturbance, o.epsilon, delay_frames=d, seed=o.seed))
+    if o.out is not None:
+        atomic_write_text(o.out, roots_table_csv(results, _design_header(results, disturbance, o.epsilon, o.delay_ms, o.seed)))
+    if o.plot is not None:
+        _plot_designs(results, o.epsilon, o.plot)
+    if o.json_output:
+        print_json({"designs": [x.to_dict() for x in results], "disturbance": _disturbance_dict(disturbance), "seed": o.seed})
     else:
         console = make_console()
         _render_design(results, disturbance, console)
-        for path in (out, plot):
+        for path in (o.out, o.plot):
             if path is not None:
                 console.print(f"written {path}")
+    return 0
+
+
+def _design_inputs(o: DesignOptions) -> tuple[list[float], list[float | None]]:
+    """The rates and their delays in frames (None: SOUL's model), every option checked and the
+    outputs checked before any work."""
+    rates = _numbers(o.rate, "--rate", DESIGN_RATE_HZ, limit=MAX_DESIGN_RATES)
+    if len(set(rates)) != len(rates):
+        raise InputError(f"--rate lists a frame rate twice: {o.rate}")
+    EPSILON.check(o.epsilon, "--epsilon")
+    for value, name, accepted in (
+        (o.seeing, "--seeing", SEEING_ARCSEC),
+        (o.wind, "--wind", WIND_M_S),
+        (o.outer_scale, "--L0", OUTER_SCALE_M),
+        (o.noise, "--noise", NOISE_MAS),
+        (o.resonance_line, "--resonance-line", NOISE_MAS),
+        (o.seed, "--seed", SEED),
+    ):
+        accepted.check(value, name)
+    delays = [None if o.delay_ms is None else _design_delay(o.delay_ms, r) for r in rates]
+    for path, option in ((o.out, "--out"), (o.plot, "--plot")):
+        if path is not None:
+            check_output_path(path, option, [("--vibrations", o.vibrations)])
+    if o.out is not None and o.plot is not None and same_file(o.out, o.plot):
+        raise InputError(f"--out and --plot name the same file {o.out}")
+    if o.plot is not None:
+        from ..plots.transfer import plot_format
+
+        plot_format(o.plot)
+    return rates, delays
 
 
 def _design_header(results: list, disturbance: Disturbance, epsilon: float, delay_ms: float | None, seed: int) -> str:

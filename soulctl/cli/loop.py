@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 
 import typer
@@ -51,6 +52,7 @@ from .common import (
     run_description,
 )
 from .numbers import number
+from .option_table import command
 from .output import console as make_console
 from .output import print_json, styled
 
@@ -125,15 +127,17 @@ def _render(result, console: Console) -> None:
         console.print(styled(f"note: {note}", "dim"))
 
 
-@app.command("run")
-def run_cmd(
-    config: Path | None = RUN_CONFIG,
+@dataclass(frozen=True)
+class RunOptions:
+    """The options of `loop run` (an option table: see ``option_table``)."""
+
+    config: Path | None = RUN_CONFIG
     mag: str | None = typer.Option(
         None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}, the paper's bright star)."
-    ),
-    seeing: float | None = SEEING,
-    wind: float | None = WIND,
-    L0: float | None = OUTER_SCALE,
+    )
+    seeing: float | None = SEEING
+    wind: float | None = WIND
+    L0: float | None = OUTER_SCALE
     duration: float | None = typer.Option(
         None,
         "--duration",
@@ -141,39 +145,43 @@ def run_cmd(
         metavar="S",
         show_default=str(defaults.DURATION_S),
         help="Simulated time (s); the first 20 % is left out of the metrics.",
-    ),
-    tt_control: str | None = TT_CONTROL,
+    )
+    tt_control: str | None = TT_CONTROL
     gains: str | None = typer.Option(
         None, "--gains", metavar="TT,MID,HIGH|FILE", help="Gains of modes 1-2, 3-120, 121-last, or a per-mode gain file."
-    ),
-    band: str | None = BAND,
-    seed: int | None = SEED,
-    no_noise: bool = NO_NOISE,
-    vibrations: Path | None = VIBRATIONS,
-    no_vibrations: bool = NO_VIBRATIONS,
-    no_resonance: bool = NO_RESONANCE,
-    oversampling: int | None = common.OVERSAMPLING,
-    allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable."),
-    mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period)."),
-    ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode)."),
-    period: float | None = PERIOD,
-    probe_mode: int | None = PROBE_MODE,
-    probe_amplitude: float | None = PROBE_AMPLITUDE,
-    probe_frequency: float | None = PROBE_FREQUENCY,
+    )
+    band: str | None = BAND
+    seed: int | None = SEED
+    no_noise: bool = NO_NOISE
+    vibrations: Path | None = VIBRATIONS
+    no_vibrations: bool = NO_VIBRATIONS
+    no_resonance: bool = NO_RESONANCE
+    oversampling: int | None = common.OVERSAMPLING
+    allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
+    mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
+    ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode).")
+    period: float | None = PERIOD
+    probe_mode: int | None = PROBE_MODE
+    probe_amplitude: float | None = PROBE_AMPLITUDE
+    probe_frequency: float | None = PROBE_FREQUENCY
     telemetry: Path | None = typer.Option(
         None,
         "--telemetry",
         metavar="FILE.h5",
         help="Write the telemetry (HDF5; with the auxiliary loops' records and the run description).",
-    ),
-    plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png."),
+    )
+    plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png.")
     print_config: bool = typer.Option(
         False, "--print-config", help="Print the resolved run description (TOML; JSON with --json) and exit without running."
-    ),
-    no_cache: bool = NO_CACHE,
-    cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = JSON_OUTPUT,
-) -> int:
+    )
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("run")
+@command(RunOptions)
+def run_cmd(o: RunOptions) -> int:
     """Close a simulated SOUL loop: LBT turbulence and vibrations, the adaptive secondary with
     its 127 Hz structural resonance, the modulated pyramid with detector noise, the C++ slopes
     and RTC, the loop delay.  Prints the Strehl ratio, Tip/Tilt jitter (residual and
@@ -186,59 +194,75 @@ def run_cmd(
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
-    inputs = [("--config", config), gain_file_input(gains), ("--vibrations", vibrations)]
-    if telemetry is not None:
-        check_output_path(telemetry, "--telemetry", inputs)
-    if plot is not None:
-        check_output_folder(plot, "--plot", LOOP_FIGURES)
-    check_run_options(None, None, None, None, None, duration)
-    overrides = loop_overrides(
-        seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
-    )
-    aux_values = _run_overrides(duration, allow_unstable, mgm, ogtl, period, probe_mode, probe_amplitude, probe_frequency)
-    description = run_description(config, mag, overrides | aux_values).resolved()
-    if print_config:
-        print_json(description.to_dict()) if json_output else print(description.to_toml(), end="")
+    overrides = _checked_overrides(o)
+    description = run_description(o.config, o.mag, overrides).resolved()
+    if o.print_config:
+        print_json(description.to_dict()) if o.json_output else print(description.to_toml(), end="")
         return 0
     request = description.request()
-    obs = request.observation
     aux = description.auxiliary.live()
     if aux is not None:
-        aux.check(obs, request.duration_s)
-    cache = array_cache(no_cache, cache_dir)
-    result = _run_with_progress(request, cache, aux, show=not json_output and sys.stderr.isatty())
-    if telemetry is not None:
-        _write_telemetry(telemetry, result, description)
+        aux.check(request.observation, request.duration_s)
+    cache = array_cache(o.no_cache, o.cache_dir)
+    result = _run_with_progress(request, cache, aux, show=not o.json_output and sys.stderr.isatty())
+    if o.telemetry is not None:
+        _write_telemetry(o.telemetry, result, description)
     if result.diverged_at is not None:
         message = f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
-        if json_output:
+        if o.json_output:
             print_json(_result_dict(result))
-        print(f"soulctl: {message}" + (f"; telemetry written to {telemetry}" if telemetry else ""), file=sys.stderr)
+        print(f"soulctl: {message}" + (f"; telemetry written to {o.telemetry}" if o.telemetry else ""), file=sys.stderr)
         return 3
-    if plot is not None:
-        write_loop_figures(plot, result)
-    if json_output:
+    if o.plot is not None:
+        write_loop_figures(o.plot, result)
+    if o.json_output:
         print_json(_result_dict(result))
     else:
         console = make_console()
         _render(result, console)
-        if telemetry is not None:
-            console.print(f"telemetry written to {telemetry}")
-        if plot is not None:
-            console.print(f"figures written to {plot}/")
+        if o.telemetry is not None:
+            console.print(f"telemetry written to {o.telemetry}")
+        if o.plot is not None:
+            console.print(f"figures written to {o.plot}/")
     return 0
 
 
-def _run_overrides(duration, allow_unstable: bool, mgm: bool, ogtl: bool, period, probe_mode, probe_amplitude, probe_frequency) -> dict:
+def _checked_overrides(o: RunOptions) -> dict:
+    """Every option checked and the outputs checked before any work; the run description's
+    overrides (the loop's options and `loop run`'s own)."""
+    inputs = [("--config", o.config), gain_file_input(o.gains), ("--vibrations", o.vibrations)]
+    if o.telemetry is not None:
+        check_output_path(o.telemetry, "--telemetry", inputs)
+    if o.plot is not None:
+        check_output_folder(o.plot, "--plot", LOOP_FIGURES)
+    check_run_options(None, None, None, None, None, o.duration)
+    overrides = loop_overrides(
+        o.seeing,
+        o.wind,
+        o.L0,
+        o.tt_control,
+        gain_overrides(o.gains),
+        o.band,
+        o.seed,
+        o.no_noise,
+        o.vibrations,
+        o.no_vibrations,
+        o.no_resonance,
+        o.oversampling,
+    )
+    return overrides | _run_overrides(o)
+
+
+def _run_overrides(o: RunOptions) -> dict:
     """The run description's fields that `loop run`'s own options set (given ones only)."""
     values = {
-        "run.duration_s": duration,
-        "control.allow_unstable": allow_unstable or None,
-        "auxiliary.mgm": mgm or None,
-        "auxiliary.ogtl": ogtl or None,
-        "auxiliary.period_s": period,
+        "run.duration_s": o.duration,
+        "control.allow_unstable": o.allow_unstable or None,
+        "auxiliary.mgm": o.mgm or None,
+        "auxiliary.ogtl": o.ogtl or None,
+        "auxiliary.period_s": o.period,
     }
-    return {k: v for k, v in values.items() if v is not None} | probe_overrides(probe_mode, probe_amplitude, probe_frequency)
+    return {k: v for k, v in values.items() if v is not None} | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
 
 
 def _run_with_progress(request, cache, aux, show: bool):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +20,13 @@ from ..observation import BINNINGS
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
-from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, optical_gains
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, OpticalGainTable, optical_gains
 from ..optics.optical_gains import SCREENS as GAIN_SCREENS
 from ..optics.pwfs import PyramidConfig
 from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
 from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
 from .numbers import number
+from .option_table import command
 from .output import console as make_console
 from .output import print_json
 
@@ -120,12 +122,18 @@ def atmosphere(
     }
     if json_output:
         print_json(result)
-        return
+    else:
+        _render_atmosphere(result)
+
+
+def _render_atmosphere(result: dict[str, Any]) -> None:
+    """The turbulence figures as a table."""
+    r0, seeing, L0 = result["r0_500nm_m"], result["seeing_arcsec"], result["L0_m"]
     t = quantity_table(f'Turbulence: seeing {seeing:g}" at 500 nm, L0 {L0:g} m, LBT profile')
     t.add_row("r0 at 500 / 750 / 1650 nm", f"{r0 * 100:.1f} / {result['r0_750nm_m'] * 100:.1f} / {result['r0_1650nm_m'] * 100:.1f} cm")
     t.add_row("effective wind", f"{result['effective_wind_m_s']:.1f} m/s")
     t.add_row("tau0 at 500 nm", f"{result['tau0_500nm_ms']:.2f} ms")
-    t.add_row("Tip/Tilt per axis (von Kármán)", f"{tilt_mas:.0f} mas RMS")
+    t.add_row("Tip/Tilt per axis (von Kármán)", f"{result['tilt_rms_per_axis_mas']:.0f} mas RMS")
     for i, layer in enumerate(result["layers"], 1):
         t.add_row(
             f"layer {i}",
@@ -196,67 +204,78 @@ def calibrate_cmd(
     make_console().print(t)
 
 
-@app.command("gains")
-def gains_cmd(
+@dataclass(frozen=True)
+class OpticalGainsOptions:
+    """The options of `optics gains` (an option table: see ``option_table``)."""
+
     seeing: float = typer.Option(
         CHI_TABLE_SEEING_ARCSEC,
         "--seeing",
         metavar="ARCSEC",
         parser=number(SEEING_ARCSEC),
         help=f"Seeing of the correction level (the paper's table: {CHI_TABLE_SEEING_ARCSEC:g}; {SEEING_ARCSEC.text()}).",
-    ),
+    )
     L0: float = typer.Option(
         defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
-    ),
+    )
     controlled_fraction: float = typer.Option(
         CorrectionLevel.controlled_fraction,
         "--controlled-fraction",
         parser=number(FRACTION),
         help="Amplitude of the controlled modes left in the residual (0..1).",
-    ),
-    config: Path | None = CONFIG,
-    mag: str | None = _MAG,
-    binning: int | None = _BINNING,
-    modes: int | None = _MODES,
-    modulation: float | None = _MODULATION,
-    oversampling: int = _OVERSAMPLING,
+    )
+    config: Path | None = CONFIG
+    mag: str | None = _MAG
+    binning: int | None = _BINNING
+    modes: int | None = _MODES
+    modulation: float | None = _MODULATION
+    oversampling: int = _OVERSAMPLING
     screens: int = typer.Option(
         GAIN_SCREENS,
         "--screens",
         parser=number(SCREENS),
         help=f"Residual phase realisations to average ({SCREENS.text()}; ~10 s each at 40x40).",
-    ),
-    seed: int = typer.Option(defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()})."),
-    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV."),
-    no_cache: bool = NO_CACHE,
-    cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = _JSON,
-) -> None:
+    )
+    seed: int = typer.Option(defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the residual phase screens ({SEED.text()}).")
+    out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the table (mode, optical_gain, spread) as CSV.")
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
+    json_output: bool = _JSON
+
+
+@app.command("gains")
+@command(OpticalGainsOptions)
+def gains_cmd(o: OpticalGainsOptions) -> int:
     """Modal optical gains of the PWFS at a correction level: each mode's sensitivity around
     residual phases (turbulence of --seeing minus the corrected part of the controlled modes)
     relative to its diffraction-limited sensitivity.  MGM reads this table (chi_i).
 
     Example: soulctl optics gains --seeing 0.8 --mag 9.7 --out og_R9.7.csv
     """
-    level = CorrectionLevel(seeing_arcsec=seeing, L0_m=L0, controlled_fraction=controlled_fraction)
-    SCREENS.check(screens, "--screens")
-    SEED.check(seed, "--seed")
-    if out is not None:
-        check_output_path(out, "--out", [("--config", config)])
-    setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
-    cache = array_cache(no_cache, cache_dir)
-    with (
-        nullcontext()
-        if json_output
-        else make_console(stderr=True).status(f"optical gains of {setup.n_modes} modes on {screens} residual screens…")
-    ):
+    level = CorrectionLevel(seeing_arcsec=o.seeing, L0_m=o.L0, controlled_fraction=o.controlled_fraction)
+    SCREENS.check(o.screens, "--screens")
+    SEED.check(o.seed, "--seed")
+    if o.out is not None:
+        check_output_path(o.out, "--out", [("--config", o.config)])
+    setup = sensing_setup(o.config, o.mag, o.binning, o.modes, o.modulation, o.oversampling)
+    cache = array_cache(o.no_cache, o.cache_dir)
+    status = f"optical gains of {setup.n_modes} modes on {o.screens} residual screens…"
+    with nullcontext() if o.json_output else make_console(stderr=True).status(status):
         cal = calibrate(setup, cache)
-        table = optical_gains(cal, level, n_screens=screens, seed=seed)
-    if out is not None:
-        table.write_csv(out)
-    if json_output:
+        table = optical_gains(cal, level, n_screens=o.screens, seed=o.seed)
+    if o.out is not None:
+        table.write_csv(o.out)
+    if o.json_output:
         print_json(table.to_dict())
-        return
+        return 0
+    _render_gains(table, setup, o.seeing)
+    if o.out is not None:
+        make_console(stderr=True).print(f"wrote {o.out}")
+    return 0
+
+
+def _render_gains(table: OpticalGainTable, setup: CalibrationSetup, seeing: float) -> None:
+    """The optical gains by mode range: mean and extremes."""
     g = table.gains
     t = Table(
         title=f'Optical gains at seeing {seeing:g}" (residual {table.residual_nm:.0f} nm RMS), '
@@ -273,5 +292,3 @@ def gains_cmd(
         b = min(b, len(g))
         t.add_row(f"{a + 1}..{b}", f"{g[a:b].mean():.3f}", f"{g[a:b].min():.3f}..{g[a:b].max():.3f}")
     make_console().print(t)
-    if out is not None:
-        make_console(stderr=True).print(f"wrote {out}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import sys
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 
 import typer
@@ -54,6 +55,7 @@ from .common import (
     run_description,
 )
 from .numbers import number
+from .option_table import command
 from .output import console as make_console
 from .output import print_json
 
@@ -198,17 +200,19 @@ def _gain_file_text(result: OptimizeResult) -> str:
     )
 
 
-@app.command("gains")
-def gains_cmd(
-    method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side)."),
-    config: Path | None = RUN_CONFIG,
-    mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g})."),
+@dataclass(frozen=True)
+class GainsOptions:
+    """The options of `optimize gains` (an option table: see ``option_table``)."""
+
+    method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side).")
+    config: Path | None = RUN_CONFIG
+    mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}).")
     telemetry: Path | None = typer.Option(
         None, "--telemetry", metavar="FILE.h5", help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."
-    ),
-    seeing: float | None = SEEING,
-    wind: float | None = WIND,
-    L0: float | None = OUTER_SCALE,
+    )
+    seeing: float | None = SEEING
+    wind: float | None = WIND
+    L0: float | None = OUTER_SCALE
     duration: float | None = typer.Option(
         None,
         "--duration",
@@ -216,47 +220,51 @@ def gains_cmd(
         parser=number(OPTIMISATION_S),
         show_default="5 update periods, at least 5 s",
         help=f"MGM: simulated time of the optimisation ({OPTIMISATION_S.text()}).",
-    ),
-    period: float | None = PERIOD,
+    )
+    period: float | None = PERIOD
     measure: float = typer.Option(
         defaults.MEASURE_S,
         "--measure",
         metavar="S",
         parser=number(MEASURE_S),
         help="Simulated time measured before and after the optimisation (in the run and in the paired evaluation).",
-    ),
+    )
     sequence: float | None = typer.Option(
         None,
         "--sequence",
         metavar="S",
         parser=number(SEQUENCE_S),
         help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames).",
-    ),
-    ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k)."),
-    probe_mode: int | None = PROBE_MODE,
-    probe_amplitude: float | None = PROBE_AMPLITUDE,
-    probe_frequency: float | None = PROBE_FREQUENCY,
-    tt_control: str | None = TT_CONTROL,
+    )
+    ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k).")
+    probe_mode: int | None = PROBE_MODE
+    probe_amplitude: float | None = PROBE_AMPLITUDE
+    probe_frequency: float | None = PROBE_FREQUENCY
+    tt_control: str | None = TT_CONTROL
     gains: str | None = typer.Option(
         None, "--gains", metavar="TT,MID,HIGH|FILE", help="Initial gains (default: the starting gains of 'loop run')."
-    ),
-    band: str | None = BAND,
-    seed: int | None = SEED,
-    no_noise: bool = NO_NOISE,
-    vibrations: Path | None = VIBRATIONS,
-    no_vibrations: bool = NO_VIBRATIONS,
-    no_resonance: bool = NO_RESONANCE,
-    oversampling: int | None = common.OVERSAMPLING,
+    )
+    band: str | None = BAND
+    seed: int | None = SEED
+    no_noise: bool = NO_NOISE
+    vibrations: Path | None = VIBRATIONS
+    no_vibrations: bool = NO_VIBRATIONS
+    no_resonance: bool = NO_RESONANCE
+    oversampling: int | None = common.OVERSAMPLING
     out: Path | None = typer.Option(
         None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."
-    ),
+    )
     plot: Path | None = typer.Option(
         None, "--plot", metavar="DIR", help="Write gains.png (gain per mode) and timeseries.png (gains, k, Strehl)."
-    ),
-    no_cache: bool = NO_CACHE,
-    cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = JSON_OUTPUT,
-) -> int:
+    )
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("gains")
+@command(GainsOptions)
+def gains_cmd(o: GainsOptions) -> int:
     """Optimise the modal gains in the simulated closed loop: measure at the initial gains, run
     the optimiser live as an auxiliary loop (trial-and-error: the three groups scanned in
     sequence; MGM: every mode every --period from the pseudo-open-loop PSDs), measure at the
@@ -269,46 +277,74 @@ def gains_cmd(
 
     Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/
     """
-    if method not in METHOD_CHOICES:
-        raise InputError(f"--method must be one of {', '.join(METHOD_CHOICES)}, got '{method}'")
-    methods = list(METHODS) if method == "both" else [method]
-    inputs = [("--config", config), ("--telemetry", telemetry), gain_file_input(gains), ("--vibrations", vibrations)]
-    if out is not None:
-        check_output_path(out, "--out", inputs)
-    if plot is not None:
-        check_output_folder(plot, "--plot", gain_figure_names(methods) if telemetry is None else ())
-    # Every option is checked in both modes (the offline one ignores the loop's): one range per quantity.
-    overrides = loop_overrides(
-        seeing, wind, L0, tt_control, gain_overrides(gains), band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
-    )
-    _check_phases(duration, period, measure, sequence)
-    probe_settings(PROBE_MODE_DEFAULT if probe_mode is None else probe_mode, probe_amplitude, probe_frequency)  # errors name the options
-    cache = array_cache(no_cache, cache_dir)
-    if telemetry is not None:
-        if method != "mgm":
+    methods = _methods(o.method)
+    overrides = _checked_overrides(o, methods)
+    cache = array_cache(o.no_cache, o.cache_dir)
+    if o.telemetry is not None:
+        if o.method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
-        input_file(telemetry, "telemetry file")
-        return _offline(telemetry, config, mag, out, json_output, cache)
-    description = run_description(config, mag, overrides | probe_overrides(probe_mode, probe_amplitude, probe_frequency)).resolved()
+        input_file(o.telemetry, "telemetry file")
+        return _offline(o.telemetry, o.config, o.mag, o.out, o.json_output, cache)
+    description = run_description(o.config, o.mag, overrides).resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases
     probe_of_run = description.auxiliary.probe()
-    requests = {m: OptimizeRequest(run, m, duration, period, ogtl, probe_of_run, measure, sequence) for m in methods}
-    results = _optimize_each(requests, cache, show=not json_output and sys.stderr.isatty())
+    requests = {m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence) for m in methods}
+    results = _optimize_each(requests, cache, show=not o.json_output and sys.stderr.isatty())
+    return _report(o, results)
+
+
+def _methods(method: str) -> list[str]:
+    """The optimisers --method names."""
+    if method not in METHOD_CHOICES:
+        raise InputError(f"--method must be one of {', '.join(METHOD_CHOICES)}, got '{method}'")
+    return list(METHODS) if method == "both" else [method]
+
+
+def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
+    """Every option checked (in both modes: the offline one ignores the loop's, but one range
+    per quantity) and the outputs checked before any work; the run description's overrides."""
+    inputs = [("--config", o.config), ("--telemetry", o.telemetry), gain_file_input(o.gains), ("--vibrations", o.vibrations)]
+    if o.out is not None:
+        check_output_path(o.out, "--out", inputs)
+    if o.plot is not None:
+        check_output_folder(o.plot, "--plot", gain_figure_names(methods) if o.telemetry is None else ())
+    overrides = loop_overrides(
+        o.seeing,
+        o.wind,
+        o.L0,
+        o.tt_control,
+        gain_overrides(o.gains),
+        o.band,
+        o.seed,
+        o.no_noise,
+        o.vibrations,
+        o.no_vibrations,
+        o.no_resonance,
+        o.oversampling,
+    )
+    _check_phases(o.duration, o.period, o.measure, o.sequence)
+    mode = PROBE_MODE_DEFAULT if o.probe_mode is None else o.probe_mode
+    probe_settings(mode, o.probe_amplitude, o.probe_frequency)  # errors name the options
+    return overrides | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
+
+
+def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
+    """Write the gain file and figures, print the results; the exit status (3: a loop diverged)."""
     diverged = [m for m, x in results.items() if x.diverged_at is not None]
     final = results["mgm" if "mgm" in results else "trial"]
-    if out is not None and not diverged:
-        atomic_write_text(out, _gain_file_text(final))
-    if plot is not None:
-        write_gain_figures(plot, results)
-    if json_output:
-        print_json({m: _result_dict(x) for m, x in results.items()} if method == "both" else _result_dict(final))
+    if o.out is not None and not diverged:
+        atomic_write_text(o.out, _gain_file_text(final))
+    if o.plot is not None:
+        write_gain_figures(o.plot, results)
+    if o.json_output:
+        print_json({m: _result_dict(x) for m, x in results.items()} if o.method == "both" else _result_dict(final))
     else:
         console = make_console()
         _render(results, console)
-        if out is not None and not diverged:
-            console.print(f"gains written to {out}")
-        if plot is not None:
-            console.print(f"figures written to {plot}/")
+        if o.out is not None and not diverged:
+            console.print(f"gains written to {o.out}")
+        if o.plot is not None:
+            console.print(f"figures written to {o.plot}/")
     for m in diverged:
         print(
             f"soulctl: the loop diverged at frame {results[m].diverged_at} during the {m} optimisation; no gain file written",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import sys
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 
 import typer
@@ -26,6 +27,7 @@ from ..sweep.runner import execute, local_workers, plan_sweep
 from . import output
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
 from .numbers import number
+from .option_table import command
 
 DERIVED = "derived_lut.csv"
 FIGURE = "strehl_vs_magnitude.png"
@@ -70,53 +72,59 @@ def _confirm(estimate_text: str) -> None:
         raise InputError("sweep not started (not confirmed; --yes starts a long sweep without asking); nothing was run")
 
 
-def sweep(
+@dataclass(frozen=True)
+class SweepOptions:
+    """The options of `sweep` (an option table: see ``option_table``)."""
+
     grid: Path = typer.Argument(
         ...,
         metavar="GRID.toml",
         help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, "
         "gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis.",
-    ),
+    )
     scheduler: str | None = typer.Option(
         None,
         "--scheduler",
         metavar="ADDRESS",
         help=f"An existing Dask scheduler, tcp://HOST:PORT (only tcp://; it must answer within "
         f"{dask_scheduler.CONNECT_TIMEOUT_S:g} s; default: a local cluster).",
-    ),
+    )
     workers: int | None = typer.Option(
         None,
         "--workers",
         parser=number(Range(1, 2**31, integer=True)),
         help=f"Processes of the local cluster (1..{LOCAL_WORKERS_PER_CORE} per core; default: one per core).",
-    ),
+    )
     out: Path = typer.Option(
         Path("sweep"),
         "--out",
         metavar="DIR",
         help="Folder of results.csv (and the figures, the derived table); created once everything else is checked.",
-    ),
+    )
     resume: bool = typer.Option(
         False, "--resume", help="Complete an interrupted sweep: keep the finished rows of DIR/results.csv (checked line by line)."
-    ),
-    plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}."),
+    )
+    plot: bool = typer.Option(False, "--plot", help=f"Write DIR/{FIGURE}.")
     derive_table: bool = typer.Option(
         False, "--derive-table", help=f"Print (and write DIR/{DERIVED}) the best binning and rate per magnitude."
-    ),
+    )
     yes: bool = typer.Option(
         False, "--yes", "-y", help=f"Start without asking when the estimate exceeds {CONFIRM_TEXT} of CPU (asked on a terminal only)."
-    ),
+    )
     wait_workers: float = typer.Option(
         WAIT_WORKERS_S,
         "--wait-workers",
         metavar="S",
         parser=number(WAIT_WORKERS),
         help=f"With --scheduler: how long to wait for its first worker ({WAIT_WORKERS.text()}).",
-    ),
-    no_cache: bool = NO_CACHE,
-    cache_dir: Path | None = CACHE_DIR,
-    json_output: bool = JSON_OUTPUT,
-) -> int:
+    )
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
+    json_output: bool = JSON_OUTPUT
+
+
+@command(SweepOptions)
+def sweep(o: SweepOptions) -> int:
     """Run a grid of simulated closed loops as Dask tasks and collect one row per case
     (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, appended
     case by case and put in the grid's order once every case has its row.  A failed or
@@ -129,26 +137,26 @@ def sweep(
 
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
-    cases = read_grid(grid)
-    _check_cluster(scheduler, workers, wait_workers)
-    outputs = [name for name, wanted in ((DERIVED, derive_table), (FIGURE, plot)) if wanted]
-    plan = plan_sweep(cases, out, resume, outputs)
-    if scheduler is not None and plan.todo:
-        dask_scheduler.probe(scheduler)
-    cost = estimate([c for _, c in plan.todo], None if scheduler else workers or local_workers())
-    asked = needs_confirmation(cost) and not yes and sys.stdin.isatty()
+    cases = read_grid(o.grid)
+    _check_cluster(o.scheduler, o.workers, o.wait_workers)
+    outputs = [name for name, wanted in ((DERIVED, o.derive_table), (FIGURE, o.plot)) if wanted]
+    plan = plan_sweep(cases, o.out, o.resume, outputs)
+    if o.scheduler is not None and plan.todo:
+        dask_scheduler.probe(o.scheduler)
+    cost = estimate([c for _, c in plan.todo], None if o.scheduler else o.workers or local_workers())
+    asked = needs_confirmation(cost) and not o.yes and sys.stdin.isatty()
     if asked:  # a dialogue on the terminal: the estimate and the question
         _confirm(cost.text())
-    cache = None if no_cache else str(cache_dir or default_cache_dir())
-    report = _execute_with_progress(plan, cost, asked, scheduler, workers, cache, wait_workers, json_output)
+    cache = None if o.no_cache else str(o.cache_dir or default_cache_dir())
+    report = _execute_with_progress(plan, cost, asked, o.scheduler, o.workers, cache, o.wait_workers, o.json_output)
     assert report.results is not None  # execute() always writes its results
     rows = list(ResultsTable.read_rows(report.results).values())
-    derived = derived_table(rows) if derive_table else None
+    derived = derived_table(rows) if o.derive_table else None
     if derived is not None:
-        atomic_write_text(out / DERIVED, lut_csv(derived))
-    if plot:
-        strehl_vs_magnitude(rows, out / FIGURE)
-    if json_output:
+        atomic_write_text(o.out / DERIVED, lut_csv(derived))
+    if o.plot:
+        strehl_vs_magnitude(rows, o.out / FIGURE)
+    if o.json_output:
         output.print_json(_json_report(report, cost, derived))
     else:
         _render_report(report, rows, derived)
