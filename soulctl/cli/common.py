@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import Protocol
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -184,28 +185,56 @@ def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=
         raise InputError(f"unknown band '{band}': accepted {', '.join(BANDS)}")
 
 
-def loop_overrides(
-    seeing, wind, L0, tt_control, gains, band, seed, no_noise, vibrations, no_vibrations, no_resonance, oversampling
-) -> dict:
+class LoopOptions(Protocol):
+    """The options of a simulated loop that `loop run` and `optimize gains` share (read-only:
+    the commands' option tables are frozen)."""
+
+    @property
+    def seeing(self) -> float | None: ...
+    @property
+    def wind(self) -> float | None: ...
+    @property
+    def L0(self) -> float | None: ...
+    @property
+    def tt_control(self) -> str | None: ...
+    @property
+    def gains(self) -> str | None: ...
+    @property
+    def band(self) -> str | None: ...
+    @property
+    def seed(self) -> int | None: ...
+    @property
+    def no_noise(self) -> bool: ...
+    @property
+    def vibrations(self) -> Path | None: ...
+    @property
+    def no_vibrations(self) -> bool: ...
+    @property
+    def no_resonance(self) -> bool: ...
+    @property
+    def oversampling(self) -> int | None: ...
+
+
+def loop_overrides(o: LoopOptions) -> dict:
     """The options of a simulated loop as overrides of the run description's dotted fields
-    (given options only; ``gains`` the overrides of ``--gains``, ``loop.gain_overrides``)."""
-    check_run_options(seeing, wind, L0, band, seed, oversampling=oversampling)
-    if tt_control not in (None, *TT_CONTROLS):
-        raise InputError(f"--tt-control must be 'iir' or 'int', got '{tt_control}'")
+    (given options only; --gains through ``gain_overrides``)."""
+    check_run_options(o.seeing, o.wind, o.L0, o.band, o.seed, oversampling=o.oversampling)
+    if o.tt_control not in (None, *TT_CONTROLS):
+        raise InputError(f"--tt-control must be 'iir' or 'int', got '{o.tt_control}'")
     values = {
-        "atmosphere.seeing_arcsec": seeing,
-        "atmosphere.wind_m_s": wind,
-        "atmosphere.L0_m": L0,
-        "control.tt_control": tt_control,
-        "run.band": band,
-        "run.seed": seed,
-        "run.oversampling": oversampling,
-        "detector.noise": False if no_noise else None,
-        "vibrations.file": str(vibrations) if vibrations is not None and not no_vibrations else None,
-        "vibrations.enabled": False if no_vibrations else None,
-        "structure.enabled": False if no_resonance else None,
+        "atmosphere.seeing_arcsec": o.seeing,
+        "atmosphere.wind_m_s": o.wind,
+        "atmosphere.L0_m": o.L0,
+        "control.tt_control": o.tt_control,
+        "run.band": o.band,
+        "run.seed": o.seed,
+        "run.oversampling": o.oversampling,
+        "detector.noise": False if o.no_noise else None,
+        "vibrations.file": str(o.vibrations) if o.vibrations is not None and not o.no_vibrations else None,
+        "vibrations.enabled": False if o.no_vibrations else None,
+        "structure.enabled": False if o.no_resonance else None,
     }
-    return {k: v for k, v in values.items() if v is not None} | gains
+    return {k: v for k, v in values.items() if v is not None} | gain_overrides(o.gains)
 
 
 def probe_overrides(mode: int | None, amplitude: float | None, frequency: float | None) -> dict:

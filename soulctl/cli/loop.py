@@ -45,7 +45,6 @@ from .common import (
     check_run_options,
     frames_progress,
     gain_file_input,
-    gain_overrides,
     loop_overrides,
     probe_overrides,
     quantity_table,
@@ -236,20 +235,7 @@ def _checked_overrides(o: RunOptions) -> dict:
     if o.plot is not None:
         check_output_folder(o.plot, "--plot", LOOP_FIGURES)
     check_run_options(None, None, None, None, None, o.duration)
-    overrides = loop_overrides(
-        o.seeing,
-        o.wind,
-        o.L0,
-        o.tt_control,
-        gain_overrides(o.gains),
-        o.band,
-        o.seed,
-        o.no_noise,
-        o.vibrations,
-        o.no_vibrations,
-        o.no_resonance,
-        o.oversampling,
-    )
+    overrides = loop_overrides(o)
     return overrides | _run_overrides(o)
 
 

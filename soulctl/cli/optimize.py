@@ -48,7 +48,6 @@ from .common import (
     aux_summary,
     frames_progress,
     gain_file_input,
-    gain_overrides,
     loop_overrides,
     probe_overrides,
     quantity_table,
@@ -308,20 +307,7 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
         check_output_path(o.out, "--out", inputs)
     if o.plot is not None:
         check_output_folder(o.plot, "--plot", gain_figure_names(methods) if o.telemetry is None else ())
-    overrides = loop_overrides(
-        o.seeing,
-        o.wind,
-        o.L0,
-        o.tt_control,
-        gain_overrides(o.gains),
-        o.band,
-        o.seed,
-        o.no_noise,
-        o.vibrations,
-        o.no_vibrations,
-        o.no_resonance,
-        o.oversampling,
-    )
+    overrides = loop_overrides(o)
     _check_phases(o.duration, o.period, o.measure, o.sequence)
     mode = PROBE_MODE_DEFAULT if o.probe_mode is None else o.probe_mode
     probe_settings(mode, o.probe_amplitude, o.probe_frequency)  # errors name the options
