@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -254,9 +256,14 @@ def run_description(config: Path | None, mag: str | None, overrides: dict) -> Ru
     return base.with_values(overrides) if overrides else base
 
 
-def frames_progress(label: str) -> Progress:
-    """A transient progress bar over frames on stderr."""
-    return Progress(
+@contextmanager
+def frames_progress(label: str, show: bool, total: int | None = None) -> Iterator[Callable[..., None] | None]:
+    """A transient progress bar over frames on stderr when ``show``; yields its update
+    ``tick(done, total=None)`` (the callback `run` and `optimize` take), or None."""
+    if not show:
+        yield None
+        return
+    progress = Progress(
         TextColumn(label),
         BarColumn(),
         MofNCompleteColumn(),
@@ -266,6 +273,15 @@ def frames_progress(label: str) -> Progress:
         console=make_console(stderr=True),
         transient=True,
     )
+    with progress:
+        task = progress.add_task(label, total=total)
+
+        def tick(done: int, total: int | None = None) -> None:
+            if total is not None:
+                progress.update(task, total=total)
+            progress.update(task, completed=done)
+
+        yield tick
 
 
 def default_cache_dir() -> Path:

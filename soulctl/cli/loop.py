@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -253,12 +252,7 @@ def _run_overrides(o: RunOptions) -> dict:
 
 def _run_with_progress(request, cache, aux, show: bool):
     """``run`` with a progress bar when ``show``."""
-    progress = frames_progress("closed loop")
-    with progress if show else nullcontext():
-        tick = None
-        if show:
-            task = progress.add_task("loop", total=request.frames)
-            tick = lambda k: progress.update(task, completed=k)  # noqa: E731
+    with frames_progress("closed loop", show, total=request.frames) as tick:
         return run(request, cache, progress=tick, aux=aux)
 
 

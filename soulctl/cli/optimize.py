@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import sys
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -180,10 +179,7 @@ def _optimize_each(requests: dict[str, OptimizeRequest], cache, show: bool) -> d
     """Each method's optimisation, with a progress bar when ``show``."""
     results: dict[str, OptimizeResult] = {}
     for m, request in requests.items():
-        progress = frames_progress("trial-and-error" if m == "trial" else "MGM")
-        with progress if show else nullcontext():
-            task = progress.add_task(m, total=None) if show else None
-            tick = (lambda done, total, p=progress, t=task: p.update(t, completed=done, total=total)) if show else None
+        with frames_progress("trial-and-error" if m == "trial" else "MGM", show) as tick:
             results[m] = optimize(request, cache, progress=tick)
     return results
 
