@@ -277,9 +277,7 @@ def frames_progress(label: str, show: bool, total: int | None = None) -> Iterato
         task = progress.add_task(label, total=total)
 
         def tick(done: int, total: int | None = None) -> None:
-            if total is not None:
-                progress.update(task, total=total)
-            progress.update(task, completed=done)
+            progress.update(task, completed=done, total=total)  # rich keeps the total when None
 
         yield tick
 
