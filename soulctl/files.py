@@ -252,6 +252,17 @@ def atomic_write(path: str | Path, write: Callable[[str], None], *, immediate: b
         raise
 
 
+def commit_or_replace(target: Path, tmp: str, stage: bool = True) -> None:
+    """Land a file written under the temporary ``tmp`` (``atomic_write``'s last step for a
+    writer that streamed into it): at the command's commit when ``stage`` and inside
+    ``staged_outputs``, else at once (a partial telemetry file of an interrupted run)."""
+    current = _STAGE.get() if stage else None
+    if current is None:
+        _replace(tmp, target)
+    else:
+        current.add(target, tmp)
+
+
 def atomic_write_text(path: str | Path, text: str, *, immediate: bool = False) -> None:
     def write(tmp: str) -> None:
         with open(tmp, "w", encoding="utf-8") as f:

@@ -105,13 +105,16 @@ FORGETTING = Range(0.0, 1.0)  # of the leaky integrators
 FRACTION = Range(0.0, 1.0)  # optics gains --controlled-fraction
 SCREENS = Range(1, 64, integer=True)  # optics gains --screens (~10 s each at 40x40, 500 modes)
 
-# --- telemetry files (soulctl/loop/telemetry_schema.py) -----------------------------------
+# --- telemetry files (soulctl/telemetry/schema.py) -----------------------------------
 MODAL_NM = Range(-1e6, 1e6, "nm")  # a mode or actuator, 1 mm: far beyond any mirror's stroke
 RMS_NM = Range(0.0, 1e6, "nm")
 FRAME_TIME_S = Range(0.0, 1e7, "s")
 SENSITIVITY = Range(0.05, 20.0)  # the slope sensitivity k, as OGTL clamps it
 FRAME_INDEX = Range(0, 2**63 - 1, integer=True)
 DIVERGED_AT = Range(-1, 2**63 - 1, integer=True)  # -1: the loop did not diverge
+TELEMETRY_SCHEMA_VERSION = 2  # 1: files of soulctl before streaming (no frame_counter, status); still read
+SCHEMA_VERSION = Range(1, TELEMETRY_SCHEMA_VERSION, integer=True)
+TELEMETRY_EVERY = Range(1, 100_000, integer=True)  # loop run --telemetry-every: record one frame in N
 
 # --- auxiliary loops ------------------------------------------------------------------------
 PERIOD_S = Range(0.0, 600.0, "s", lo_open=True)

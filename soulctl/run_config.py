@@ -255,7 +255,7 @@ def read_run_config(path: str | Path) -> RunConfig:
     """A run description from a TOML file, or the one stored in a telemetry file (.h5)."""
     path = Path(path)
     if path.suffix.lower() in (".h5", ".hdf5"):
-        from .loop.telemetry_file import stored_run_description
+        from .telemetry.hdf5 import stored_run_description
 
         return RunConfig.from_dict(stored_run_description(path), f"telemetry file {path}")
     from .files import read_toml

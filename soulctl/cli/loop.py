@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,14 +11,16 @@ import typer
 from rich.console import Console
 
 from .. import defaults
+from ..errors import InputError
 from ..control.gains import MID_GROUP_END, gain_groups
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
 from ..loop.run import run
-from ..loop.telemetry_file import telemetry_arrays, write_telemetry
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S
+from ..ranges import DURATION_S, TELEMETRY_EVERY
 from ..run_config import RunConfig
+from ..telemetry.hdf5 import Hdf5Writer
+from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
 from .common import (
     BAND,
@@ -166,7 +169,16 @@ class RunOptions:
         None,
         "--telemetry",
         metavar="FILE.h5",
-        help="Write the telemetry (HDF5; with the auxiliary loops' records and the run description).",
+        help="Write the telemetry as the loop runs (HDF5; with the auxiliary loops' records and the run description).",
+    )
+    telemetry_fields: str | None = typer.Option(
+        None,
+        "--telemetry-fields",
+        metavar="F1,F2|all",
+        help=f"Per-frame fields to record (default {','.join(DEFAULT_FIELDS)}; 'all' adds slopes and commands).",
+    )
+    telemetry_every: int = typer.Option(
+        1, "--telemetry-every", parser=number(TELEMETRY_EVERY), metavar="N", help="Record one frame in N (frame_counter says which)."
     )
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write psf.png, jitter.png, modal_variance.png.")
     print_config: bool = typer.Option(
@@ -202,9 +214,9 @@ def run_cmd(o: RunOptions) -> int:
     if aux is not None:
         aux.check(request.observation, request.duration_s)
     cache = array_cache(o.no_cache, o.cache_dir)
-    result = _run_with_progress(request, cache, aux, show=not o.json_output and sys.stderr.isatty())
-    if o.telemetry is not None:
-        _write_telemetry(o.telemetry, result, description)
+    fields = telemetry_fields(o.telemetry_fields)
+    writer = None if o.telemetry is None else Hdf5Writer(o.telemetry, fields, o.telemetry_every, {"run_description": description.to_toml()})
+    result = _run_streaming(request, cache, aux, not o.json_output and sys.stderr.isatty(), writer)
     if result.diverged_at is not None:
         message = f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
         if o.json_output:
@@ -250,22 +262,44 @@ def _run_overrides(o: RunOptions) -> dict:
     return {k: v for k, v in values.items() if v is not None} | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
 
 
-def _run_with_progress(request, cache, aux, show: bool):
+def _run_with_progress(request, cache, aux, show: bool, sink=None):
     """``run`` with a progress bar when ``show``."""
     with frames_progress("closed loop", show, total=request.frames) as tick:
-        return run(request, cache, progress=tick, aux=aux)
+        return run(request, cache, progress=tick, aux=aux, sink=sink)
 
 
-def _write_telemetry(path: Path, result, description: RunConfig) -> None:
-    """The run's telemetry with its attributes, configuration and run description."""
-    tm = telemetry_arrays(result.telemetry)
-    tm["gains"] = result.final_gains
-    obs = result.request.observation
-    attributes = {
-        "rate_hz": obs.frame_rate_hz,
-        "delay_frames": obs.delay_frames,
-        "n_modes": result.calibration.basis.n_modes,
-        "diverged_at": -1 if result.diverged_at is None else result.diverged_at,
-        "run_description": description.to_toml(),
-    }
-    write_telemetry(path, tm, attributes, result.configuration())
+def telemetry_fields(text: str | None) -> tuple[str, ...]:
+    """The --telemetry-fields list (schema names; 'all'), checked."""
+    if text is None:
+        return DEFAULT_FIELDS
+    names = PER_FRAME if text.strip() == "all" else tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in PER_FRAME]
+    if unknown or not names:
+        raise InputError(f"--telemetry-fields: unknown field {unknown[0] if unknown else repr(text)}; accepted: {', '.join(PER_FRAME)} or all")
+    return tuple(dict.fromkeys(names))
+
+
+def _run_streaming(request, cache, aux, show: bool, writer: Hdf5Writer | None):
+    """``run`` with its telemetry streamed to ``writer``, which is finished whatever happens:
+    complete, or partial with the reason (divergence, an interrupt, an error); a run refused
+    before its first frame leaves no file."""
+    try:
+        result = _run_with_progress(request, cache, aux, show, writer)
+    except BaseException as e:
+        if writer is not None:
+            if isinstance(e, InputError) and writer.recorded == 0:
+                writer.abandon()
+            else:
+                writer.finish(_stopped_by(e))
+        raise
+    if writer is not None:
+        diverged = result.diverged_at
+        writer.finish(None if diverged is None else f"the loop diverged at frame {diverged}", -1 if diverged is None else diverged)
+    return result
+
+
+def _stopped_by(e: BaseException) -> str:
+    signum = getattr(e, "signum", None)
+    if signum is not None:
+        return f"interrupted by {signal.Signals(signum).name}"
+    return f"stopped by an error: {type(e).__name__}: {' '.join(str(e).split())[:200]}"

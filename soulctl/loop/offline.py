@@ -1,8 +1,8 @@
 """MGM on a recorded telemetry file (`soulctl optimize gains --method mgm --telemetry FILE`):
 the gains MGM would apply after the window the file holds, without running a loop.
 
-The file is what `loop run --telemetry` writes (``telemetry_file``) or any HDF5 file with the
-fields that module documents; it is held to ``telemetry_schema`` (types, dtypes, shapes, the
+The file is what `loop run --telemetry` writes (``telemetry.hdf5``) or any HDF5 file with the
+fields that module documents; it is held to ``telemetry.schema`` (types, dtypes, shapes, the
 relations between fields and the range of every value read).  The window is the file's frames
 since the last change of the gains (``/gain_history``) or of the slope sensitivity k
 (``/sensitivity``), as live: MGM's model holds for fixed gains and k; at most the last
@@ -56,8 +56,8 @@ from ..run_config import ControllerSpec, RunConfig
 from .metrics import pseudo_open_loop
 from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
 from .run import calibration_for
-from .telemetry_file import run_description_of
-from .telemetry_schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
+from ..telemetry.hdf5 import run_description_of
+from ..telemetry.schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
 BLOCK_BYTES = 32 * 2**20  # float64 bytes of one block of modes of /measured_modes (and as many of /command_modes)

@@ -70,7 +70,7 @@ from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import RunRequest, calibration_for, check_memory, closing_frames
+from .run import RunRequest, calibration_for, closing_frames
 from .simulation import ClosedLoop, LoopDiverged
 
 METHODS = ("trial", "mgm")
@@ -570,7 +570,7 @@ def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gain
 def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int) -> PhaseMetrics:
     tm = loop.telemetry
     rms = np.asarray(tm.residual_rms_nm[start:stop])
-    tt = np.asarray(tm.residual_modes[start:stop])[:, :2] * loop.mas_per_nm_tt
+    tt = tm.series("residual_tt")[start:stop] * loop.mas_per_nm_tt
     return PhaseMetrics(psf.strehl, float(np.sqrt(np.mean(rms**2))), float(np.sqrt(np.mean(tt.var(axis=0)))))
 
 
@@ -711,7 +711,6 @@ def optimize(
     f = s.frames
     n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + f["measure"])
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
-    check_memory(total, cal, "--duration")
     done = 0
 
     def tick(_):

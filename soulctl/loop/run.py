@@ -3,7 +3,6 @@ to what SOUL would deliver (Strehl, jitter, residuals, rejection, spectra)."""
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -22,7 +21,8 @@ from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, cali
 from ..optics.pwfs import PyramidConfig
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
-from .simulation import ClosedLoop, LoopDiverged, Telemetry, telemetry_bytes
+from ..telemetry.recorder import Sink, TelemetryRecorder
+from .simulation import ClosedLoop, LoopDiverged
 
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
@@ -85,7 +85,7 @@ class RunResult:
     request: RunRequest
     gains: LoopGains
     calibration: Calibration
-    telemetry: Telemetry
+    telemetry: TelemetryRecorder
     metrics: LoopMetrics | None
     psf: np.ndarray | None
     diverged_at: int | None
@@ -99,32 +99,37 @@ class RunResult:
     notes: tuple[str, ...] = ()  # what the run changed of the request, and why (e.g. vibration lines dropped)
 
     def configuration(self) -> dict:
-        r = self.request
-        return {
-            "observation": self.request.observation.to_dict(),
-            "seeing_arcsec": r.seeing_arcsec,
-            "wind_m_s": r.wind_m_s,
-            "L0_m": r.L0_m,
-            "duration_s": r.duration_s,
-            "frames": r.frames,
-            "skipped_frames": r.skip,
-            "band": r.band,
-            "seed": r.seed,
-            "noise": r.noise,
-            "oversampling": r.oversampling,
-            "gains": asdict(self.gains),
-            "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
-            "structure": asdict(r.structure) if r.structure else None,
-        }
+        return run_configuration(self.request, self.gains)
 
 
-def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: float) -> tuple[LoopMetrics, dict]:
-    """The figures of ``LoopMetrics`` (None where the run is too short for one) and the spectra."""
+def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
+    """The run's configuration as telemetry files store it (JSON)."""
+    return {
+        "observation": r.observation.to_dict(),
+        "seeing_arcsec": r.seeing_arcsec,
+        "wind_m_s": r.wind_m_s,
+        "L0_m": r.L0_m,
+        "duration_s": r.duration_s,
+        "frames": r.frames,
+        "skipped_frames": r.skip,
+        "band": r.band,
+        "seed": r.seed,
+        "noise": r.noise,
+        "oversampling": r.oversampling,
+        "gains": asdict(gains),
+        "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
+        "structure": asdict(r.structure) if r.structure else None,
+    }
+
+
+def _metrics(request: RunRequest, tm: TelemetryRecorder, psf: PsfAccumulator, mas_per_nm: float) -> tuple[LoopMetrics, dict]:
+    """The figures of ``LoopMetrics`` (None where the run is too short for one) and the spectra,
+    from the recorder's series (Tip/Tilt, residual RMS) and residual-mode moments."""
     obs = request.observation
     skip = request.skip
-    res_tt = tm["residual_modes"][skip:, :2] * mas_per_nm
-    pol = pseudo_open_loop(tm["measured_modes"], tm["command_modes"], obs.delay_frames)
-    pol_tt = pol[skip:, :2] * mas_per_nm
+    res_tt = tm.series("residual_tt")[skip:] * mas_per_nm
+    pol = pseudo_open_loop(tm.series("measured_tt"), tm.series("command_tt"), obs.delay_frames)
+    pol_tt = pol[skip:] * mas_per_nm
     rate = obs.frame_rate_hz
     n = len(res_tt)
     # Spectra with ~1 Hz resolution where the run allows.
@@ -140,7 +145,7 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
         _, cp = cumulative_spectrum(pol_tt[:, 0] - pol_tt[:, 0].mean(), rate, nperseg)
         _, cp2 = cumulative_spectrum(pol_tt[:, 1] - pol_tt[:, 1].mean(), rate, nperseg)
         spectra = {"f_hz": f, "residual_mas": np.sqrt((cr**2 + cr2**2) / 2), "pseudo_open_loop_mas": np.sqrt((cp**2 + cp2**2) / 2)}
-    spectra["modal_variance_nm2"] = tm["residual_modes"][skip:].var(axis=0)
+    spectra["modal_variance_nm2"] = tm.residual_moments.variance
     pol_band = float(np.interp(3.0, spectra["f_hz"], spectra["pseudo_open_loop_mas"])) if "f_hz" in spectra and df <= 3.0 else None
 
     def jitter(x):
@@ -152,38 +157,12 @@ def _metrics(request: RunRequest, tm: dict, psf: PsfAccumulator, mas_per_nm: flo
         tt_jitter_mas=jitter(res_tt),
         tt_jitter_pol_mas=jitter(pol_tt),
         tt_jitter_pol_3hz_mas=pol_band,
-        residual_nm=float(np.sqrt(np.mean(tm["residual_rms_nm"][skip:] ** 2))) if n else None,
+        residual_nm=float(np.sqrt(np.mean(tm.residual_rms_nm[skip:] ** 2))) if n else None,
         rejection_13hz=rej,
-        frames=len(tm["residual_rms_nm"]),
+        frames=tm.frames,
         skipped_frames=skip,
     )
     return m, spectra
-
-
-def available_memory_bytes() -> int:
-    """Memory the system can give this process now (MemAvailable), else its physical memory."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-
-
-def check_memory(frames: int, calibration: Calibration, option: str) -> None:
-    """InputError naming ``option`` when the telemetry of ``frames`` frames, kept in memory,
-    would not fit in the memory available (a run must end with its figures, not be killed)."""
-    n_slopes, n_modes = calibration.interaction_matrix.shape
-    need = telemetry_bytes(frames, n_slopes, calibration.basis.M.shape[0], n_modes)
-    have = available_memory_bytes()
-    if need > 0.8 * have:
-        fits = int(frames * 0.8 * have / need)
-        raise InputError(
-            f"{option}: the run's telemetry, kept in memory, would need {need / 2**30:.3g} GB, more than the "
-            f"{have / 2**30:.3g} GB available; at most {fits} frames fit at this configuration"
-        )
 
 
 def calibration_setup(request: RunRequest) -> CalibrationSetup:
@@ -213,11 +192,18 @@ def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n
 
 
 def run(
-    request: RunRequest, cache: ArrayCache = ArrayCache(None), progress=None, aux=None, calibration: Calibration | None = None
+    request: RunRequest,
+    cache: ArrayCache = ArrayCache(None),
+    progress=None,
+    aux=None,
+    calibration: Calibration | None = None,
+    sink: Sink | None = None,
 ) -> RunResult:
     """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
     ``aux`` (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`) adds auxiliary loops once
-    the loop has closed; ``calibration``: the request's, already computed (a sweep shares it)."""
+    the loop has closed; ``calibration``: the request's, already computed (a sweep shares it);
+    ``sink``: where every frame's records go (``telemetry.hdf5.Hdf5Writer``), described
+    (rate, delay, modes, configuration) before the first frame."""
     obs = request.observation
     structure = sampled_structure(request.structure, obs.frame_rate_hz)
     gains = request.gains or default_gains(obs, structure)
@@ -225,18 +211,21 @@ def run(
         check_stability(obs, gains, structure)
     t0 = time.perf_counter()
     cal = calibration or calibration_for(request, cache)
-    check_memory(request.frames, cal, "--duration")
     t_cal = time.perf_counter() - t0
     atmosphere = request.atmosphere()
     loop = ClosedLoop(
-        obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure
+        obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure, sink=sink
     )
+    loop.telemetry.moments_from(request.skip)
     n_close, tasks = 0, None
     if aux is not None:
         tasks, initial = aux(request, gains, cal, cache, loop)
         loop.set_gains(initial)
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, closing_frames(obs.frame_rate_hz))
+    if sink is not None and hasattr(sink, "describe"):
+        described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes}
+        sink.describe(described, run_configuration(request, gains))
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
@@ -245,11 +234,10 @@ def run(
     except LoopDiverged as e:
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1
-    tm = loop.telemetry.arrays()
     metrics, image = None, None
     spectra: dict = {}
     if diverged_at is None:
-        metrics, spectra = _metrics(request, tm, psf, loop.mas_per_nm_tt)
+        metrics, spectra = _metrics(request, loop.telemetry, psf, loop.mas_per_nm_tt)
         image = psf.psf
     return RunResult(
         request,

@@ -19,14 +19,15 @@ A residual RMS above ``divergence_ratio`` x the largest disturbance RMS so far (
 Tip/Tilt take the IIR filter of the observation (or an integrator), the other modes leaky
 integrators; gains by the paper's three groups: Tip/Tilt, modes 3-120, modes 121-last.
 Telemetry per frame: slopes, commands, their modal projections (R s, M^-1 c), the mirror's
-modes during the frame, and the simulation's true residual and disturbance modes (nm).
+modes during the frame, and the simulation's true residual and disturbance modes (nm), handed
+to ``telemetry.recorder.TelemetryRecorder``, which keeps only the auxiliary loops' windows and
+the metrics' series and streams every frame to its sink (an HDF5 file) when there is one.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -40,6 +41,7 @@ from ..optics.calibration import Calibration
 from ..optics.detector import Detector
 from ..optics.pwfs import Pyramid
 from ..optics.sensor import WavefrontSensor, photons_in_beam
+from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
 from .stages import AuxScheduler, Controller, Disturbance, Mirror
@@ -68,57 +70,6 @@ STAGES = (
 )
 
 
-TELEMETRY_OBJECT_BYTES = 1500
-TELEMETRY_PEAK_FACTOR = 3
-
-
-def telemetry_bytes(frames: int, n_slopes: int, n_actuators: int, n_modes: int) -> int:
-    """Peak memory of the telemetry of ``frames`` frames, all kept in memory (``Telemetry``):
-    float32 slopes, commands and measured modes, float64 command, mirror, residual and
-    disturbance modes."""
-    per_frame = 4 * (n_slopes + n_actuators + n_modes) + 32 * n_modes + TELEMETRY_OBJECT_BYTES
-    return TELEMETRY_PEAK_FACTOR * per_frame * frames
-
-
-@dataclass
-class Telemetry:
-    """Per-frame records (rows = frames)."""
-
-    rate_hz: float
-    residual_modes: list = field(default_factory=list)  # (n_modes,) nm, projection of the residual OPD
-    disturbance_modes: list = field(default_factory=list)  # (n_modes,) nm, of turbulence + vibrations
-    measured_modes: list = field(default_factory=list)  # (n_modes,) nm, R s(k)
-    command_modes: list = field(default_factory=list)  # (n_modes,) nm, M^-1 c(k)
-    mirror_modes: list = field(default_factory=list)  # (n_modes,) nm, the mirror during frame k
-    residual_rms_nm: list = field(default_factory=list)
-    slopes: list = field(default_factory=list)  # (n_slopes,) float32, scaled by k
-    commands: list = field(default_factory=list)  # (n_actuators,) float32, c(k)
-    sensitivity: list = field(default_factory=list)  # k during frame k
-    flux: list = field(default_factory=list)  # detected electrons in the frame
-    # Gains in force from a frame on: [(frame, gains)], the first at frame 0.
-    gain_history: list = field(default_factory=list, repr=False)
-    # Auxiliary loops' records: name -> [{"frame": f, ...}], f the first frame after the update.
-    aux: dict = field(default_factory=dict, repr=False)
-
-    def append_frame(self, **values) -> None:
-        """One frame's records (every per-frame field)."""
-        for name, value in values.items():
-            getattr(self, name).append(value)
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """Per-frame records as arrays (rows = frames)."""
-        return {k: np.asarray(v) for k, v in self.__dict__.items() if isinstance(v, list) and k != "gain_history"}
-
-    def aux_arrays(self, name: str) -> dict[str, np.ndarray]:
-        """One auxiliary loop's records as arrays (rows = updates)."""
-        records = self.aux.get(name, [])
-        return {key: np.asarray([r[key] for r in records]) for key in (records[0] if records else {})}
-
-    def gain_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(frames where gains were set, (changes, n_modes) gains)."""
-        return np.array([f for f, _ in self.gain_history]), np.array([g for _, g in self.gain_history])
-
-
 class ClosedLoop:
     """A simulated SOUL-like loop for ``observation`` with ``calibration`` (which fixes the
     pyramid's binning, modulation and sampling and the controlled modes)."""
@@ -138,6 +89,7 @@ class ClosedLoop:
         divergence_ratio: float = 3.0,
         aux_loops: Sequence[AuxLoop] = (),
         sensitivity: float = 1.0,
+        sink: Sink | None = None,
     ):
         self.observation, self.calibration, self.rate_hz = observation, calibration, observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
@@ -153,7 +105,7 @@ class ClosedLoop:
         self.n_modes = calibration.basis.n_modes
         self.controller = Controller(mode_filters(observation, gains, self.n_modes), calibration)
         self.delay = DelayLine(calibration.basis.M.shape[0], observation.delay_frames if delay_frames is None else delay_frames)
-        self.telemetry = Telemetry(self.rate_hz)
+        self.telemetry = TelemetryRecorder(self.rate_hz, sink)
         self._reconstructor32 = calibration.reconstructor.astype(np.float32)  # R s of float32 slopes
         # the divergence test's ratio and scale, the largest disturbance RMS so far (nm)
         self.divergence_ratio, self._disturbance_peak = divergence_ratio, 0.0
@@ -247,23 +199,25 @@ class ClosedLoop:
 
     def window(self, frames: int) -> TelemetryWindow:
         """The last ``frames`` frames, but none from before the latest change of gains or k."""
-        tm = self.telemetry
         start = max(self.frame - frames, self.scheduler.since)
-        rows = slice(start, self.frame)
+
+        def rows(name: str) -> np.ndarray:
+            return self.telemetry.rows(name, start, self.frame)
+
         return TelemetryWindow(
             first_frame=start,
             rate_hz=self.rate_hz,
             delay_frames=self.delay.delay_frames,
-            measured_modes=np.asarray(tm.measured_modes[rows]),
-            command_modes=np.asarray(tm.command_modes[rows]),
-            mirror_modes=np.asarray(tm.mirror_modes[rows]),
-            slopes=np.asarray(tm.slopes[rows]),
-            flux=np.asarray(tm.flux[rows]),
+            measured_modes=rows("measured_modes"),
+            command_modes=rows("command_modes"),
+            mirror_modes=rows("mirror_modes"),
+            slopes=rows("slopes"),
+            flux=rows("flux"),
             gains=self.rtc_parameters.gains,
             sensitivity=self.rtc_parameters.sensitivity,
         )
 
-    def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> Telemetry:
+    def run(self, n_frames: int, psf=None, skip: int = 0, progress=None) -> TelemetryRecorder:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into
         ``psf`` (a metrics.PsfAccumulator) when given; ``progress(frames_done)`` after each.
 

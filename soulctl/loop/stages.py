@@ -180,6 +180,7 @@ class AuxScheduler:
     def add(self, aux: AuxLoop, frame: int, rate_hz: float) -> None:
         """Start ``aux`` from the next frame on."""
         aux.start(self.parameters, rate_hz)
+        self.telemetry.keep_window(aux.period_frames)
         self.loops.append(aux)
         self.telemetry.aux.setdefault(aux.name, [])
         self.changed(frame)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from soulctl.cli.app import main
-from soulctl.loop.telemetry_file import read_telemetry
+from soulctl.telemetry.hdf5 import read_telemetry
 
 FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3"]
 
@@ -38,7 +38,7 @@ def test_json_result_and_same_seed_same_numbers(capsys, cache_dir):
 
 def test_table_telemetry_and_figures(tmp_path, capsys, cache_dir):
     h5 = tmp_path / "tm.h5"
-    status, out, _ = run([*FAINT, "--band", "Ks", "--telemetry", str(h5), "--plot", str(tmp_path)], capsys, cache_dir)
+    status, out, _ = run([*FAINT, "--band", "Ks", "--telemetry", str(h5), "--telemetry-fields", "all", "--plot", str(tmp_path)], capsys, cache_dir)
     assert status == 0
     for text in ("Strehl ratio (Ks", "Tip/Tilt jitter", "pseudo-open loop", "residual wavefront error"):
         assert text in out

@@ -46,6 +46,8 @@ def env(tmp_path_factory, optics_cache):
             "1.2",
             "--telemetry",
             str(recorded),
+            "--telemetry-fields",
+            "all",
             "--cache-dir",
             str(optics_cache.directory),
             "--json",

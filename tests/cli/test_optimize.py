@@ -16,7 +16,7 @@ from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
 from soulctl.loop.run import RunRequest, closing_frames
-from soulctl.loop.telemetry_file import read_telemetry
+from soulctl.telemetry.hdf5 import read_telemetry
 from soulctl.observation import observation_for_magnitude
 
 # The R17 configuration (binning 4, 10x10 sub-apertures, 54 modes, 407 Hz, Tip/Tilt

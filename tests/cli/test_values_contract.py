@@ -328,42 +328,6 @@ def test_gain_files_are_applied_by_their_mode_column(tmp_path, capsys, cache_dir
     refused(*run(["loop", "run", *FAST, "--gains", gains], capsys, cache_dir), "the modes must be 1..90, each once")
 
 
-# --------------------------------------------------------------------------------- memory
-
-
-def test_a_run_whose_telemetry_would_not_fit_in_memory_is_refused(capsys, cache_dir, monkeypatch):
-    from soulctl.loop import run as run_module
-
-    monkeypatch.setattr(run_module, "available_memory_bytes", lambda: 50 * 2**20)
-    refused(
-        *run(["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "60"], capsys, cache_dir),
-        "--duration: the run's telemetry, kept in memory, would need",
-        "frames fit",
-    )
-
-
-def test_the_memory_estimate_covers_what_the_telemetry_takes(optics_cache):
-    import tracemalloc
-
-    from soulctl.control.gains import default_gains
-    from soulctl.loop.run import RunRequest, calibration_for
-    from soulctl.loop.simulation import TELEMETRY_PEAK_FACTOR, ClosedLoop, telemetry_bytes
-    from soulctl.optics.atmosphere import AtmosphereConfig
-
-    obs = observation_for_magnitude(16.5)
-    cal = calibration_for(RunRequest(obs, oversampling=1), optics_cache)
-    loop = ClosedLoop(obs, cal, AtmosphereConfig.lbt_default(), default_gains(obs, None), structure=None)
-    loop.run(10)
-    tracemalloc.start()
-    before = tracemalloc.get_traced_memory()[0]
-    loop.run(100)
-    grown = tracemalloc.get_traced_memory()[0] - before
-    tracemalloc.stop()
-    n_slopes, n_modes = cal.interaction_matrix.shape
-    estimate = telemetry_bytes(100, n_slopes, cal.basis.M.shape[0], n_modes) / TELEMETRY_PEAK_FACTOR
-    assert grown <= estimate <= 1.5 * grown
-
-
 # --------------------------------------------------------- what adversarial testing found
 
 

@@ -14,11 +14,17 @@ from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
 from soulctl.loop.metrics import pseudo_open_loop
-from soulctl.loop.simulation import ClosedLoop, LoopDiverged
+from soulctl.loop.simulation import ClosedLoop as _ClosedLoop, LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
+from soulctl.telemetry.recorder import MemorySink
+
+
+def ClosedLoop(*args, **kwargs):  # noqa: N802 - the loop, with every frame kept for the test
+    return _ClosedLoop(*args, sink=MemorySink(), **kwargs)
+
 
 LINE_13HZ = VibrationSpectrum((VibrationLine(13.0, 0.003, tip_mas=5.0, tilt_mas=3.0),))
 

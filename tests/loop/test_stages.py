@@ -95,7 +95,7 @@ class _Halver(AuxLoop):
 
 def test_scheduler_runs_tasks_on_their_period_and_windows_start_at_the_last_change():
     params = RtcParameters(3, np.full(3, 0.4), lambda g: None)
-    telemetry = SimpleNamespace(gain_history=[], aux={})
+    telemetry = SimpleNamespace(gain_history=[], aux={}, keep_window=lambda frames: None)
     scheduler = AuxScheduler(params, telemetry)
     task = _Halver(5)
     scheduler.add(task, 0, RATE_HZ)

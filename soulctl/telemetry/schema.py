@@ -1,5 +1,5 @@
 """The one schema of a telemetry file (what `loop run --telemetry` writes; what
-``telemetry_file.read_telemetry`` and `optimize gains --telemetry` read) and the reader that
+``hdf5.read_telemetry`` and `optimize gains --telemetry` read) and the reader that
 holds a file to it.
 
 ``TELEMETRY_SCHEMA`` lists every dataset and attribute: what its values are (real numbers,
@@ -42,12 +42,14 @@ from ..ranges import (
     FRAME_INDEX,
     FRAME_RATE_HZ,
     FRAME_TIME_S,
+    SCHEMA_VERSION,
     LOOP_GAIN,
     MODAL_NM,
     MODES,
     OVERSAMPLING,
     RMS_NM,
     SENSITIVITY,
+    TELEMETRY_EVERY,
     Range,
     number_text,
 )
@@ -103,6 +105,7 @@ DATASETS = (
     _dataset("residual_modes", REAL, FRAMES_MODES, "float32", MODAL_NM, "the simulation's true residual"),
     _dataset("disturbance_modes", REAL, FRAMES_MODES, "float32", MODAL_NM, "the simulation's true disturbance"),
     _dataset("residual_rms_nm", REAL, ("frames",), "float64", RMS_NM),
+    _dataset("frame_counter", INTEGER, ("frames",), "int64", FRAME_INDEX, "the loop's frame number k of each row"),
     _dataset("frame_time_s", REAL, ("frames",), "float64", FRAME_TIME_S, "k / frame rate"),
     _dataset("sensitivity", REAL, ("frames",), "float64", SENSITIVITY, "slope sensitivity k during frame k"),
     _dataset("flux", REAL, ("frames",), "float64", None, "detected electrons in frame k (read noise included)"),
@@ -126,10 +129,36 @@ ATTRIBUTES = (
     _attribute("delay_frames", REAL, "float64", DELAY_FRAMES),
     _attribute("n_modes", INTEGER, "int64", MODES, "= n_modes"),
     _attribute("soulctl_version", TEXT, "str"),
+    _attribute("schema_version", INTEGER, "int64", SCHEMA_VERSION, "the layout's version (absent: 1)"),
+    _attribute("status", TEXT, "str", None, "complete, partial (see partial_reason) or writing (the writer never closed it)"),
+    _attribute("partial_reason", TEXT, "str", None, "why a partial file stopped: interrupted, diverged, an error"),
+    _attribute("telemetry_every", INTEGER, "int64", TELEMETRY_EVERY, "one frame in N recorded (frame_counter holds which)"),
     _attribute("diverged_at", INTEGER, "int64", DIVERGED_AT, "the frame the loop diverged at, -1 if it did not"),
     _attribute("configuration", TEXT, "str", None, "JSON object: observation, atmosphere, gains, seed, ..."),
     _attribute("run_description", TEXT, "str", None, "TOML: the resolved run description (soulctl.run_config), re-runnable"),
 )
+# The unit of every per-frame and gain dataset (stored as its "unit" attribute).
+UNITS = {
+    "slopes": "normalised slope x k",
+    "measured_modes": "nm",
+    "commands": "nm",
+    "command_modes": "nm",
+    "mirror_modes": "nm",
+    "residual_modes": "nm",
+    "disturbance_modes": "nm",
+    "residual_rms_nm": "nm",
+    "frame_counter": "frame",
+    "frame_time_s": "s",
+    "sensitivity": "1",
+    "flux": "electron",
+    "gains": "1",
+    "gain_history/frames": "frame",
+    "gain_history/gains": "1",
+}
+PER_FRAME = tuple(f.name for f in DATASETS if f.per_frame and f.name not in ("frame_counter", "frame_time_s"))
+# `loop run --telemetry-fields` default: the modal records, k and flux (slopes and actuator
+# commands on request: at 40x40 they are ~80 % of a frame's bytes).
+DEFAULT_FIELDS = tuple(n for n in PER_FRAME if n not in ("slopes", "commands"))
 TELEMETRY_SCHEMA: dict[str, Field] = {f.name: f for f in (*DATASETS, AUX_RECORD, AUX_FRAME, *ATTRIBUTES)}
 DIMENSION_LABELS = {
     "frames": "frames",
@@ -346,6 +375,11 @@ class TelemetryReader:
         return ds
 
     def _check_layout(self, required: tuple[str, ...]) -> None:
+        version = _attribute_value(self.file.attrs.get("schema_version", 1))
+        if isinstance(version, (int, np.integer)) and not isinstance(version, bool) and version > SCHEMA_VERSION.hi:
+            raise self._error(
+                f"schema version {version} is newer than this soulctl reads ({SCHEMA_VERSION.text()}): update soulctl to read it"
+            )
         missing = [n for n in required if not self.has(n)]
         if missing:
             raise InputError(f"telemetry file {self.path} lacks {', '.join(missing)}")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from soulctl.errors import InputError
-from soulctl.loop import telemetry_file
-from soulctl.loop.telemetry_file import read_telemetry, write_telemetry
-from soulctl.loop.telemetry_schema import DATASETS, TELEMETRY_SCHEMA, TelemetryReader
+from soulctl.telemetry import hdf5 as telemetry_file
+from soulctl.telemetry.hdf5 import read_telemetry, write_telemetry
+from soulctl.telemetry.schema import DATASETS, TELEMETRY_SCHEMA, TelemetryReader
 
 FRAMES, MODES = 40, 3
 
