@@ -11,14 +11,13 @@ import typer
 from rich.console import Console
 
 from .. import defaults
-from ..errors import InputError
 from ..control.gains import MID_GROUP_END, gain_groups
+from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
 from ..ranges import DURATION_S, TELEMETRY_EVERY
-from ..run_config import RunConfig
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
@@ -168,8 +167,8 @@ class RunOptions:
     telemetry: Path | None = typer.Option(
         None,
         "--telemetry",
-        metavar="FILE.h5",
-        help="Write the telemetry as the loop runs (HDF5; with the auxiliary loops' records and the run description).",
+        metavar="FILE",
+        help="Stream the telemetry to disk as the loop runs: FILE.h5 (HDF5), FILE.fits (AOT FITS) or a new Data_<TN> folder (LBT).",
     )
     telemetry_fields: str | None = typer.Option(
         None,
@@ -275,7 +274,9 @@ def telemetry_fields(text: str | None) -> tuple[str, ...]:
     names = PER_FRAME if text.strip() == "all" else tuple(n.strip() for n in text.split(",") if n.strip())
     unknown = [n for n in names if n not in PER_FRAME]
     if unknown or not names:
-        raise InputError(f"--telemetry-fields: unknown field {unknown[0] if unknown else repr(text)}; accepted: {', '.join(PER_FRAME)} or all")
+        raise InputError(
+            f"--telemetry-fields: unknown field {unknown[0] if unknown else repr(text)}; accepted: {', '.join(PER_FRAME)} or all"
+        )
     return tuple(dict.fromkeys(names))
 
 

@@ -17,11 +17,12 @@ from ..control.gains import gains_toml, group_summary
 from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
 from ..errors import InputError
-from ..files import atomic_write_text, check_output_folder, check_output_path, input_file
+from ..files import atomic_write_text, check_output_folder, check_output_path
 from ..loop.offline import offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
 from ..plots.gains import gain_figure_names, write_gain_figures
 from ..ranges import MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
+from ..telemetry.formats import telemetry_input
 from . import common
 from .common import (
     BAND,
@@ -278,7 +279,7 @@ def gains_cmd(o: GainsOptions) -> int:
     if o.telemetry is not None:
         if o.method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
-        input_file(o.telemetry, "telemetry file")
+        telemetry_input(o.telemetry)
         return _offline(o.telemetry, o.config, o.mag, o.out, o.json_output, cache)
     description = run_description(o.config, o.mag, overrides).resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases

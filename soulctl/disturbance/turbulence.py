@@ -28,10 +28,8 @@ from scipy.special import jv
 from .. import defaults
 from ..errors import InputError
 from ..optics.atmosphere import LAMBDA_REF_M, phase_psd_k2, r0_from_seeing
-from ..optics.pupil import LBT_DIAMETER_M  # the pupil conjugated to the ASM (LBTO elab_lib)
+from ..optics.pupil import LBT_DIAMETER_M, MAS_PER_RAD  # the pupil conjugated to the ASM (LBTO elab_lib)
 from ..ranges import SEEING_ARCSEC
-
-MAS_PER_RAD = 180.0 / math.pi * 3600e3
 
 
 @dataclass(frozen=True)

@@ -53,11 +53,12 @@ from ..optics.cache import ArrayCache
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..ranges import LOOP_GAIN, PERIOD_S
 from ..run_config import ControllerSpec, RunConfig
+from ..telemetry.formats import check_decimation, open_telemetry
+from ..telemetry.hdf5 import run_description_of
+from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
 from .metrics import pseudo_open_loop
 from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
 from .run import calibration_for
-from ..telemetry.hdf5 import run_description_of
-from ..telemetry.schema import TelemetryReader, configuration_member, configuration_observation, configuration_structure
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
 BLOCK_BYTES = 32 * 2**20  # float64 bytes of one block of modes of /measured_modes (and as many of /command_modes)
@@ -209,7 +210,7 @@ def _check_recording(tm, observation: Observation, path) -> None:
         raise InputError(
             f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
         )
-    delay = tm.attribute("delay_frames")
+    delay = tm.attribute("delay_frames", observation.delay_frames)  # a record without it (LBT's) takes the configuration's
     if abs(delay - observation.delay_frames) > 1e-6:
         raise InputError(
             f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
@@ -226,14 +227,15 @@ def offline_mgm(
 ) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
     ``observation``: the configuration to check the file against (default: the file's own)."""
-    with TelemetryReader(path) as tm:
+    with open_telemetry(path, tuple(n for n in REQUIRED if n != "delay_frames")) as tm:
+        check_decimation(tm, path, "MGM's spectra")
         description = recorded_run(tm, observation, path)
         observation = description.observation
         diverged = tm.attribute("diverged_at", -1)
         if diverged >= 0:
             raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
         _check_recording(tm, observation, path)
-        n_modes, rate, delay = observation.modes, tm.attribute("rate_hz"), tm.attribute("delay_frames")
+        n_modes, rate, delay = observation.modes, tm.attribute("rate_hz"), tm.attribute("delay_frames", observation.delay_frames)
         forgetting, structure = description.controller.forgetting, description.structure
         recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
         frames = tm.dim("frames")

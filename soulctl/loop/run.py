@@ -13,15 +13,14 @@ from ..control.gains import LoopGains, check_stability, default_gains
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ
 from ..disturbance.vibrations import VibrationSpectrum
-from ..errors import InputError
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
 from ..optics.pwfs import PyramidConfig
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
-from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from ..telemetry.recorder import Sink, TelemetryRecorder
+from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import ClosedLoop, LoopDiverged
 
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
@@ -191,6 +190,14 @@ def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n
     )
 
 
+def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> None:
+    """The loop's static description to the sink, before the first frame: rate, delay, modes,
+    the configuration, the reconstructor and the modal basis."""
+    obs = request.observation
+    described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes}
+    sink.describe(described, run_configuration(request, gains), {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M})
+
+
 def run(
     request: RunRequest,
     cache: ArrayCache = ArrayCache(None),
@@ -224,8 +231,7 @@ def run(
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, closing_frames(obs.frame_rate_hz))
     if sink is not None and hasattr(sink, "describe"):
-        described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes}
-        sink.describe(described, run_configuration(request, gains))
+        _describe(sink, request, cal, gains)
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()

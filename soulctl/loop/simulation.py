@@ -97,11 +97,14 @@ class ClosedLoop:
         self.noise_rng = np.random.default_rng(noise_seed) if noise else None
         pyramid = Pyramid(calibration.setup.pyramid)
         self.pupil = pupil = pyramid.pupil
-        photons = photons_in_beam(observation.photometry, observation.magnitude_r, self.rate_hz, pupil.n_valid * pupil.pixel_scale_m**2)
         # the stages, in the order of a frame (``step``)
         self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), np.random.default_rng(vib_seed))
         self.mirror = Mirror(calibration, pupil, structure, self.rate_hz)
-        self.sensor = WavefrontSensor(pyramid, detector, photons)
+        self.sensor = WavefrontSensor(
+            pyramid,
+            detector,
+            photons_in_beam(observation.photometry, observation.magnitude_r, self.rate_hz, pupil.n_valid * pupil.pixel_scale_m**2),
+        )
         self.n_modes = calibration.basis.n_modes
         self.controller = Controller(mode_filters(observation, gains, self.n_modes), calibration)
         self.delay = DelayLine(calibration.basis.M.shape[0], observation.delay_frames if delay_frames is None else delay_frames)

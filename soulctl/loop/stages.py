@@ -27,7 +27,6 @@ from scipy.signal import lfilter
 
 from ..control.rtc import build_rtc
 from ..control.structure import StructuralResonance
-from ..disturbance.turbulence import MAS_PER_RAD
 from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
 from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
 from ..optics.calibration import Calibration
@@ -60,8 +59,7 @@ class Disturbance:
         )
         # A tilt of 1 mas is a unit-RMS ramp of RMS(x) * 1 mas (in rad) * 1e9 nm.
         tip, tilt = pupil.tilt()
-        x, _ = pupil.coordinates()
-        nm_per_mas = float(np.sqrt(np.mean((x - x.mean()) ** 2))) * 1e9 / MAS_PER_RAD
+        nm_per_mas = pupil.nm_per_mas_tilt()
         self.tilt_opd_per_mas = np.stack([tip, tilt]) * nm_per_mas
         self.mas_per_nm_tt = 1.0 / nm_per_mas
         self._source: VibrationSource | None = None

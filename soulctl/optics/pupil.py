@@ -10,6 +10,7 @@ at ``(i + 0.5 - n/2) * pixel_scale`` from the pupil centre, x along columns, y a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -19,6 +20,7 @@ from ..errors import InputError
 
 LBT_DIAMETER_M = 8.222
 LBT_OBSTRUCTION = 0.111
+MAS_PER_RAD = 180.0 / math.pi * 3600e3
 
 
 def grid(n: int, pixel_scale_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -61,6 +63,12 @@ class Pupil:
         """x, y (m) of the pixels inside the pupil, in the order of ``mask`` (row-major)."""
         x, y = grid(self.n_pixels, self.pixel_scale_m)
         return x[self.mask], y[self.mask]
+
+    def nm_per_mas_tilt(self) -> float:
+        """nm RMS of the unit-RMS Tip ramp (``tilt``) per mas of wavefront tilt: RMS(x) x 1 mas
+        in rad x 1e9."""
+        x, _ = self.coordinates()
+        return float(np.sqrt(np.mean((x - x.mean()) ** 2))) * 1e9 / MAS_PER_RAD
 
     def tilt(self) -> tuple[np.ndarray, np.ndarray]:
         """Tip (x) and Tilt (y) ramps on the pupil pixels, zero mean and unit RMS."""

@@ -19,6 +19,8 @@ Layout (rows are recorded frames; every dataset's "unit" attribute names its uni
     /sensitivity       (frames,)          float64   slope sensitivity k during frame k
     /flux              (frames,)          float64   detected electrons in frame k
     /gains             (n_modes,)         float64   per-mode gains (Delta of each mode) at the end
+    /reconstructor     (n_modes, n_slopes) float32  R: the modes (nm) of the slopes
+    /modes_to_commands (n_actuators, n_modes) float32  M: the actuator commands of each mode
     /gain_history/frames (changes,)       int64     first frame of each gain vector
     /gain_history/gains  (changes, n_modes) float64 the gain vectors in force from those frames
     /aux/<task>/<field> (updates, ...)    float64   auxiliary loops' records (e.g. /aux/ogtl/
@@ -46,8 +48,8 @@ configuration when present, and reads only the rows of its window (see ``loop.of
 
 from __future__ import annotations
 
-import json
 import os
+import stat
 import tempfile
 import tomllib
 from pathlib import Path
@@ -57,10 +59,9 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
-from ..files import atomic_write, commit_or_replace, output_target
+from ..files import NEW_FILE_MODE, atomic_write, commit_or_replace, output_target
 from ..ranges import TELEMETRY_SCHEMA_VERSION
-from .schema import ATTRIBUTES, DATASETS, FLOAT32, UNITS, TelemetryReader
-
+from .schema import FLOAT32, UNITS, TelemetryReader, store
 
 BLOCK_FRAMES = 256  # frames buffered per field before a chunk is written and the file flushed
 COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
@@ -73,20 +74,17 @@ def _stored(name: str, data) -> np.ndarray:
     return data.astype(np.float32 if name in FLOAT32 else np.float64)
 
 
-def write_telemetry(path: str | Path, arrays: dict[str, np.ndarray], attributes: dict, configuration: dict) -> None:
+def write_telemetry(
+    path: str | Path, arrays: dict[str, np.ndarray], attributes: dict, configuration: dict, immediate: bool = False
+) -> None:
     """A whole telemetry record at once (``telemetry convert``; tests), written atomically."""
 
     def write(tmp: str) -> None:
         with h5py.File(tmp, "w") as f:
-            for name, data in arrays.items():
-                data = _stored(name, data)
-                opts = COMPRESSION | {"chunks": True} if data.ndim == 2 and data.size > 4096 else {}
-                f.create_dataset(name, data=data, **opts)
-            f.attrs.update({"schema_version": TELEMETRY_SCHEMA_VERSION, "status": "complete"} | attributes)
-            f.attrs["soulctl_version"] = __version__
-            f.attrs["configuration"] = json.dumps(configuration)
+            defaults = {"schema_version": TELEMETRY_SCHEMA_VERSION, "status": "complete", "soulctl_version": __version__}
+            store(f, arrays, defaults | attributes | {"configuration": configuration})
 
-    atomic_write(path, write)
+    atomic_write(path, write, immediate=immediate)
 
 
 class Hdf5Writer:
@@ -103,6 +101,10 @@ class Hdf5Writer:
         self.target = output_target(path)
         folder = self.target.parent if str(self.target.parent) else Path(".")
         fd, self.tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp.h5", dir=folder)
+        try:
+            os.fchmod(fd, stat.S_IMODE(os.stat(self.target).st_mode))  # an existing file keeps its mode
+        except FileNotFoundError:
+            os.fchmod(fd, NEW_FILE_MODE)
         os.close(fd)
         self.file = h5py.File(self.tmp, "w")
         self.file.attrs.update(
@@ -122,10 +124,10 @@ class Hdf5Writer:
     def attach(self, recorder) -> None:
         self.recorder = recorder
 
-    def describe(self, attributes: dict, configuration: dict) -> None:
-        """The loop's static description (rate, delay, modes, ...), known once it is built."""
-        self.file.attrs.update(attributes)
-        self.file.attrs["configuration"] = json.dumps(configuration)
+    def describe(self, attributes: dict, configuration: dict, arrays: dict | None = None) -> None:
+        """The loop's static description, known once it is built: rate, delay, modes, the
+        configuration and the reconstructor and modal basis (``arrays``)."""
+        store(self.file, arrays or {}, attributes | {"configuration": configuration})
         self.file.flush()
 
     def append(self, frame: int, values: dict) -> None:
@@ -171,7 +173,16 @@ class Hdf5Writer:
         if reason is not None:
             self.file.attrs["partial_reason"] = reason
         self.file.close()
-        commit_or_replace(self.target, self.tmp, stage=reason is None)
+        from .formats import read_record, telemetry_format, write_record
+
+        if telemetry_format(self.target) == "hdf5":
+            commit_or_replace(self.target, self.tmp, stage=reason is None)
+            return
+        try:  # AOT FITS or an LBT folder: converted whole from the stream (the recorded fields in memory)
+            arrays, attributes = read_record(self.tmp)
+            write_record(self.target, arrays, attributes, immediate=reason is not None)
+        finally:
+            os.unlink(self.tmp)
 
     def abandon(self) -> None:
         """Close and remove the temporary (a run that recorded nothing worth keeping)."""
@@ -213,13 +224,7 @@ def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     """(arrays, attributes with the configuration decoded) of every field of the schema the
     file holds, each checked against it (``TelemetryReader``); InputError naming the field
     otherwise.  The whole file is read into memory (offline MGM reads only its window)."""
+    from .formats import record_of
+
     with TelemetryReader(path) as tm:
-        names = [f.name for f in DATASETS if tm.has(f.name)]
-        aux = tm.group("aux")
-        for task in aux or ():
-            names += [f"aux/{task}/{key}" for key in tm.group(f"aux/{task}") or ()]
-        arrays = {name: tm.read(name) for name in names}
-        attrs = {f.name: tm.attribute(f.name) for f in ATTRIBUTES if f.name != "configuration" and tm.has(f.name)}
-        if tm.has("configuration"):
-            attrs["configuration"] = tm.configuration()
-    return arrays, attrs
+        return record_of(tm)

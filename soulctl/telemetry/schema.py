@@ -23,6 +23,7 @@ bytes only.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from contextlib import contextmanager
@@ -42,12 +43,12 @@ from ..ranges import (
     FRAME_INDEX,
     FRAME_RATE_HZ,
     FRAME_TIME_S,
-    SCHEMA_VERSION,
     LOOP_GAIN,
     MODAL_NM,
     MODES,
     OVERSAMPLING,
     RMS_NM,
+    SCHEMA_VERSION,
     SENSITIVITY,
     TELEMETRY_EVERY,
     Range,
@@ -110,6 +111,8 @@ DATASETS = (
     _dataset("sensitivity", REAL, ("frames",), "float64", SENSITIVITY, "slope sensitivity k during frame k"),
     _dataset("flux", REAL, ("frames",), "float64", None, "detected electrons in frame k (read noise included)"),
     _dataset("gains", REAL, ("n_modes",), "float64", LOOP_GAIN, "per-mode gains at the end"),
+    _dataset("reconstructor", REAL, ("n_modes", "n_slopes"), "float32", None, "R: the modes (nm) of the slopes"),
+    _dataset("modes_to_commands", REAL, ("n_actuators", "n_modes"), "float32", None, "M: the actuator commands of each mode"),
     _dataset("gain_history/frames", INTEGER, ("changes",), "int64", FRAME_INDEX, "first frame of each gain vector"),
     _dataset("gain_history/gains", REAL, ("changes", "n_modes"), "float64", LOOP_GAIN, "the gain vectors in force from those frames"),
 )
@@ -152,6 +155,8 @@ UNITS = {
     "sensitivity": "1",
     "flux": "electron",
     "gains": "1",
+    "reconstructor": "nm per slope unit",
+    "modes_to_commands": "nm per nm",
     "gain_history/frames": "frame",
     "gain_history/gains": "1",
 }
@@ -241,6 +246,24 @@ def _values_kind(dtype: np.dtype) -> str:
     }.get(kind, f"values of type {dtype}")
 
 
+def store(f: h5py.File, arrays: dict, attributes: dict) -> None:
+    """Fields of the schema into an open HDF5 file, each in its stored dtype with its unit."""
+    for name, data in arrays.items():
+        data = np.asarray(data)
+        if data.dtype.kind in "iub":
+            data = data.astype(np.int64)
+        elif data.dtype.kind == "f":
+            data = data.astype(np.float32 if name in FLOAT32 else np.float64)
+        opts = (
+            {"compression": "gzip", "compression_opts": 1, "shuffle": True, "chunks": True} if data.ndim == 2 and data.size > 4096 else {}
+        )
+        f.create_dataset(name, data=data, **opts)
+        if name in UNITS:
+            f[name].attrs["unit"] = UNITS[name]
+    for key, value in attributes.items():
+        f.attrs[key] = json.dumps(value) if key == "configuration" and isinstance(value, dict) else value
+
+
 def _attribute_value(raw):
     """An attribute as a Python scalar (int, float, str) when it is one value, else as is."""
     if isinstance(raw, (str, bytes)):
@@ -258,26 +281,38 @@ class TelemetryReader:
     """An open telemetry file whose layout matches the schema (see the module); use as a
     context manager.  ``required``: the fields the reader cannot do without."""
 
-    def __init__(self, path, required: tuple[str, ...] = REQUIRED):
+    def __init__(self, path, required: tuple[str, ...] = REQUIRED, file: h5py.File | None = None):
         self.path = path
         self.dims: dict[str, tuple[int, str]] = {}  # dimension -> (size, the field that set it)
-        p = input_file(path, "telemetry file")
-        try:
-            hdf5 = h5py.is_hdf5(p)
-        except OSError as e:
-            raise InputError(f"cannot read telemetry file {path}: {_one_line(e)}") from None
-        if not hdf5:
-            raise InputError(f"telemetry file {path} is not an HDF5 file (soulctl writes them with 'loop run --telemetry')")
-        try:
-            self.file = h5py.File(p, "r")
-        except OSError as e:
-            raise InputError(f"cannot read telemetry file {path}: {_one_line(e)}") from None
+        self.file = file if file is not None else self._open(path)
         try:
             with self._reading("its layout"):
                 self._check_layout(required)
         except BaseException:
             self.file.close()
             raise
+
+    @staticmethod
+    def _open(path) -> h5py.File:
+        p = input_file(path, "telemetry file")
+        try:
+            hdf5 = h5py.is_hdf5(p)
+        except OSError as e:
+            raise InputError(f"cannot read telemetry file {path}: {_one_line(e)}") from None
+        if not hdf5:
+            raise InputError(f"telemetry file {path} is not an HDF5 file, an AOT FITS file (.fits) or an LBT tracking-number folder")
+        try:
+            return h5py.File(p, "r")
+        except OSError as e:
+            raise InputError(f"cannot read telemetry file {path}: {_one_line(e)}") from None
+
+    @classmethod
+    def from_arrays(cls, path, arrays: dict, attributes: dict, required: tuple[str, ...] = REQUIRED) -> TelemetryReader:
+        """The model of a record read from another format (AOT FITS, an LBT folder): the same
+        fields, held in an in-memory HDF5 file and checked alike."""
+        f = h5py.File(io.BytesIO(), "w")
+        store(f, arrays, attributes)
+        return cls(path, required, file=f)
 
     def __enter__(self) -> TelemetryReader:
         return self

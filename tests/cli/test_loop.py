@@ -38,7 +38,9 @@ def test_json_result_and_same_seed_same_numbers(capsys, cache_dir):
 
 def test_table_telemetry_and_figures(tmp_path, capsys, cache_dir):
     h5 = tmp_path / "tm.h5"
-    status, out, _ = run([*FAINT, "--band", "Ks", "--telemetry", str(h5), "--telemetry-fields", "all", "--plot", str(tmp_path)], capsys, cache_dir)
+    status, out, _ = run(
+        [*FAINT, "--band", "Ks", "--telemetry", str(h5), "--telemetry-fields", "all", "--plot", str(tmp_path)], capsys, cache_dir
+    )
     assert status == 0
     for text in ("Strehl ratio (Ks", "Tip/Tilt jitter", "pseudo-open loop", "residual wavefront error"):
         assert text in out

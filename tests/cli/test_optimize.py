@@ -16,8 +16,8 @@ from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
 from soulctl.loop.run import RunRequest, closing_frames
-from soulctl.telemetry.hdf5 import read_telemetry
 from soulctl.observation import observation_for_magnitude
+from soulctl.telemetry.hdf5 import read_telemetry
 
 # The R17 configuration (binning 4, 10x10 sub-apertures, 54 modes, 407 Hz, Tip/Tilt
 # integrator) on a 40-px pupil, with an R11 star's flux at 0.6" seeing: a small loop well inside

@@ -11,7 +11,8 @@ from soulctl.control.gains import LoopGains
 from soulctl.control.trial import scan_gains
 from soulctl.loop.auxloop import AuxLoop
 from soulctl.loop.auxloops import OgtlTask, SafetyNet, TrialAndErrorTask
-from soulctl.loop.simulation import ClosedLoop as _ClosedLoop, LoopDiverged
+from soulctl.loop.simulation import ClosedLoop as _ClosedLoop
+from soulctl.loop.simulation import LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate, calibration_sensor, mode_maps, push_pull

@@ -14,7 +14,8 @@ from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
 from soulctl.loop.metrics import pseudo_open_loop
-from soulctl.loop.simulation import ClosedLoop as _ClosedLoop, LoopDiverged
+from soulctl.loop.simulation import ClosedLoop as _ClosedLoop
+from soulctl.loop.simulation import LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate

@@ -1,0 +1,148 @@
+"""``soulctl telemetry inspect|psd|convert``: a loop's records in any format soulctl reads
+(its HDF5, AOT FITS, an LBT tracking-number folder)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from ..errors import InputError
+from ..files import check_output_path
+from ..plots.telemetry import write_psd_figure
+from ..telemetry.analysis import inspect, spectra
+from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
+from .common import JSON_OUTPUT, quantity_table
+from .option_table import command
+from .output import console as make_console
+from .output import print_json
+
+app = typer.Typer(no_args_is_help=True, help="Loop telemetry: inspect, spectra, conversion between formats.")
+
+SOURCE = typer.Argument(..., metavar="FILE|DIR", help="Telemetry: soulctl HDF5 (.h5), AOT FITS (.fits) or an LBT tracking-number folder.")
+
+
+@dataclass(frozen=True)
+class InspectOptions:
+    path: Path = SOURCE
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("inspect")
+@command(InspectOptions)
+def inspect_cmd(o: InspectOptions) -> int:
+    """Rate, frames, duration, decimation and gaps, fields with shapes and units, modes,
+    status (complete or partial, and why) and the run description of a telemetry record.
+
+    Example: soulctl telemetry inspect run.h5
+    """
+    telemetry_input(o.path)
+    with open_telemetry(o.path, required=()) as tm:
+        d = inspect(tm, telemetry_format(o.path))
+    if o.json_output:
+        print_json(d)
+        return 0
+    t = quantity_table(f"telemetry {o.path} ({d['format']})")
+    rows = [
+        ("status", d["status"] + (f": {d['partial_reason']}" if d["partial_reason"] else "")),
+        ("frame rate [Hz]", _text(d["rate_hz"])),
+        ("delay [frames]", _text(d["delay_frames"])),
+        ("frames recorded", str(d["frames"])),
+        ("duration [s]", _text(d["duration_s"])),
+        ("decimation / gaps / lost frames", f"{d['decimation']} / {d['gaps']} / {d['lost_frames']}"),
+        ("modes", _text(d["modes"])),
+        ("auxiliary loops", ", ".join(d["auxiliary_loops"]) or "-"),
+        ("run description", "yes" if d["run_description"] else "no"),
+    ]
+    rows += [(name, f"{tuple(f['shape'])} {f['unit']}") for name, f in d["fields"].items()]
+    for label, value in rows:
+        t.add_row(label, value)
+    make_console().print(t)
+    return 0
+
+
+def _text(value) -> str:
+    return "-" if value is None else f"{value:g}"
+
+
+def _modes(text: str) -> tuple[int, ...]:
+    try:
+        modes = tuple(int(m) for m in text.split(","))
+    except ValueError:
+        raise InputError(f"--modes must be mode numbers separated by commas (1-based), got '{text}'") from None
+    if not modes or len(set(modes)) != len(modes):
+        raise InputError(f"--modes must name each mode once, got '{text}'")
+    return modes
+
+
+@dataclass(frozen=True)
+class PsdOptions:
+    path: Path = SOURCE
+    modes: str = typer.Option("1,2", "--modes", metavar="M1,M2", help="Modes (1-based); with 1 and 2, the cumulative Tip/Tilt jitter.")
+    pseudo_open_loop: bool = typer.Option(False, "--pseudo-open-loop", help="Also the pseudo-open-loop modes (R s + delayed M^-1 c).")
+    plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write the PSDs and the cumulative jitter.")
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("psd")
+@command(PsdOptions)
+def psd_cmd(o: PsdOptions) -> int:
+    """Welch PSDs of measured (R s), command (M^-1 c) and pseudo-open-loop modes, and the
+    cumulative Tip/Tilt jitter in mas from each frequency to Nyquist, as in the paper's figures.
+
+    Example: soulctl telemetry psd run.h5 --modes 1,2,30 --pseudo-open-loop --plot psd.png
+    """
+    modes = _modes(o.modes)
+    telemetry_input(o.path)
+    if o.plot is not None:
+        check_output_path(o.plot, "--plot", [("FILE", o.path)])
+    with open_telemetry(o.path, required=("rate_hz",) + (("delay_frames",) if o.pseudo_open_loop else ())) as tm:
+        s = spectra(tm, modes, o.pseudo_open_loop)
+    if o.plot is not None:
+        write_psd_figure(o.plot, s, str(o.path))
+    total = {name: float(c[0]) for name, c in s.tt_cumulative_mas.items()}
+    above_3hz = {name: float(np.interp(3.0, s.f_hz, c)) for name, c in s.tt_cumulative_mas.items()}
+    if o.json_output:
+        print_json(
+            {
+                "f_hz": s.f_hz,
+                "modes": list(s.modes),
+                "psd_nm2_per_hz": {name: p for name, p in s.psd.items()},
+                "tt_cumulative_mas": s.tt_cumulative_mas,
+                "tt_jitter_mas": total,
+                "tt_jitter_above_3hz_mas": above_3hz,
+            }
+        )
+        return 0
+    t = quantity_table(f"spectra of {o.path}: modes {o.modes}, resolution {s.f_hz[1]:.3g} Hz")
+    for name, p in s.psd.items():
+        rms = np.sqrt(np.sum(p, axis=1) * s.f_hz[1])
+        t.add_row(f"{name} RMS [nm]", ", ".join(f"{v:.3g}" for v in rms))
+    for name in total:
+        t.add_row(f"{name} Tip/Tilt jitter per axis [mas]: all / above 3 Hz", f"{total[name]:.3g} / {above_3hz[name]:.3g}")
+    make_console().print(t)
+    return 0
+
+
+@dataclass(frozen=True)
+class ConvertOptions:
+    source: Path = SOURCE
+    target: Path = typer.Argument(..., metavar="OUT", help="The format by the name: .h5, .fits, or a new folder (LBT TN layout).")
+
+
+@app.command("convert")
+@command(ConvertOptions)
+def convert_cmd(o: ConvertOptions) -> int:
+    """Convert telemetry between soulctl HDF5, AOT FITS and LBT tracking-number folders (each
+    field both formats hold is kept; docs/telemetry-formats.md has the mapping).
+
+    Example: soulctl telemetry convert run.h5 run.fits
+    """
+    telemetry_input(o.source)
+    if telemetry_format(o.target) != "lbt":
+        check_output_path(o.target, "OUT", [("FILE", o.source)])
+    arrays, attributes = read_record(o.source)
+    write_record(o.target, arrays, attributes)
+    return 0

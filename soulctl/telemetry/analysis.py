@@ -1,0 +1,117 @@
+"""What `soulctl telemetry inspect` and `telemetry psd` compute; they read the model only
+(``schema.TelemetryReader``, whichever format it came from)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import welch
+
+from ..errors import InputError
+from ..loop.metrics import pseudo_open_loop
+from ..optics.pupil import Pupil
+from .schema import DATASETS, UNITS, TelemetryReader
+
+TIP_TILT = (1, 2)  # 1-based modes
+
+
+def frame_steps(tm: TelemetryReader) -> tuple[int, int, int]:
+    """(decimation, gaps, lost frames) from the frame counter, as LBT's elab_lib counts them:
+    decimation = median step - 1, a gap a step beyond decimation + 1 (aoframes_counter:51-56);
+    (0, 0, 0) without a counter."""
+    if not tm.has("frame_counter") or tm.dim("frames") < 2:
+        return 0, 0, 0
+    steps = np.diff(tm.read("frame_counter"))
+    if np.any(steps <= 0):
+        raise InputError(f"telemetry file {tm.path}: field frame_counter must increase from row to row")
+    decimation = int(np.median(steps)) - 1
+    gaps = steps > decimation + 1
+    return decimation, int(gaps.sum()), int(np.sum(steps[gaps] // (decimation + 1) - 1))
+
+
+def inspect(tm: TelemetryReader, kind: str) -> dict:
+    """The record's description: format, status, rate, frames, duration, decimation and gaps,
+    fields with their shapes and units, modes, the auxiliary loops and the run description."""
+    rate = tm.attribute("rate_hz", None)
+    frames = tm.dims.get("frames", (0,))[0]
+    decimation, gaps, lost = frame_steps(tm)
+    fields = {}
+    for f in DATASETS:
+        ds = tm.dataset(f.name) if tm.has(f.name) else None
+        if ds is not None:
+            fields[f.name] = {"shape": list(ds.shape), "unit": UNITS.get(f.name, "")}
+    span = int(tm.read("frame_counter")[-1]) + 1 if tm.has("frame_counter") and frames else frames
+    conf = tm.configuration()
+    return {
+        "format": kind,
+        "status": tm.attribute("status", "complete"),
+        "partial_reason": tm.attribute("partial_reason", None),
+        "rate_hz": rate,
+        "delay_frames": tm.attribute("delay_frames", None),
+        "frames": frames,
+        "duration_s": span / rate if rate else None,
+        "decimation": decimation,
+        "gaps": gaps,
+        "lost_frames": lost,
+        "modes": tm.dims.get("n_modes", (None,))[0],
+        "fields": fields,
+        "auxiliary_loops": sorted(tm.group("aux") or ()),
+        "run_description": tm.has("run_description"),
+        "star_magnitude_r": conf.get("observation", {}).get("star", {}).get("magnitude_r"),
+        "seeing_arcsec": conf.get("seeing_arcsec"),
+        "seed": conf.get("seed"),
+    }
+
+
+@dataclass(frozen=True)
+class ModalSpectra:
+    """Welch PSDs (nm^2/Hz) of the chosen modes' records and the cumulative Tip/Tilt jitter."""
+
+    f_hz: np.ndarray
+    modes: tuple[int, ...]  # 1-based
+    psd: dict  # record -> (n_modes, n_freq)
+    tt_cumulative_mas: dict  # record -> cumulative jitter per axis RMS from f to Nyquist (mas)
+
+
+def nm_per_mas_tip_tilt() -> float:
+    """nm RMS of a unit-RMS Tip mode per mas of tilt on the LBT pupil (``stages.Disturbance``)."""
+    return Pupil(160).nm_per_mas_tilt()
+
+
+def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool) -> ModalSpectra:
+    """PSDs of measured (R s), command (M^-1 c) and, with ``pseudo_open``, pseudo-open-loop
+    modes; the rows must be consecutive frames (no decimation, no gap)."""
+    rate = tm.attribute("rate_hz")
+    decimation, gaps, _ = frame_steps(tm)
+    if decimation or gaps:
+        raise InputError(f"telemetry file {tm.path}: the frames are decimated ({decimation}) or have gaps ({gaps}): PSDs need every frame")
+    n_modes = tm.dims.get("n_modes", (0,))[0]
+    bad = [m for m in modes if not 1 <= m <= n_modes]
+    if bad:
+        raise InputError(f"--modes: mode {bad[0]} is not in 1..{n_modes} (the record's modes)")
+    records = {name: _columns(tm, name, modes) for name in ("measured_modes", "command_modes") if tm.has(name)}
+    if pseudo_open:
+        missing = [n for n in ("measured_modes", "command_modes") if n not in records]
+        if missing:
+            raise InputError(f"telemetry file {tm.path} lacks {missing[0]}: the pseudo-open loop needs measured and command modes")
+        records["pseudo_open_loop"] = pseudo_open_loop(records["measured_modes"], records["command_modes"], tm.attribute("delay_frames"))
+    if not records:
+        raise InputError(f"telemetry file {tm.path} lacks measured_modes and command_modes: nothing to analyse")
+    frames = next(iter(records.values())).shape[0]
+    if frames < 16:
+        raise InputError(f"telemetry file {tm.path} holds {frames} frames: PSDs need at least 16")
+    # ~1 Hz resolution where the record allows, else segments of half the record (3 averages)
+    nperseg = min(2 ** int(np.ceil(np.log2(rate))), 2 ** int(np.log2(frames / 2)))
+    psd, cumulative = {}, {}
+    for name, x in records.items():
+        f, p = welch(x, fs=rate, nperseg=nperseg, axis=0, detrend="constant")
+        psd[name] = p.T
+        if all(m in modes for m in TIP_TILT):
+            tt = p[:, [modes.index(1), modes.index(2)]].mean(axis=1)  # per axis
+            cumulative[name] = np.sqrt(np.cumsum(tt[::-1])[::-1] * (f[1] - f[0])) / nm_per_mas_tip_tilt()
+    return ModalSpectra(f, modes, psd, cumulative)
+
+
+def _columns(tm: TelemetryReader, name: str, modes: tuple[int, ...]) -> np.ndarray:
+    return np.column_stack([tm.read(name, slice(None), slice(m - 1, m)) for m in modes]).astype(float)
