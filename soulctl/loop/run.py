@@ -190,6 +190,20 @@ def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n
     )
 
 
+def _prepare(loop: ClosedLoop, request: RunRequest, gains: LoopGains, cal: Calibration, cache, aux, sink):
+    """The auxiliary loops of ``aux`` with their initial gains, and the sink's description:
+    (frames the loop runs at k = 1 before the tasks start, the tasks, the gains it starts with)."""
+    n_close, tasks = 0, None
+    if aux is not None:
+        tasks, initial = aux(request, gains, cal, cache, loop)
+        loop.set_gains(initial)
+        gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
+        n_close = min(request.frames, closing_frames(request.observation.frame_rate_hz))
+    if sink is not None and hasattr(sink, "describe"):
+        _describe(sink, request, cal, gains)
+    return n_close, tasks, gains
+
+
 def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> None:
     """The loop's static description to the sink, before the first frame: rate, delay, modes,
     the configuration, the reconstructor and the modal basis."""
@@ -224,14 +238,7 @@ def run(
         obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure, sink=sink
     )
     loop.telemetry.moments_from(request.skip)
-    n_close, tasks = 0, None
-    if aux is not None:
-        tasks, initial = aux(request, gains, cal, cache, loop)
-        loop.set_gains(initial)
-        gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
-        n_close = min(request.frames, closing_frames(obs.frame_rate_hz))
-    if sink is not None and hasattr(sink, "describe"):
-        _describe(sink, request, cal, gains)
+    n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()

@@ -70,6 +70,12 @@ STAGES = (
 )
 
 
+def _photons_per_frame(observation: Observation, pupil) -> float:
+    """Photons of the guide star in the beam per frame (``optics.sensor.photons_in_beam``)."""
+    area = pupil.n_valid * pupil.pixel_scale_m**2
+    return photons_in_beam(observation.photometry, observation.magnitude_r, observation.frame_rate_hz, area)
+
+
 class ClosedLoop:
     """A simulated SOUL-like loop for ``observation`` with ``calibration`` (which fixes the
     pyramid's binning, modulation and sampling and the controlled modes)."""
@@ -100,16 +106,12 @@ class ClosedLoop:
         # the stages, in the order of a frame (``step``)
         self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), np.random.default_rng(vib_seed))
         self.mirror = Mirror(calibration, pupil, structure, self.rate_hz)
-        self.sensor = WavefrontSensor(
-            pyramid,
-            detector,
-            photons_in_beam(observation.photometry, observation.magnitude_r, self.rate_hz, pupil.n_valid * pupil.pixel_scale_m**2),
-        )
+        self.sensor = WavefrontSensor(pyramid, detector, _photons_per_frame(observation, pupil))
         self.n_modes = calibration.basis.n_modes
         self.controller = Controller(mode_filters(observation, gains, self.n_modes), calibration)
         self.delay = DelayLine(calibration.basis.M.shape[0], observation.delay_frames if delay_frames is None else delay_frames)
-        self.telemetry = TelemetryRecorder(self.rate_hz, sink)
-        self._reconstructor32 = calibration.reconstructor.astype(np.float32)  # R s of float32 slopes
+        # the recorder of what the frames produce; R s of float32 slopes
+        self.telemetry, self._reconstructor32 = TelemetryRecorder(self.rate_hz, sink), calibration.reconstructor.astype(np.float32)
         # the divergence test's ratio and scale, the largest disturbance RMS so far (nm)
         self.divergence_ratio, self._disturbance_peak = divergence_ratio, 0.0
         self.frame, self.stage_seconds = 0, dict.fromkeys(STAGES + ("metrics",), 0.0)
