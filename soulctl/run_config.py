@@ -252,10 +252,11 @@ class RunConfig:
 
 
 def read_run_config(path: str | Path) -> RunConfig:
-    """A run description from a TOML file, or the one stored in a telemetry file (.h5)."""
+    """A run description from a TOML file, or the one stored in telemetry (.h5, AOT .fits or
+    an LBT folder written by soulctl)."""
     path = Path(path)
-    if path.suffix.lower() in (".h5", ".hdf5"):
-        from .telemetry.hdf5 import stored_run_description
+    if path.suffix.lower() in (".h5", ".hdf5", ".fits", ".fit", ".fts") or path.is_dir():
+        from .telemetry.formats import stored_run_description
 
         return RunConfig.from_dict(stored_run_description(path), f"telemetry file {path}")
     from .files import read_toml

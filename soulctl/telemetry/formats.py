@@ -96,3 +96,12 @@ def check_decimation(tm: TelemetryReader, path, what: str) -> None:
             f"telemetry file {path}: field frame_counter steps by {', '.join(str(int(s)) for s in steps[:4])} frames "
             f"(decimated or skipped frames): {what} need every frame"
         )
+
+
+def stored_run_description(path: str | Path) -> dict:
+    """The run description stored in telemetry of any format (``run_config.RunConfig.from_dict``
+    reads it); InputError when it holds none."""
+    from .hdf5 import run_description_of
+
+    with open_telemetry(telemetry_input(path), required=()) as tm:
+        return run_description_of(tm)

@@ -202,13 +202,6 @@ def _write_records(f: h5py.File, recorder) -> None:
             f.create_dataset(f"aux/{task}/{key}", data=value.astype(np.int64) if key == "frame" else value.astype(np.float64))
 
 
-def stored_run_description(path: str | Path) -> dict:
-    """The run description stored in a telemetry file (``run_config.RunConfig.from_dict``
-    reads it); InputError when the file has none."""
-    with TelemetryReader(path) as tm:
-        return run_description_of(tm)
-
-
 def run_description_of(tm: TelemetryReader) -> dict:
     """The stored run description of an open telemetry file, as a dict."""
     text = tm.attribute("run_description", None)

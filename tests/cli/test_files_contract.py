@@ -243,7 +243,7 @@ INPUTS = [
     ["telemetry", "convert", "{}", "out.h5"],
     ["sweep", "{}"],
 ]
-TELEMETRY_FOLDER = "an LBT tracking-number folder holds one FramesCounter_<TN>.fits"  # a folder is a telemetry input
+TELEMETRY_FOLDER = "an LBT tracking-number folder holds one FramesCounter_<TN>.fits"  # a folder is telemetry (also as --config)
 
 
 @pytest.mark.parametrize("args", INPUTS)
@@ -254,7 +254,7 @@ def test_inputs_must_be_regular_files(args, tmp_path, capsys):
         t0 = time.perf_counter()
         status, out, err = run([a.format(source) for a in args], capsys)
         assert status == 2 and err.count("\n") == 1, err
-        folder_read = source == str(tmp_path) and any("telemetry" in a for a in args)
+        folder_read = source == str(tmp_path) and (any("telemetry" in a for a in args) or "--config" in args)
         assert "regular files only" in err or "must be" in err or (folder_read and TELEMETRY_FOLDER in err), err
         assert time.perf_counter() - t0 < 5
 

@@ -228,11 +228,14 @@ def test_writing_a_record_refuses_an_existing_folder(tmp_path, recorded):
 def test_loop_run_writes_each_format_by_its_name(tmp_path, capsys, optics_cache):
     small = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3", "--cache-dir", optics_cache.directory]
     for target in (tmp_path / "run.fits", tmp_path / "Data_20261126_000001"):
-        status, _, err = run([*small, "--telemetry", target, "--json"], capsys)
+        status, first, err = run([*small, "--telemetry", target, "--json"], capsys)
         assert status == 0, err
         status, out, err = run(["telemetry", "inspect", target, "--json"], capsys)
         d = json.loads(out)
         assert status == 0 and d["frames"] == 75 and d["status"] == "complete" and d["run_description"], err
+        # the run again from its telemetry, whichever format: the same numbers
+        status, again, err = run(["loop", "run", "--config", target, "--cache-dir", optics_cache.directory, "--json"], capsys)
+        assert status == 0 and json.loads(again)["metrics"] == json.loads(first)["metrics"], err
     assert aotpy.AOSystem.read_from_file(str(tmp_path / "run.fits")).loops[0].framerate == 250.0
     assert (tmp_path / "Data_20261126_000001" / "FramesCounter_20261126_000001.fits").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["Data_20261126_000001", "run.fits"]  # no temporaries
