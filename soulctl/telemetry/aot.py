@@ -142,14 +142,15 @@ def write_aot(path: str | Path, arrays: dict, attributes: dict, configuration: d
         hdus = AOTFITSWriter(system).get_hdulist()
     for name, data in arrays.items():
         if name not in AOT_FIELDS or name in EXACT:
-            hdus.append(_extra(name, np.asarray(data)))
+            hdus.append(tagged_hdu(name, np.asarray(data)))
     texts = {"configuration": json.dumps(configuration)} | {k: attributes[k] for k in TEXT_FIELDS[1:] if k in attributes}
     for name, text in texts.items():
-        hdus.append(_extra(name, np.frombuffer(text.encode("utf-8"), dtype=np.uint8)))
+        hdus.append(tagged_hdu(name, np.frombuffer(text.encode("utf-8"), dtype=np.uint8)))
     atomic_write(path, lambda tmp: hdus.writeto(tmp, overwrite=True), immediate=immediate)
 
 
-def _extra(name: str, data: np.ndarray) -> fits.ImageHDU:
+def tagged_hdu(name: str, data: np.ndarray) -> fits.ImageHDU:
+    """An extension HDU of soulctl's own record ``name`` (keyword SOULNAME, no EXTNAME)."""
     hdu = fits.ImageHDU(data if data.dtype.kind != "b" else data.astype(np.uint8))
     hdu.header[EXTRA_KEY] = name
     return hdu

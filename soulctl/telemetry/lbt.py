@@ -51,18 +51,31 @@ from astropy.io import fits
 
 from ..errors import InputError
 from ..files import check_output_path
+from .aot import EXTRA_KEY, tagged_hdu
 from .schema import REQUIRED, TelemetryReader
 
 NM_PER_M_SURFACE = 2e9  # 1e9 x reflcoef, reflcoef = 2 on sky (aoelab:159)
 RATE_KEYWORDS = ("ocam2.FRAMERATE", "ccd39.FRAMERATE")
 MODULATION_KEYWORD = "tt.LAMBDA_D"
 DELAY_KEYWORD = "SOULDLY"
-EXTRA_KEY = "SOULNAME"
 SERIES = {  # file stem -> (soulctl field, scale from the file's unit to soulctl's)
     "Modes": ("command_modes", NM_PER_M_SURFACE),
     "Commands": ("commands", NM_PER_M_SURFACE),
 }
 TN_PATTERN = re.compile(r"^FramesCounter_(\d{8}_\d{6})\.fits$")
+
+
+def deinterleaved(a: np.ndarray) -> np.ndarray:
+    """Columns x, y, x, y (LBT, aoslopes:113-114) -> [x..., y...] (soulctl)."""
+    return np.concatenate([a[:, 0::2], a[:, 1::2]], axis=1)
+
+
+def interleaved(a: np.ndarray) -> np.ndarray:
+    """Columns [x..., y...] (soulctl) -> x, y, x, y (LBT)."""
+    out = np.empty_like(a)
+    half = a.shape[1] // 2
+    out[:, 0::2], out[:, 1::2] = a[:, :half], a[:, half:]
+    return out
 
 
 def tracking_number(folder: Path) -> str:
@@ -121,7 +134,7 @@ def read_lbt(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
     attributes: dict = {}
     slopes = _series(folder, "Slopes", tn, frames)
     if slopes is not None:
-        arrays["slopes"] = np.concatenate([slopes[:, 0::2], slopes[:, 1::2]], axis=1)  # x, y, x, y -> [sx..., sy...]
+        arrays["slopes"] = deinterleaved(slopes)
     for stem, (name, scale) in SERIES.items():
         data = _series(folder, stem, tn, frames)
         if data is not None:
@@ -176,7 +189,7 @@ def _reconstructor(folder: Path, arrays: dict) -> None:
     r, _ = _read_fits(recs[0], "Rec")
     if r is None or r.ndim != 2:
         return
-    r = np.concatenate([r[:, 0::2], r[:, 1::2]], axis=1) * NM_PER_M_SURFACE  # columns in soulctl's slope order, nm
+    r = deinterleaved(r) * NM_PER_M_SURFACE  # columns in soulctl's slope order, nm
     arrays["reconstructor"] = r
     if "slopes" in arrays and r.shape[1] == arrays["slopes"].shape[1]:
         arrays["measured_modes"] = arrays["slopes"] @ r.T
@@ -225,11 +238,7 @@ def _write_files(folder: Path, tn: str, arrays: dict, attributes: dict, configur
     counter = np.asarray(arrays.get("frame_counter", np.arange(_frames(arrays))), dtype=np.int32)
     fits.PrimaryHDU(counter).writeto(folder / f"FramesCounter_{tn}.fits")
     if "slopes" in arrays:
-        s = np.asarray(arrays["slopes"], dtype=np.float32)
-        half = s.shape[1] // 2
-        interleaved = np.empty_like(s)
-        interleaved[:, 0::2], interleaved[:, 1::2] = s[:, :half], s[:, half:]
-        fits.PrimaryHDU(interleaved).writeto(folder / f"Slopes_{tn}.fits")
+        fits.PrimaryHDU(interleaved(np.asarray(arrays["slopes"], dtype=np.float32))).writeto(folder / f"Slopes_{tn}.fits")
     for stem, (name, scale) in SERIES.items():
         if name in arrays:
             fits.PrimaryHDU((np.asarray(arrays[name]) / scale).astype(np.float32)).writeto(folder / f"{stem}_{tn}.fits")
@@ -248,11 +257,8 @@ def _write_files(folder: Path, tn: str, arrays: dict, attributes: dict, configur
     if "gains" in arrays:
         fits.PrimaryHDU(np.asarray(arrays["gains"], dtype=np.float32)).writeto(folder / f"Gains_{tn}.fits")
     if "reconstructor" in arrays:
-        r = np.asarray(arrays["reconstructor"]) / NM_PER_M_SURFACE
-        half = r.shape[1] // 2
-        lbt = np.empty_like(r)
-        lbt[:, 0::2], lbt[:, 1::2] = r[:, :half], r[:, half:]
-        fits.PrimaryHDU(lbt.astype(np.float32)).writeto(folder / f"Rec_{tn}.fits")
+        r = interleaved(np.asarray(arrays["reconstructor"]) / NM_PER_M_SURFACE)
+        fits.PrimaryHDU(r.astype(np.float32)).writeto(folder / f"Rec_{tn}.fits")
     _write_extras(folder / f"soulctl_{tn}.fits", arrays, attributes, configuration)
 
 
@@ -267,19 +273,13 @@ def _write_extras(path: Path, arrays: dict, attributes: dict, configuration: dic
     hdus = fits.HDUList([fits.PrimaryHDU()])
     for name, data in arrays.items():
         if name not in LBT_HELD or name in ("command_modes", "commands", "gains", "reconstructor"):  # exact copies (LBT's are float32)
-            hdus.append(_tagged(name, np.asarray(data)))
+            hdus.append(tagged_hdu(name, np.asarray(data)))
     texts = {"configuration": json.dumps(configuration)} | {
         k: str(attributes[k]) for k in ("run_description", "status", "partial_reason", "soulctl_version") if k in attributes
     }
     for name, text in texts.items():
-        hdus.append(_tagged(name, np.frombuffer(text.encode("utf-8"), dtype=np.uint8)))
+        hdus.append(tagged_hdu(name, np.frombuffer(text.encode("utf-8"), dtype=np.uint8)))
     for name in ("schema_version", "telemetry_every", "diverged_at", "n_modes"):
         if name in attributes:
-            hdus.append(_tagged(name, np.array([int(attributes[name])], dtype=np.int64)))
+            hdus.append(tagged_hdu(name, np.array([int(attributes[name])], dtype=np.int64)))
     hdus.writeto(path)
-
-
-def _tagged(name: str, data: np.ndarray) -> fits.ImageHDU:
-    hdu = fits.ImageHDU(data if data.dtype.kind != "b" else data.astype(np.uint8))
-    hdu.header[EXTRA_KEY] = name
-    return hdu
