@@ -61,17 +61,9 @@ from .. import __version__
 from ..errors import InputError
 from ..files import NEW_FILE_MODE, atomic_write, commit_or_replace, output_target
 from ..ranges import TELEMETRY_SCHEMA_VERSION
-from .schema import FLOAT32, UNITS, TelemetryReader, store
+from .schema import COMPRESSION, UNITS, TelemetryReader, store, stored
 
 BLOCK_FRAMES = 256  # frames buffered per field before a chunk is written and the file flushed
-COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
-
-
-def _stored(name: str, data) -> np.ndarray:
-    data = np.asarray(data)
-    if data.dtype.kind in "iub":
-        return data.astype(np.int64)
-    return data.astype(np.float32 if name in FLOAT32 else np.float64)
 
 
 def write_telemetry(
@@ -147,7 +139,7 @@ class Hdf5Writer:
     def _create(self, values: dict) -> None:
         counters = {"frame_counter": np.int64(0), "frame_time_s": np.float64(0.0)}
         for name in (*self.fields, *counters):
-            like = _stored(name, values[name] if name in values else counters[name])
+            like = stored(name, values[name] if name in values else counters[name])
             shape = np.shape(like)
             self._buffers[name] = np.zeros((BLOCK_FRAMES, *shape), dtype=like.dtype)
             opts = COMPRESSION if shape and shape[0] * BLOCK_FRAMES > 4096 else {}

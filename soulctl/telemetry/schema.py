@@ -246,18 +246,26 @@ def _values_kind(dtype: np.dtype) -> str:
     }.get(kind, f"values of type {dtype}")
 
 
+COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+
+
+def stored(name: str, data) -> np.ndarray:
+    """A field's values in the dtype files store it in: int64 for integers (and booleans),
+    float32 or float64 for real numbers as the schema says; other kinds as they are (the
+    reader refuses them, naming the field)."""
+    data = np.asarray(data)
+    if data.dtype.kind in "iub":
+        return data.astype(np.int64)
+    if data.dtype.kind == "f":
+        return data.astype(np.float32 if name in FLOAT32 else np.float64)
+    return data
+
+
 def store(f: h5py.File, arrays: dict, attributes: dict) -> None:
     """Fields of the schema into an open HDF5 file, each in its stored dtype with its unit."""
     for name, data in arrays.items():
-        data = np.asarray(data)
-        if data.dtype.kind in "iub":
-            data = data.astype(np.int64)
-        elif data.dtype.kind == "f":
-            data = data.astype(np.float32 if name in FLOAT32 else np.float64)
-        opts = (
-            {"compression": "gzip", "compression_opts": 1, "shuffle": True, "chunks": True} if data.ndim == 2 and data.size > 4096 else {}
-        )
-        f.create_dataset(name, data=data, **opts)
+        data = stored(name, data)
+        f.create_dataset(name, data=data, **(COMPRESSION | {"chunks": True} if data.ndim == 2 and data.size > 4096 else {}))
         if name in UNITS:
             f[name].attrs["unit"] = UNITS[name]
     for key, value in attributes.items():
