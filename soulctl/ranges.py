@@ -112,6 +112,7 @@ FRAME_TIME_S = Range(0.0, 1e7, "s")
 SENSITIVITY = Range(0.05, 20.0)  # the slope sensitivity k, as OGTL clamps it
 FRAME_INDEX = Range(0, 2**63 - 1, integer=True)
 DIVERGED_AT = Range(-1, 2**63 - 1, integer=True)  # -1: the loop did not diverge
+OPTICAL_GAIN = Range(0.0, 2.0, lo_open=True)  # a modal optical gain gamma_i (optimize gains --chi-table)
 TELEMETRY_SCHEMA_VERSION = 2  # 1: files of soulctl before streaming (no frame_counter, status); still read
 SCHEMA_VERSION = Range(1, TELEMETRY_SCHEMA_VERSION, integer=True)
 TELEMETRY_EVERY = Range(1, 100_000, integer=True)  # loop run --telemetry-every: record one frame in N

@@ -18,11 +18,12 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
-from ..loop.offline import offline_mgm
+from ..loop.offline import PlantInputs, offline_mgm
 from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
+from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
-from ..ranges import MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
-from ..telemetry.formats import telemetry_input
+from ..ranges import DELAY_FRAMES, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
+from ..telemetry.formats import open_telemetry, telemetry_input
 from . import common
 from .common import (
     BAND,
@@ -133,9 +134,21 @@ def _group_text(g: dict) -> str:
     return f"{g['mean']:.3f}" if g["min"] == g["max"] else f"{g['mean']:.3f} ({g['min']:.3f}-{g['max']:.3f})"
 
 
-def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | None, json_output: bool, cache) -> int:
-    observation = run_description(config, mag, {}).observation if config is not None or mag is not None else None
-    result = offline_mgm(telemetry, observation, cache)
+def _recorded_modes(path: Path) -> int:
+    """The number of modes a record holds (the --chi-table's length without --config/--mag)."""
+    with open_telemetry(path) as tm:
+        return tm.dim("n_modes")
+
+
+def _offline(o: GainsOptions, cache) -> int:
+    telemetry, out, json_output = o.telemetry, o.out, o.json_output
+    assert telemetry is not None
+    observation = run_description(o.config, o.mag, {}).observation if o.config is not None or o.mag is not None else None
+    gamma = None
+    if o.chi_table is not None:
+        n_modes = observation.modes if observation is not None else None
+        gamma = read_optical_gain_table(o.chi_table, n_modes or _recorded_modes(telemetry))
+    result = offline_mgm(telemetry, observation, cache, plant=PlantInputs(o.delay_frames, gamma))
     if out is not None:
         atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
     if json_output:
@@ -156,6 +169,9 @@ def _offline(telemetry: Path, config: Path | None, mag: str | None, out: Path | 
         if result.ogtl
         else f"gamma_i x k (k = {result.sensitivity:.3f})",
     )
+    t.add_row("gamma_i from", str(o.chi_table) if o.chi_table is not None else "the optical model (optics gains)")
+    if o.delay_frames is not None:
+        t.add_row("loop delay", f"{o.delay_frames:g} frames (--delay-frames)")
     if result.capped:
         t.add_row("capped at the nominal stability limit", f"{len(result.capped)} mode(s), first mode {result.capped[0]}")
     console.print(t)
@@ -204,7 +220,20 @@ class GainsOptions:
     config: Path | None = RUN_CONFIG
     mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}).")
     telemetry: Path | None = typer.Option(
-        None, "--telemetry", metavar="FILE.h5", help="Offline: MGM on this telemetry file (from 'loop run --telemetry'); no loop is run."
+        None,
+        "--telemetry",
+        metavar="FILE|DIR",
+        help="Offline: MGM on recorded telemetry (soulctl .h5, AOT .fits, an LBT Data_<TN> folder); no loop is run.",
+    )
+    delay_frames: float | None = typer.Option(
+        None,
+        "--delay-frames",
+        parser=number(DELAY_FRAMES),
+        metavar="D",
+        help="Offline: the loop delay in frames (default: the record's, else the configuration's).",
+    )
+    chi_table: Path | None = typer.Option(
+        None, "--chi-table", metavar="FILE.csv", help="Offline: optical gains per mode ('optics gains --out' CSV) instead of the model's."
     )
     seeing: float | None = SEEING
     wind: float | None = WIND
@@ -280,7 +309,7 @@ def gains_cmd(o: GainsOptions) -> int:
         if o.method != "mgm":
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
         telemetry_input(o.telemetry)
-        return _offline(o.telemetry, o.config, o.mag, o.out, o.json_output, cache)
+        return _offline(o, cache)
     description = run_description(o.config, o.mag, overrides).resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases
     probe_of_run = description.auxiliary.probe()
@@ -300,6 +329,11 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
     """Every option checked (in both modes: the offline one ignores the loop's, but one range
     per quantity) and the outputs checked before any work; the run description's overrides."""
     inputs = [("--config", o.config), ("--telemetry", o.telemetry), gain_file_input(o.gains), ("--vibrations", o.vibrations)]
+    inputs.append(("--chi-table", o.chi_table))
+    if o.telemetry is None and (o.delay_frames is not None or o.chi_table is not None):
+        raise InputError(
+            f"{'--delay-frames' if o.delay_frames is not None else '--chi-table'} applies to offline MGM: use it with --telemetry"
+        )
     if o.out is not None:
         check_output_path(o.out, "--out", inputs)
     if o.plot is not None:

@@ -92,6 +92,7 @@ class OfflineMgmResult:
             "ogtl": self.ogtl,
             "probe_mode": self.probe_mode,
             "sensitivity": self.sensitivity,
+            "chi": self.chi.tolist(),
             "previous_gains": self.previous_gains.tolist(),
             "optimum": self.optimum.tolist(),
             "gains": self.gains.tolist(),
@@ -197,8 +198,21 @@ def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> 
     return recorded if observation is None else dataclasses.replace(recorded, observation=observation)
 
 
-def _check_recording(tm, observation: Observation, path) -> None:
-    """The file's modes, frame rate and delay are the configuration's (InputError naming the field)."""
+@dataclass(frozen=True)
+class PlantInputs:
+    """What offline MGM takes from options where the record lacks it or is to be overridden:
+    the loop delay (frames) and the optical gains gamma_i (``optics gains --out`` CSV)."""
+
+    delay_frames: float | None = None
+    optical_gains: np.ndarray | None = None
+
+
+def _check_recording(tm, observation: Observation, path, delay_given: bool) -> None:
+    """A stable loop's record whose modes, frame rate and delay (unless ``delay_given``) are
+    the configuration's (InputError naming the field)."""
+    diverged = tm.attribute("diverged_at", -1)
+    if diverged >= 0:
+        raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
     n_modes = observation.modes
     if tm.dim("n_modes") != n_modes:
         raise InputError(
@@ -211,7 +225,7 @@ def _check_recording(tm, observation: Observation, path) -> None:
             f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
         )
     delay = tm.attribute("delay_frames", observation.delay_frames)  # a record without it (LBT's) takes the configuration's
-    if abs(delay - observation.delay_frames) > 1e-6:
+    if not delay_given and abs(delay - observation.delay_frames) > 1e-6:
         raise InputError(
             f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
             f"{observation.delay_frames:g} frames at {rate:g} Hz"
@@ -224,18 +238,18 @@ def offline_mgm(
     cache: ArrayCache = ArrayCache(None),
     settings: mgm.MgmSettings | None = None,
     chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
+    plant: PlantInputs = PlantInputs(),
 ) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
-    ``observation``: the configuration to check the file against (default: the file's own)."""
+    ``observation``: the configuration to check the file against (default: the file's own);
+    ``plant``: a delay or optical gains given instead of the record's and the model's."""
     with open_telemetry(path, tuple(n for n in REQUIRED if n != "delay_frames")) as tm:
         check_decimation(tm, path, "MGM's spectra")
         description = recorded_run(tm, observation, path)
         observation = description.observation
-        diverged = tm.attribute("diverged_at", -1)
-        if diverged >= 0:
-            raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
-        _check_recording(tm, observation, path)
-        n_modes, rate, delay = observation.modes, tm.attribute("rate_hz"), tm.attribute("delay_frames", observation.delay_frames)
+        _check_recording(tm, observation, path, plant.delay_frames is not None)
+        n_modes, rate = observation.modes, tm.attribute("rate_hz")
+        delay = plant.delay_frames if plant.delay_frames is not None else tm.attribute("delay_frames", observation.delay_frames)
         forgetting, structure = description.controller.forgetting, description.structure
         recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
         frames = tm.dim("frames")
@@ -254,7 +268,7 @@ def offline_mgm(
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
         calibration = calibration_for(description.request(), cache)
-        gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)
+        gamma = plant.optical_gains if plant.optical_gains is not None else optical_gain_table(calibration, cache, chi_seeing_arcsec)
         chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
         machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
         psd = []

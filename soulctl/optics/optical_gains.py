@@ -27,8 +27,8 @@ import numpy as np
 
 from .. import defaults
 from ..errors import InputError
-from ..files import atomic_write_text
-from ..ranges import FRACTION, OUTER_SCALE_M, SEEING_ARCSEC
+from ..files import atomic_write_text, read_input_text
+from ..ranges import FRACTION, OPTICAL_GAIN, OUTER_SCALE_M, SEEING_ARCSEC
 from .atmosphere import fft_phase_screen, r0_from_seeing
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .pupil import Pupil
@@ -147,3 +147,33 @@ def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: i
         seed=seed,
         residual_nm=rms,
     )
+
+
+def read_optical_gain_table(path: str | Path, n_modes: int) -> np.ndarray:
+    """gamma_i of a table as ``OpticalGainTable.to_csv`` writes it (`optics gains --out`): lines
+    mode,optical_gain[,spread] after a header naming those columns, comments '#'; each of the
+    modes 1..n_modes once, each gain in OPTICAL_GAIN (InputError naming the file and line)."""
+    lines = [
+        (i + 1, ln)
+        for i, ln in enumerate(read_input_text(path, "optical gain table").splitlines())
+        if ln.strip() and not ln.lstrip().startswith("#")
+    ]
+    if not lines or [c.strip() for c in lines[0][1].split(",")][:2] != ["mode", "optical_gain"]:
+        raise InputError(
+            f"optical gain table {path}: the first line must be the header mode,optical_gain[,spread] (as 'optics gains --out' writes)"
+        )
+    gains = np.full(n_modes, np.nan)
+    for n, line in lines[1:]:
+        cells = [c.strip() for c in line.split(",")]
+        try:
+            mode, value = int(cells[0]), float(cells[1])
+        except (ValueError, IndexError):
+            raise InputError(f"optical gain table {path}, line {n}: expected mode,optical_gain, got {line.strip()[:60]!r}") from None
+        if not 1 <= mode <= n_modes or not np.isnan(gains[mode - 1]):
+            raise InputError(f"optical gain table {path}, line {n}: mode {mode} must be one of 1..{n_modes}, each once")
+        gains[mode - 1] = OPTICAL_GAIN.check(value, f"optical gain table {path}, line {n}: optical_gain")
+    if np.isnan(gains).any():
+        raise InputError(
+            f"optical gain table {path} lacks mode {int(np.flatnonzero(np.isnan(gains))[0]) + 1} (the record has {n_modes} modes)"
+        )
+    return gains

@@ -254,3 +254,23 @@ def test_the_psd_integrates_to_the_variance_in_mas(recorded, capsys):
     nm_per_mas = np.sqrt(np.mean(xx[inside] ** 2)) * 1e9 / (180 / np.pi * 3600e3)
     expected = np.sqrt(a["measured_modes"][:, :2].astype(float).var(axis=0).mean()) / nm_per_mas
     assert json.loads(out)["tt_jitter_mas"]["measured_modes"] == pytest.approx(expected, rel=0.1)
+
+
+def test_offline_mgm_takes_the_delay_and_optical_gains_from_options(recorded, capsys, tmp_path):
+    """--delay-frames and --chi-table replace the record's delay and the model's optical gains:
+    MGM's optimum moves with them; a table that misses a mode, or the options without a
+    record, exit 2 naming the problem."""
+    base = json.loads(_offline(recorded["h5"], recorded, capsys)[1])["optimum"]
+    status, out, err = _offline(recorded["h5"], recorded, capsys, "--delay-frames", "2.5")
+    assert status == 0 and json.loads(out)["optimum"] != base, err
+    table = tmp_path / "og.csv"
+    table.write_text("# flat optical gains\nmode,optical_gain,spread\n" + "".join(f"{m},0.5,0\n" for m in range(1, OBS.modes + 1)))
+    status, out, err = _offline(recorded["h5"], recorded, capsys, "--chi-table", table)
+    assert status == 0, err
+    halved = json.loads(out)
+    assert halved["chi"] == [0.5] * OBS.modes and halved["optimum"] != base
+    table.write_text("mode,optical_gain\n" + "".join(f"{m},0.5\n" for m in range(1, OBS.modes)))
+    status, _, err = _offline(recorded["h5"], recorded, capsys, "--chi-table", table)
+    assert status == 2 and f"lacks mode {OBS.modes}" in err
+    status, _, err = run(["optimize", "gains", "--mag", "16.5", "--delay-frames", "2"], capsys)
+    assert status == 2 and "--delay-frames applies to offline MGM" in err
