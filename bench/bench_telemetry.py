@@ -69,6 +69,37 @@ def run_case(mag: str, duration: float, mode: str, aux: bool) -> dict:
     }
 
 
+def writer_cost(n_slopes: int, n_modes: int = 500, n_actuators: int = 672, frames: int = 4096) -> list[dict]:
+    """Seconds per frame of ``Hdf5Writer.append`` (buffering, chunk compression and flushes
+    included) at 40x40's sizes, in this process: default fields and all fields.  Robust to
+    other load, unlike the loop-speed ratio: it is the cost itself."""
+    from soulctl.telemetry.hdf5 import Hdf5Writer
+    from soulctl.telemetry.schema import DEFAULT_FIELDS, PER_FRAME
+
+    rng = np.random.default_rng(1)
+    sizes = {"slopes": n_slopes, "commands": n_actuators}
+    values = {name: rng.normal(size=sizes.get(name, n_modes)).astype(np.float32) for name in PER_FRAME if name not in SCALARS}
+    values |= {name: float(rng.normal()) for name in SCALARS}
+    out = []
+    for label, fields in (("default fields", DEFAULT_FIELDS), ("all fields", PER_FRAME)):
+        with tempfile.TemporaryDirectory() as d:
+            w = Hdf5Writer(Path(d) / "w.h5", fields, 1)
+            w.describe({"rate_hz": 1700.0, "delay_frames": 2.0, "n_modes": n_modes}, {})
+            times = np.empty(frames)
+            for k in range(frames):
+                t0 = time.perf_counter()
+                w.append(k, values)
+                times[k] = time.perf_counter() - t0
+            w.abandon()
+        out.append(
+            {"fields": label, "mean_ms": 1e3 * times.mean(), "median_ms": 1e3 * np.median(times), "p99_ms": 1e3 * np.percentile(times, 99)}
+        )
+    return out
+
+
+SCALARS = ("residual_rms_nm", "sensitivity", "flux")
+
+
 def slope(rows: list[dict]) -> float | None:
     """Least-squares slope of peak RSS (MB) against simulated seconds."""
     if len({r["duration_s"] for r in rows}) < 2:
@@ -83,16 +114,28 @@ def main() -> None:
     p.add_argument("--mags", default="9.7,16.5")
     p.add_argument("--durations", default="0.25,1,5")
     p.add_argument("--modes", default=",".join(MODES))
+    p.add_argument("--writer-only", action="store_true", help="only the writer's cost per frame (in-process, seconds)")
+    p.add_argument("--slopes", type=int, default=2568, help="slopes per frame for the writer cost (40x40: 1284 sub-apertures)")
     p.add_argument("--no-aux", action="store_true", help="without --mgm --ogtl (they need at least closing + two periods)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "telemetry.json")
     args = p.parse_args()
+    console = Console()
+    cost = writer_cost(args.slopes)
+    w = Table(title=f"Hdf5Writer.append per frame at 40x40 ({args.slopes} slopes, 500 modes, 672 actuators)")
+    for c in ("fields", "mean [ms]", "median [ms]", "p99 [ms]"):
+        w.add_column(c, justify="right")
+    for r in cost:
+        w.add_row(r["fields"], f"{r['mean_ms']:.3f}", f"{r['median_ms']:.3f}", f"{r['p99_ms']:.3f}")
+    console.print(w)
+    if args.writer_only:
+        atomic_write_text(args.out, json.dumps({"soulctl": __version__, "writer_cost": cost}, indent=1))
+        return
     rows = []
     for mag in args.mags.split(","):
         for duration in (float(d) for d in args.durations.split(",")):
             for mode in args.modes.split(","):
                 rows.append(run_case(mag, duration, mode, not args.no_aux))
                 print(json.dumps(rows[-1]), file=sys.stderr)
-    console = Console()
     t = Table(title=f"loop run{'' if args.no_aux else ' --mgm --ogtl'}: peak RSS and speed against simulated time")
     for c in ("R mag", "duration [s]", "telemetry", "peak RSS [MB]", "frames/s", "speed vs none", "file [MB]", "exit"):
         t.add_column(c, justify="right")
@@ -124,7 +167,14 @@ def main() -> None:
     for k, v in slopes.items():
         s.add_row(k, "-" if v is None else f"{v:.2f}")
     console.print(s)
-    report = {"soulctl": __version__, "machine": platform.platform(), "cpus": os.cpu_count(), "rows": rows, "rss_slope_mb_per_s": slopes}
+    report = {
+        "soulctl": __version__,
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "writer_cost": cost,
+        "rows": rows,
+        "rss_slope_mb_per_s": slopes,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps(report, indent=1))
 
