@@ -21,7 +21,7 @@ def write_psd_figure(path: Path, s, title: str) -> None:
             axes[0].loglog(
                 f, p[j, 1:], color=f"C{j}", linestyle=("-", "--", ":")[i % 3], linewidth=1, label=f"{LABELS.get(name, name)}, mode {mode}"
             )
-    axes[0].set_ylabel("PSD [nm$^2$/Hz]")
+    axes[0].set_ylabel("PSD [nm²/Hz]")
     axes[0].set_title(title, fontsize=9)
     axes[0].legend(fontsize=7)
     if s.tt_cumulative_mas:

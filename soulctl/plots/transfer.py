@@ -79,10 +79,20 @@ def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None 
     return fig
 
 
+def _tick_labels(ax) -> list[Text]:
+    out = []
+    for axis in (ax.xaxis, ax.yaxis):
+        for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+            out += [tick.label1, tick.label2]
+    return out
+
+
 def save_figure(fig: Figure, path: Path) -> None:
     """Write the figure atomically in the format its suffix names.  Every text is drawn as
     given: '$' in a user's label is a dollar sign, not matplotlib's math mode."""
     fmt = plot_format(path)
+    ticks = {id(t) for ax in fig.axes for t in _tick_labels(ax)}  # the formatters' own text: 10^k on log axes is math
     for text in fig.findobj(Text):
-        text.set_parse_math(False)
+        if id(text) not in ticks:
+            text.set_parse_math(False)
     atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120))

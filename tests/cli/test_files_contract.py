@@ -408,3 +408,20 @@ def test_labels_are_not_matplotlib_math(label, tmp_path, capsys):
 def test_overlong_labels_are_refused(capsys):
     status, _, err = run(["filter", "analyze", "--rate", "1000", "--gain", "0.5", "--label", "x" * 81], capsys)
     assert status == 2 and "at most 80 characters" in err
+
+
+def test_figures_draw_user_text_as_given_and_log_ticks_as_powers(tmp_path):
+    """save_figure turns math off for the figure's text (a '$' in a label is a dollar) but not
+    for the tick labels the formatters make: 10^k on a log axis is drawn as a power, not as
+    the raw '$\\mathdefault{10^{1}}$'."""
+    from soulctl.plots.loop import new_figure
+    from soulctl.plots.transfer import save_figure
+
+    fig = new_figure()
+    ax = fig.subplots()
+    ax.loglog([1, 10, 100], [1, 10, 100])
+    label = ax.set_title("cost $5 per $10")
+    save_figure(fig, tmp_path / "f.png")
+    assert not label.get_parse_math()
+    ticks = [t for t in ax.get_xticklabels() if t.get_text()]
+    assert ticks and all(t.get_parse_math() and "mathdefault" in t.get_text() for t in ticks)
