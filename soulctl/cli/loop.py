@@ -245,6 +245,8 @@ def _checked_overrides(o: RunOptions) -> dict:
     if o.plot is not None:
         check_output_folder(o.plot, "--plot", LOOP_FIGURES)
     check_run_options(None, None, None, None, None, o.duration)
+    TELEMETRY_EVERY.check(o.telemetry_every, "--telemetry-every")
+    telemetry_fields(o.telemetry_fields)
     overrides = loop_overrides(o)
     return overrides | _run_overrides(o)
 

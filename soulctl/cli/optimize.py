@@ -330,6 +330,8 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
     per quantity) and the outputs checked before any work; the run description's overrides."""
     inputs = [("--config", o.config), ("--telemetry", o.telemetry), gain_file_input(o.gains), ("--vibrations", o.vibrations)]
     inputs.append(("--chi-table", o.chi_table))
+    if o.delay_frames is not None:
+        DELAY_FRAMES.check(o.delay_frames, "--delay-frames")
     if o.telemetry is None and (o.delay_frames is not None or o.chi_table is not None):
         raise InputError(
             f"{'--delay-frames' if o.delay_frames is not None else '--chi-table'} applies to offline MGM: use it with --telemetry"

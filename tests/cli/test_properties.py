@@ -151,6 +151,12 @@ CASES = [
             ("--seed", NUMBERS),
         ]
     ],
+    *[
+        ("loop run", [*FAST_LOOP, "--telemetry", "{out}.h5"], o, s, 120)
+        for o, s in [("--telemetry-every", NUMBERS), ("--telemetry-fields", LISTS)]
+    ],
+    ("telemetry psd", ["{record}"], "--modes", LISTS, 30),
+    *[("optimize gains", ["--method", "mgm", "--telemetry", "{record}"], o, NUMBERS, 60) for o in ["--delay-frames"]],
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
 GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
@@ -205,11 +211,14 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
     grid = tmp_path_factory.mktemp("grid") / "grid.toml"
     grid.write_text(GRID)
     outs = iter(range(10**6))
+    record = grid.parent / "record.h5"  # a short recorded loop, for the commands that read one
+    if "{record}" in base:
+        assert main(["loop", "run", *FAST_LOOP[:4], "--duration", "1", "--telemetry", str(record), "--cache-dir", cache, "--json"]) == 0
 
     @PROFILE
     @given(value=values)
     def check(value):
-        fill = {"grid": str(grid), "out": str(grid.parent / f"out{next(outs)}")}  # a new folder per sweep
+        fill = {"grid": str(grid), "out": str(grid.parent / f"out{next(outs)}"), "record": str(record)}  # a new folder per sweep
         args = [
             *command.split(),
             *(a.format(**fill) for a in base),
