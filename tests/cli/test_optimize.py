@@ -230,7 +230,8 @@ def _short(f):
         (lambda f: f.__delitem__("measured_modes"), [], "lacks measured_modes"),
         (_nan_commands, [], "field command_modes has 1 NaN"),
         (lambda f: None, ["--mag", "15"], "field measured_modes has shape (814, 54), expected (frames, 90)"),
-        (lambda f: f.attrs.__delitem__("delay_frames"), [], "lacks delay_frames"),
+        (lambda f: f.attrs.__delitem__("rate_hz"), [], "lacks rate_hz"),
+        (lambda f: f.attrs.__setitem__("delay_frames", 3.0), [], "attribute delay_frames is 3 frames but the configuration's delay is"),
         (lambda f: f.attrs.__setitem__("configuration", "{not json"), [], "attribute configuration is not JSON"),
         (_short, [], "must be at least"),
     ],
@@ -240,6 +241,17 @@ def test_offline_errors_name_the_field(recorded, tmp_path, capsys, cache_dir, ed
     status, out, err = cli(["optimize", "gains", "--telemetry", str(path), *args, "--out", str(tmp_path / "g.toml")], capsys, cache_dir)
     assert status == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
     assert not (tmp_path / "g.toml").exists()
+
+
+def test_offline_without_a_recorded_delay_takes_the_configurations(recorded, tmp_path, capsys, cache_dir):
+    """A record without delay_frames (LBT's folders hold none) is read with the configuration's
+    delay, and gives the gains of the same record with it."""
+    argv = ["optimize", "gains", "--telemetry"]
+    status, full, err = cli([*argv, str(recorded), "--json"], capsys, cache_dir)
+    assert status == 0, err
+    path = _edited(recorded, tmp_path, lambda f: f.attrs.__delitem__("delay_frames"))
+    status, out, err = cli([*argv, str(path), "--json"], capsys, cache_dir)
+    assert status == 0 and json.loads(out)["gains"] == json.loads(full)["gains"], err
 
 
 @pytest.mark.parametrize(
