@@ -114,4 +114,7 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool) -> M
 
 
 def _columns(tm: TelemetryReader, name: str, modes: tuple[int, ...]) -> np.ndarray:
-    return np.column_stack([tm.read(name, slice(None), slice(m - 1, m)) for m in modes]).astype(float)
+    """The modes' columns, up to the frame the loop diverged at (after it they hold anything)."""
+    diverged = tm.attribute("diverged_at", -1)
+    rows = slice(None) if diverged < 0 else slice(0, diverged)
+    return np.column_stack([tm.read(name, rows, slice(m - 1, m)) for m in modes]).astype(float)

@@ -190,3 +190,25 @@ def test_files_of_an_earlier_schema_are_read_and_a_later_one_is_refused(tmp_path
         f.attrs["schema_version"] = 3
     assert main(["telemetry", "inspect", str(newer)]) == 2
     assert "schema version 3 is newer than this soulctl reads (1..2)" in capsys.readouterr().err
+
+
+def test_spectra_of_a_diverged_record_use_the_frames_before_it(tmp_path, capsys, monkeypatch, optics_cache):
+    """A partial file of a diverged loop: `telemetry psd` reads the frames before the
+    divergence (the frame it diverged at holds anything) and prints finite JSON."""
+    h5 = tmp_path / "t.h5"
+    step = simulation.ClosedLoop.step
+
+    def blows_up(self):
+        residual = step(self)
+        if self.frame == 200:
+            self.telemetry.sink._buffers["measured_modes"][self.telemetry.sink._buffered - 1] = np.inf
+            raise simulation.LoopDiverged(199, 1e4)
+        return residual
+
+    monkeypatch.setattr(simulation.ClosedLoop, "step", blows_up)
+    argv = ["loop", "run", *SMALL, "--duration", "1", "--telemetry", str(h5), "--cache-dir", str(optics_cache.directory)]
+    assert main(argv) == 3
+    capsys.readouterr()
+    assert main(["telemetry", "psd", str(h5), "--pseudo-open-loop", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert "NaN" not in out and "Infinity" not in out
