@@ -136,7 +136,9 @@ def _group_text(g: dict) -> str:
 
 def _recorded_modes(path: Path) -> int:
     """The number of modes a record holds (the --chi-table's length without --config/--mag)."""
-    with open_telemetry(path) as tm:
+    with open_telemetry(path, required=()) as tm:
+        if "n_modes" not in tm.dims:
+            raise InputError(f"telemetry file {path} holds no modal records: --chi-table needs them (or --config/--mag)")
         return tm.dim("n_modes")
 
 

@@ -11,7 +11,7 @@ from scipy.signal import welch
 from ..errors import InputError
 from ..loop.metrics import pseudo_open_loop
 from ..optics.pupil import Pupil
-from .schema import DATASETS, UNITS, TelemetryReader
+from .schema import DATASETS, UNITS, TelemetryReader, nested
 
 TIP_TILT = (1, 2)  # 1-based modes
 
@@ -58,9 +58,9 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
         "fields": fields,
         "auxiliary_loops": sorted(tm.group("aux") or ()),
         "run_description": tm.has("run_description"),
-        "star_magnitude_r": conf.get("observation", {}).get("star", {}).get("magnitude_r"),
-        "seeing_arcsec": conf.get("seeing_arcsec"),
-        "seed": conf.get("seed"),
+        "star_magnitude_r": nested(conf, "observation", "star", "magnitude_r", number=True),
+        "seeing_arcsec": nested(conf, "seeing_arcsec", number=True),
+        "seed": nested(conf, "seed", number=True),
     }
 
 

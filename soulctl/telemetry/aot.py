@@ -37,12 +37,13 @@ import json
 import warnings
 from pathlib import Path
 
+import h5py
 import numpy as np
 from astropy.io import fits
 
 from ..errors import InputError
 from ..files import atomic_write, input_file
-from .schema import REQUIRED, TelemetryReader
+from .schema import PER_FRAME, REQUIRED, TelemetryReader, check_slope_pairs, nested
 
 WFS_WAVELENGTH_M = 750e-9  # the pyramid's band centre (optics.pwfs.PyramidConfig.wavelength_m)
 EXTRA_KEY = "SOULNAME"  # the keyword that names soulctl's own extension HDUs
@@ -73,14 +74,17 @@ def _image(name: str, data, unit: str | None = None, time=None, dtype=np.float32
 def _loop_objects(arrays: dict, attributes: dict, configuration: dict):
     """The AOT system of a record (see the module)."""
     aot = _aotpy()
-    frames = np.asarray(arrays.get("frame_counter", np.arange(len(arrays.get("frame_time_s", [])))))
-    seconds = np.asarray(arrays.get("frame_time_s", frames / attributes["rate_hz"]))
+    check_slope_pairs(arrays, "AOT FITS (measurements of 2 dimensions)")
+    frames = np.asarray(arrays.get("frame_counter", np.arange(_frames(arrays))))
+    rate, delay = attributes.get("rate_hz"), attributes.get("delay_frames")
+    seconds = arrays.get("frame_time_s", None if rate is None else frames / rate)
     system = aot.AOSystem(ao_mode="SCAO", name="soulctl simulated loop", date_beginning=datetime.datetime.now(datetime.UTC))
     system.main_telescope = aot.MainTelescope(uid="LBT", enclosing_diameter=8.22, inscribed_diameter=8.22, obstruction_diameter=0.9)
-    time = aot.Time(uid="LOOP TIME", timestamps=seconds.tolist(), frame_numbers=frames.astype(int).tolist())
+    timestamps = None if seconds is None else np.asarray(seconds, dtype=float).tolist()
+    time = aot.Time(uid="LOOP TIME", timestamps=timestamps, frame_numbers=frames.astype(int).tolist())
     star = aot.NaturalGuideStar("NGS")
     n_slopes = _n_slopes(arrays)
-    modulation = float(configuration.get("observation", {}).get("wfs", {}).get("modulation_lambda_over_d", 0.0))
+    modulation = float(nested(configuration, "observation", "wfs", "modulation_lambda_over_d", number=True) or 0.0)
     slopes = arrays.get("slopes")
     wfs = aot.Pyramid(
         uid="PWFS",
@@ -94,7 +98,8 @@ def _loop_objects(arrays: dict, attributes: dict, configuration: dict):
     )
     mirror = aot.DeformableMirror(uid="ASM", telescope=system.main_telescope, n_valid_actuators=_n_actuators(arrays))
     loop = aot.ControlLoop(uid="HO LOOP", input_sensor=wfs, commanded_corrector=mirror, time=time, closed=True)
-    loop.framerate, loop.delay = float(attributes["rate_hz"]), float(attributes["delay_frames"])
+    loop.framerate = None if rate is None else float(rate)
+    loop.delay = None if delay is None else float(delay)
     _loop_arrays(loop, arrays, time)
     system.sources, system.wavefront_sensors, system.wavefront_correctors, system.loops = [star], [wfs], [mirror], [loop]
     system.metadata = [aot.Metadatum("SOULMODL", modulation, "pyramid modulation radius [lambda/D]")]
@@ -116,6 +121,11 @@ def _loop_arrays(loop, arrays: dict, time) -> None:
         g = np.asarray(arrays["gains"], dtype=float)
         loop.time_filter_num = _image("TIME FILTER NUM", g[:, None], dtype=np.float64)
         loop.time_filter_den = _image("TIME FILTER DEN", np.tile([1.0, -1.0], (len(g), 1)), dtype=np.float64)
+
+
+def _frames(arrays: dict) -> int:
+    """Rows of the per-frame records (0 without any)."""
+    return next((len(v) for k, v in arrays.items() if k in PER_FRAME), 0)
 
 
 def _n_slopes(arrays: dict) -> int:
@@ -159,6 +169,8 @@ def tagged_hdu(name: str, data: np.ndarray) -> fits.ImageHDU:
 def read_aot(path: str | Path, required: tuple[str, ...] = REQUIRED) -> TelemetryReader:
     """An AOT FITS file as soulctl's model (see the module); InputError naming what is wrong."""
     p = input_file(path, "telemetry file")
+    if h5py.is_hdf5(p):
+        raise InputError(f"telemetry file {path} is an HDF5 file named as FITS: name it .h5 to read it as soulctl's HDF5")
     aot = _aotpy()
     try:
         with warnings.catch_warnings():
@@ -170,11 +182,15 @@ def read_aot(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
     except InputError:
         raise
     except Exception as e:  # noqa: BLE001 - astropy and aotpy raise many kinds for a bad file
-        raise InputError(f"telemetry file {path} is not a readable AOT FITS file ({' '.join(str(e).split())[:200]})") from None
+        first = " ".join(str(e).split()).split(". ")[0][:160]  # the reason, without the readers' hints at their own options
+        raise InputError(f"telemetry file {path} is not a readable AOT FITS file ({first})") from None
     loops = [loop for loop in system.loops if isinstance(loop, aot.ControlLoop)]
     if not loops:
         raise InputError(f"telemetry file {path}: the AOT file has no control loop")
-    arrays, attributes = _model_of(loops[0], extras, header)
+    try:
+        arrays, attributes = _model_of(loops[0], extras, header)
+    except (ValueError, TypeError, IndexError, AttributeError, UnicodeDecodeError) as e:
+        raise InputError(f"telemetry file {path}: cannot read the AOT loop's records ({' '.join(str(e).split())[:160]})") from None
     return TelemetryReader.from_arrays(path, arrays, attributes, required)
 
 
@@ -197,8 +213,8 @@ def _model_of(loop, extras: dict, header: dict) -> tuple[dict, dict]:
     if r is not None:
         arrays["reconstructor"] = r.reshape(r.shape[0], -1) * _to_nm(loop.measurements_to_modes)
     num = _data(loop.time_filter_num)
-    if num is not None:
-        arrays["gains"] = num[:, 0].astype(float)
+    if num is not None and num.ndim >= 1 and num.size:
+        arrays["gains"] = (num if num.ndim == 1 else num.reshape(num.shape[0], -1)[:, 0]).astype(float)
     _time_arrays(arrays, loop.time)
     _derived(arrays)
     for name, data in extras.items():

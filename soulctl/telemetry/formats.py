@@ -14,16 +14,22 @@ from ..files import input_file
 from .schema import ATTRIBUTES, DATASETS, REQUIRED, TelemetryReader
 
 FITS_SUFFIXES = (".fits", ".fit", ".fts")
+HDF5_SUFFIXES = (".h5", ".hdf5", ".he5")
 FORMATS = ("hdf5", "aot", "lbt")
 
 
 def telemetry_format(path: str | Path) -> str:
-    """'lbt' for a folder, a path ending in '/' or named Data_<...> (LBT's folder names),
-    'aot' for a FITS suffix, else 'hdf5'."""
+    """'lbt' for a folder, 'aot' for a FITS suffix, 'hdf5' for an HDF5 suffix or another
+    existing file; a new path ending in '/' or named Data_<...> (LBT's folder names) is 'lbt',
+    anything else 'hdf5'."""
     p = Path(path)
-    if p.is_dir() or str(path).endswith("/") or p.name.startswith("Data_"):
+    if p.is_dir():
         return "lbt"
-    return "aot" if p.suffix.lower() in FITS_SUFFIXES else "hdf5"
+    if p.suffix.lower() in FITS_SUFFIXES:
+        return "aot"
+    if p.suffix.lower() in HDF5_SUFFIXES or p.is_file():
+        return "hdf5"
+    return "lbt" if str(path).endswith("/") or p.name.startswith("Data_") else "hdf5"
 
 
 def telemetry_input(path: str | Path) -> Path:

@@ -52,7 +52,7 @@ from astropy.io import fits
 from ..errors import InputError
 from ..files import check_output_path
 from .aot import EXTRA_KEY, tagged_hdu
-from .schema import REQUIRED, TelemetryReader
+from .schema import REQUIRED, TelemetryReader, check_slope_pairs, nested
 
 NM_PER_M_SURFACE = 2e9  # 1e9 x reflcoef, reflcoef = 2 on sky (aoelab:159)
 RATE_KEYWORDS = ("ocam2.FRAMERATE", "ccd39.FRAMERATE")
@@ -112,11 +112,14 @@ def _series(folder: Path, stem: str, tn: str, frames: int) -> np.ndarray | None:
     return data.astype(np.float64)
 
 
-def _header_value(header: fits.Header, keys) -> float | None:
+def _header_value(header: fits.Header, keys, folder: Path) -> float | None:
     for key in keys:
         for k in (key, f"HIERARCH {key}"):
             if k in header:
-                return float(header[k])
+                value = header[k]
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise InputError(f"telemetry folder {folder}: wfs.fits keyword {key} must be a number, got {str(value)[:40]!r}")
+                return float(value)
     return None
 
 
@@ -127,12 +130,16 @@ def read_lbt(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
         raise InputError(f"telemetry folder {path} is not a folder")
     tn = tracking_number(folder)
     counter, _ = _read_fits(folder / f"FramesCounter_{tn}.fits", "FramesCounter")
-    if counter is None or counter.ndim != 1 or counter.size < 2:
-        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold a 1-D frame counter of at least 2 frames")
+    if counter is None or counter.ndim != 1 or counter.size < 1 or counter.dtype.kind not in "iuf":
+        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold a 1-D frame counter (numbers) of at least 1 frame")
+    if not np.all(np.isfinite(counter) & (counter == np.floor(counter)) & (np.abs(counter) < 2**62)):
+        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold whole frame numbers (no NaN)")
     frames = counter.size
     arrays: dict = {"frame_counter": counter.astype(np.int64) - int(counter[0])}
     attributes: dict = {}
     slopes = _series(folder, "Slopes", tn, frames)
+    if slopes is not None and slopes.shape[1] % 2:
+        raise InputError(f"telemetry folder {folder}: Slopes_{tn}.fits has {slopes.shape[1]} columns, expected x, y pairs")
     if slopes is not None:
         arrays["slopes"] = deinterleaved(slopes)
     for stem, (name, scale) in SERIES.items():
@@ -155,10 +162,10 @@ def _wfs_header(folder: Path, attributes: dict) -> None:
     if not path.exists():
         return
     _, header = _read_fits(path, "wfs")
-    rate = _header_value(header, RATE_KEYWORDS)
+    rate = _header_value(header, RATE_KEYWORDS, folder)
     if rate is not None:
         attributes["rate_hz"] = rate
-    delay = _header_value(header, (DELAY_KEYWORD,))
+    delay = _header_value(header, (DELAY_KEYWORD,), folder)
     if delay is not None:
         attributes["delay_frames"] = delay
 
@@ -196,20 +203,25 @@ def _reconstructor(folder: Path, arrays: dict) -> None:
 
 
 def _extras(path: Path, arrays: dict, attributes: dict) -> None:
+    """soulctl's own records of a folder it wrote (InputError naming the file if damaged)."""
     if not path.exists():
         return
-    with fits.open(path, memmap=False) as hdus:
-        for h in hdus:
-            name = h.header.get(EXTRA_KEY)
-            if name is None:
-                continue
-            data = np.asarray(h.data)
+    try:
+        with fits.open(path, memmap=False) as hdus:
+            tagged = [(h.header[EXTRA_KEY], h.data) for h in hdus if EXTRA_KEY in h.header]
+        for name, data in tagged:
+            if data is None:
+                raise ValueError(f"HDU {name} holds no data")
+            data = np.asarray(data)
             if name in ("configuration", "run_description", "status", "partial_reason", "soulctl_version"):
                 attributes[name] = bytes(data.astype(np.uint8)).decode("utf-8")
             elif name in ("schema_version", "telemetry_every", "diverged_at", "n_modes"):
                 attributes[name] = int(data.ravel()[0])
             else:
                 arrays[name] = data
+    except (OSError, ValueError, TypeError, IndexError, UnicodeDecodeError) as e:
+        first = " ".join(str(e).split()).split(". ")[0][:160]
+        raise InputError(f"telemetry folder {path.parent}: {path.name} is not a readable soulctl record ({first})") from None
 
 
 # ----------------------------------------------------------------------------------------- writing
@@ -220,6 +232,7 @@ def write_lbt(path: str | Path, arrays: dict, attributes: dict, configuration: d
     renamed; an existing folder is refused).  The TN is the folder's name when it ends in a
     TN (e.g. Data_20261126_120000), else today's date and time."""
     folder = Path(str(path).rstrip("/"))
+    check_slope_pairs(arrays, "an LBT folder (interleaved x, y slopes)")
     if folder.exists():
         raise InputError(f"telemetry folder {folder} exists: soulctl writes a tracking-number folder only as a new folder")
     check_output_path(folder, "telemetry folder")
@@ -235,7 +248,8 @@ def write_lbt(path: str | Path, arrays: dict, attributes: dict, configuration: d
 
 
 def _write_files(folder: Path, tn: str, arrays: dict, attributes: dict, configuration: dict) -> None:
-    counter = np.asarray(arrays.get("frame_counter", np.arange(_frames(arrays))), dtype=np.int32)
+    counter = np.asarray(arrays.get("frame_counter", np.arange(_frames(arrays))), dtype=np.int64)
+    counter = counter.astype(np.int32) if counter.size and counter.max() < 2**31 else counter  # elab_lib's lonarr where it fits
     fits.PrimaryHDU(counter).writeto(folder / f"FramesCounter_{tn}.fits")
     if "slopes" in arrays:
         fits.PrimaryHDU(interleaved(np.asarray(arrays["slopes"], dtype=np.float32))).writeto(folder / f"Slopes_{tn}.fits")
@@ -250,7 +264,7 @@ def _write_files(folder: Path, tn: str, arrays: dict, attributes: dict, configur
         header[f"HIERARCH {RATE_KEYWORDS[0]}"] = float(attributes["rate_hz"])
     if "delay_frames" in attributes:
         header[DELAY_KEYWORD] = (float(attributes["delay_frames"]), "loop delay [frames] (soulctl)")
-    modulation = configuration.get("observation", {}).get("wfs", {}).get("modulation_lambda_over_d")
+    modulation = nested(configuration, "observation", "wfs", "modulation_lambda_over_d", number=True)
     if modulation is not None:
         header[f"HIERARCH {MODULATION_KEYWORD}"] = float(modulation)
     fits.PrimaryHDU(header=header).writeto(folder / "wfs.fits")

@@ -550,6 +550,25 @@ class TelemetryReader:
         return data if data.dtype in (np.float32, np.float64) else data.astype(np.float64)
 
 
+def nested(conf, *keys, number: bool = False):
+    """conf[k1][k2]... when every level is a JSON object and the last is there (and, with
+    ``number``, a finite number), else None: what a report or a writer takes when present."""
+    for key in keys:
+        if not isinstance(conf, dict) or key not in conf:
+            return None
+        conf = conf[key]
+    if number and not FINITE.contains(conf):
+        return None
+    return conf
+
+
+def check_slope_pairs(arrays: dict, what: str) -> None:
+    """InputError unless the slopes (when present) come in x, y pairs, as a format of x and y
+    slopes (AOT's 2 dimensions, LBT's interleaved order) needs."""
+    if "slopes" in arrays and np.shape(arrays["slopes"])[1] % 2:
+        raise InputError(f"field slopes has {np.shape(arrays['slopes'])[1]} columns: {what} needs x, y pairs")
+
+
 def configuration_member(conf: dict, name: str, default, path):
     """A number of the configuration (``gains.forgetting``: a member of a member), checked
     against CONFIGURATION_SCHEMA; ``default`` when absent."""

@@ -274,3 +274,98 @@ def test_offline_mgm_takes_the_delay_and_optical_gains_from_options(recorded, ca
     assert status == 2 and f"lacks mode {OBS.modes}" in err
     status, _, err = run(["optimize", "gains", "--mag", "16.5", "--delay-frames", "2"], capsys)
     assert status == 2 and "--delay-frames applies to offline MGM" in err
+
+
+# ------------------------------------------- what adversarial testing found (each exited 1)
+
+
+def _lbt_copy(recorded, tmp_path, tn, edit):
+    import shutil
+
+    folder = tmp_path / f"Data_{tn}"
+    shutil.copytree(recorded["lbt"], folder)
+    for p in folder.iterdir():
+        p.rename(folder / p.name.replace("20261126_120000", tn))
+    edit(folder, tn)
+    return folder
+
+
+def _header(folder, key, value):
+    with fits.open(folder / "wfs.fits", mode="update") as h:
+        h[0].header[key] = value
+
+
+def _nan_counter(folder, tn):
+    c = fits.getdata(folder / f"FramesCounter_{tn}.fits").astype(float)
+    c[0] = np.nan
+    fits.PrimaryHDU(c).writeto(folder / f"FramesCounter_{tn}.fits", overwrite=True)
+
+
+def _odd_slopes(folder, tn):
+    (folder / f"soulctl_{tn}.fits").unlink()
+    for p in folder.glob("Rec_*.fits"):
+        p.unlink()
+    frames = len(fits.getdata(folder / f"FramesCounter_{tn}.fits"))
+    fits.PrimaryHDU(np.zeros((frames, 5))).writeto(folder / f"Slopes_{tn}.fits", overwrite=True)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda f, tn: _header(f, "HIERARCH ocam2.FRAMERATE", "fast"), "keyword ocam2.FRAMERATE must be a number"),
+        (lambda f, tn: _nan_counter(f, tn), "must hold whole frame numbers"),
+        (_odd_slopes, "has 5 columns, expected x, y pairs"),
+        (lambda f, tn: (f / f"soulctl_{tn}.fits").write_bytes(bytes(range(256)) * 20), "is not a readable soulctl record"),
+    ],
+)
+def test_damaged_lbt_folders_exit_2_naming_the_file(recorded, tmp_path, capsys, edit, message):
+    folder = _lbt_copy(recorded, tmp_path, "20261126_130000", edit)
+    status, _, err = run(["telemetry", "inspect", folder], capsys)
+    assert status == 2 and message in err and err.count("\n") == 1, err
+
+
+def test_records_without_rate_or_delay_convert_and_odd_configurations_are_reported(recorded, tmp_path, capsys):
+    """A real LBT folder holds no delay (and may hold no wfs.fits): it still converts to AOT;
+    a configuration of other JSON types is left out of the report, not a crash; a file named
+    Data_<...>.h5 is HDF5; a 1-frame record survives the LBT round trip."""
+
+    def bare(folder, tn):
+        (folder / "wfs.fits").unlink()
+        (folder / f"soulctl_{tn}.fits").unlink()
+
+    folder = _lbt_copy(recorded, tmp_path, "20261126_140000", bare)
+    assert run(["telemetry", "convert", folder, tmp_path / "bare.fits"], capsys)[0] == 0
+    with open_telemetry(tmp_path / "bare.fits", required=()) as tm:
+        assert not tm.has("rate_hz") and tm.dim("frames") == 488
+    a, at = read_record(recorded["h5"])
+    odd = tmp_path / "Data_odd.h5"
+    one = {"measured_modes": a["measured_modes"][:1], "frame_counter": a["frame_counter"][:1]}
+    write_record(odd, one, {"configuration": {"observation": {"star": 5}}, "rate_hz": 407.0})
+    status, out, err = run(["telemetry", "inspect", odd, "--json"], capsys)
+    assert status == 0 and json.loads(out)["star_magnitude_r"] is None and json.loads(out)["format"] == "hdf5", err
+    assert run(["telemetry", "convert", odd, tmp_path / "Data_20261126_150000"], capsys)[0] == 0
+    assert json.loads(run(["telemetry", "inspect", tmp_path / "Data_20261126_150000", "--json"], capsys)[1])["frames"] == 1
+
+
+def test_a_one_dimensional_time_filter_gives_the_gains(tmp_path):
+    system, _ = _aot_system("shack-hartmann")
+    system.loops[0].time_filter_num = aotpy.Image("NUM", np.full(OBS.modes, 0.4, dtype=np.float32))
+    path = tmp_path / "num1d.fits"
+    system.write_to_file(str(path))
+    with open_telemetry(path, required=()) as tm:
+        np.testing.assert_allclose(tm.read("gains"), 0.4, rtol=1e-6)
+
+
+def test_a_chi_table_with_a_delay_for_a_record_without_one(recorded, tmp_path, capsys):
+    import h5py
+
+    path = tmp_path / "nodelay.h5"
+    import shutil
+
+    shutil.copy(recorded["h5"], path)
+    with h5py.File(path, "r+") as f:
+        del f.attrs["delay_frames"]
+    table = tmp_path / "og.csv"
+    table.write_text("mode,optical_gain\n" + "".join(f"{m},0.5\n" for m in range(1, OBS.modes + 1)))
+    status, _, err = _offline(path, recorded, capsys, "--delay-frames", "1.6", "--chi-table", table)
+    assert status == 0, err
