@@ -439,7 +439,7 @@ class SafetyNet(AuxLoop):
 
 
 def summary(records: dict) -> dict:
-    """What the auxiliary loops did, from the telemetry's records (``Telemetry.aux_arrays`` per
+    """What the auxiliary loops did, from the telemetry's records (``TelemetryRecorder.aux_arrays`` per
     task name): OGTL's probe, bound and update statuses; MGM's updates and noise-dominated
     modes; the safety net's restores."""
     out: dict = {}
