@@ -50,7 +50,7 @@ def run_case(mag: str, duration: float, mode: str, aux: bool) -> dict:
         cmd = [sys.executable, "-m", "soulctl.cli.app", "loop", "run", "--mag", mag, "--duration", str(duration)]
         cmd += [*(["--mgm", "--ogtl"] if aux else []), "--json", *extra]
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=d)  # the installed soulctl, not ./soulctl
         out = proc.stdout.read() if proc.stdout else b""
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0

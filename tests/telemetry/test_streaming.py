@@ -4,7 +4,6 @@ writes (decimation, fields, units), and the files an interrupted, diverged or ki
 import shutil
 import signal
 import subprocess
-import sys
 import time
 import tracemalloc
 
@@ -150,18 +149,22 @@ def test_a_killed_run_never_leaves_a_file_that_reads_as_complete(tmp_path, optic
     """SIGKILL: no clean-up runs.  The target is not created; the temporary holds the flushed
     chunks and says 'writing'."""
     h5 = tmp_path / "t.h5"
-    cmd = [sys.executable, "-m", "soulctl.cli.app", "loop", "run", *SMALL, "--duration", "30", "--telemetry", str(h5)]
-    proc = subprocess.Popen([*cmd, "--cache-dir", str(optics_cache.directory)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cmd = [shutil.which("soulctl"), "loop", "run", *SMALL, "--duration", "30", "--telemetry", str(h5)]
+    # cwd: the installed package, never a source tree's soulctl/ (which has no compiled core)
+    cache = ["--cache-dir", str(optics_cache.directory)]
+    proc = subprocess.Popen([*cmd, *cache], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
     deadline = time.monotonic() + 120
+    temps: list = []
     try:
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and proc.poll() is None:
             temps = list(tmp_path.glob(".soulctl-*.tmp.h5"))
             if temps and _flushed(temps[0]) >= 256:
                 break
             time.sleep(0.5)
     finally:
         proc.send_signal(signal.SIGKILL)
-        proc.wait()
+        _, err = proc.communicate()
+    assert temps, f"no temporary file appeared (exit {proc.returncode}): {err.decode()[-300:]}"
     assert not h5.exists()
     with TelemetryReader(temps[0], required=()) as tm:
         assert tm.attribute("status") == "writing" and tm.dim("frames") % 256 == 0 and tm.dim("frames") >= 256
