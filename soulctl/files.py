@@ -231,25 +231,33 @@ def atomic_write(path: str | Path, write: Callable[[str], None], *, immediate: b
     """Call ``write(tmp_path)`` to produce the file, then rename it onto ``path`` (through a
     symlink to its target; an existing file keeps its permission bits, a new one gets 0644).
     Inside ``staged_outputs`` the rename waits for the commit unless ``immediate``."""
+    target, tmp = temporary_beside(path, ".tmp" + output_target(path).suffix)
+    try:
+        write(tmp)
+        commit_or_replace(target, tmp, stage=not immediate)
+    except BaseException:
+        _unlink(tmp)
+        raise
+
+
+def temporary_beside(path: str | Path, suffix: str) -> tuple[Path, str]:
+    """(the target of ``path``, a new empty temporary file beside it, named .soulctl-*suffix)
+    with the mode the output will have: an existing file's permission bits, else 0644."""
     target = output_target(path)
     folder = target.parent if str(target.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp" + target.suffix, dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=suffix, dir=folder)
     try:
         try:
             mode = stat.S_IMODE(os.stat(target).st_mode)
         except FileNotFoundError:
             mode = NEW_FILE_MODE
         os.fchmod(fd, mode)
-        os.close(fd)
-        write(tmp)
-        stage = None if immediate else _STAGE.get()
-        if stage is None:
-            _replace(tmp, target)
-        else:
-            stage.add(target, tmp)
     except BaseException:
         _unlink(tmp)
         raise
+    finally:
+        os.close(fd)
+    return target, tmp
 
 
 def commit_or_replace(target: Path, tmp: str, stage: bool = True) -> None:

@@ -49,8 +49,6 @@ configuration when present, and reads only the rows of its window (see ``loop.of
 from __future__ import annotations
 
 import os
-import stat
-import tempfile
 import tomllib
 from pathlib import Path
 
@@ -59,7 +57,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
-from ..files import NEW_FILE_MODE, atomic_write, commit_or_replace, output_target
+from ..files import atomic_write, commit_or_replace, temporary_beside
 from ..ranges import TELEMETRY_SCHEMA_VERSION
 from .schema import COMPRESSION, UNITS, TelemetryReader, store, stored
 
@@ -89,15 +87,8 @@ class Hdf5Writer:
     killed outright leaves only the temporary, whose status says "writing"."""
 
     def __init__(self, path: str | Path, fields: tuple[str, ...], every: int = 1, attributes: dict | None = None):
-        self.path, self.fields, self.every = Path(path), tuple(fields), int(every)
-        self.target = output_target(path)
-        folder = self.target.parent if str(self.target.parent) else Path(".")
-        fd, self.tmp = tempfile.mkstemp(prefix=".soulctl-", suffix=".tmp.h5", dir=folder)
-        try:
-            os.fchmod(fd, stat.S_IMODE(os.stat(self.target).st_mode))  # an existing file keeps its mode
-        except FileNotFoundError:
-            os.fchmod(fd, NEW_FILE_MODE)
-        os.close(fd)
+        self.fields, self.every = tuple(fields), int(every)
+        self.target, self.tmp = temporary_beside(path, ".tmp.h5")  # HDF5 whatever the target's format
         self.file = h5py.File(self.tmp, "w")
         self.file.attrs.update(
             {"schema_version": TELEMETRY_SCHEMA_VERSION, "status": "writing", "telemetry_every": self.every}

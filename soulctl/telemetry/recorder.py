@@ -158,7 +158,6 @@ class TelemetryRecorder:
 
     residual_rms_nm = property(lambda self: self.series("residual_rms_nm"))
     sensitivity = property(lambda self: self.series("sensitivity"))
-    flux = property(lambda self: self.series("flux"))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every frame's records, from a ``MemorySink`` (other sinks keep them elsewhere)."""
