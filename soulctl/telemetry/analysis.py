@@ -41,7 +41,7 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
         ds = tm.dataset(f.name) if tm.has(f.name) else None
         if ds is not None:
             fields[f.name] = {"shape": list(ds.shape), "unit": UNITS.get(f.name, "")}
-    span = int(tm.read("frame_counter")[-1]) + 1 if tm.has("frame_counter") and frames else frames
+    span = int(tm.read("frame_counter", slice(frames - 1, frames))[0]) + 1 if tm.has("frame_counter") and frames else frames
     conf = tm.configuration()
     return {
         "format": kind,
