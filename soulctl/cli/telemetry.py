@@ -10,16 +10,19 @@ import numpy as np
 import typer
 
 from ..errors import InputError
-from ..files import check_output_path
-from ..plots.telemetry import write_psd_figure
+from ..files import atomic_write_text, check_output_folder, check_output_path
+from ..identify.identify import Identification, identify
+from ..plots.telemetry import IDENTIFY_FIGURES, write_identify_figures, write_psd_figure
+from ..ranges import DELAY_FRAMES
 from ..telemetry.analysis import inspect, spectra
 from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
-from .common import JSON_OUTPUT, quantity_table
+from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, array_cache, quantity_table
+from .numbers import number
 from .option_table import command
 from .output import console as make_console
 from .output import print_json
 
-app = typer.Typer(no_args_is_help=True, help="Loop telemetry: inspect, spectra, conversion between formats.")
+app = typer.Typer(no_args_is_help=True, help="Loop telemetry: inspect, spectra, conversion between formats, plant identification.")
 
 SOURCE = typer.Argument(..., metavar="FILE|DIR", help="Telemetry: soulctl HDF5 (.h5), AOT FITS (.fits) or an LBT tracking-number folder.")
 
@@ -146,3 +149,87 @@ def convert_cmd(o: ConvertOptions) -> int:
     arrays, attributes = read_record(o.source)
     write_record(o.target, arrays, attributes)
     return 0
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    path: Path = SOURCE
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        metavar="PLANT.toml",
+        help="Write the plant file (filter design|analyze --plant, loop run --plant, rtc check --plant).",
+    )
+    vibrations_out: Path | None = typer.Option(
+        None, "--vibrations-out", metavar="FILE.toml", help="Write the vibration lines alone, as a --vibrations file."
+    )
+    delay_frames: float | None = typer.Option(
+        None,
+        "--delay-frames",
+        parser=number(DELAY_FRAMES),
+        metavar="D",
+        help="Centre of the delay search (default: the record's, else the configuration's).",
+    )
+    plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write " + ", ".join(IDENTIFY_FIGURES) + ".")
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("identify")
+@command(IdentifyOptions)
+def identify_cmd(o: IdentifyOptions) -> int:
+    """Identify the plant from closed-loop telemetry: loop delay, optical gains, measurement
+    noise per mode, Tip/Tilt vibration lines and seeing/L0, each with its uncertainty
+    (docs/physics.md, "Identification").
+
+    Example: soulctl telemetry identify run.h5 --out plant.toml --plot figs
+    """
+    telemetry_input(o.path)
+    for path, option in ((o.out, "--out"), (o.vibrations_out, "--vibrations-out")):
+        if path is not None:
+            check_output_path(path, option, [("FILE", o.path)])
+    if o.plot is not None:
+        check_output_folder(o.plot, "--plot", IDENTIFY_FIGURES)
+    ident = identify(o.path, o.delay_frames, array_cache(o.no_cache, o.cache_dir))
+    if o.out is not None:
+        atomic_write_text(o.out, ident.plant.to_toml())
+    if o.vibrations_out is not None:
+        if ident.plant.vibrations is None:
+            raise InputError(f"--vibrations-out: no vibration line found in {o.path}: nothing to write")
+        atomic_write_text(o.vibrations_out, ident.plant.vibrations_toml())
+    if o.plot is not None:
+        write_identify_figures(o.plot, ident)
+    if o.json_output:
+        print_json(ident.to_dict())
+        return 0
+    make_console().print(_identify_table(ident))
+    return 0
+
+
+def _identify_table(ident: Identification):
+    p = ident.plant
+    t = quantity_table(f"plant identified from {ident.record.path} ({ident.record.frames / p.rate_hz:.3g} s window)")
+    t.add_row("loop delay [frames]", f"{p.delay.value:.3f} ± {p.delay.sigma:.3f} (recorded {ident.record.delay_frames:g})")
+    if ident.probe is not None:
+        pr = ident.probe
+        t.add_row(
+            f"probe, mode {pr.mode} at {pr.frequency_hz:g} Hz",
+            f"chi {pr.chi.value:.3f} ± {pr.chi.sigma:.3f}, d {pr.delay.value:.3f} ± {pr.delay.sigma:.3f}",
+        )
+    for g in p.optical_gains:
+        t.add_row(f"optical gain chi, modes {g.first_mode}-{g.last_mode}", f"{g.chi:.3f} ± {g.sigma:.3f}")
+    if p.tip_tilt_noise_mas is not None:
+        t.add_row("Tip/Tilt noise [mas RMS per frame]", f"{p.tip_tilt_noise_mas:.3g}")
+    if p.turbulence is not None:
+        tu = p.turbulence
+        t.add_row("seeing at 500 nm [arcsec]", f"{tu.seeing_arcsec:.3f} ± {tu.seeing_sigma:.3f}")
+        t.add_row("outer scale L0 [m]", f"{tu.L0_m:g} ± {tu.L0_sigma:.3g}")
+    for x in ident.lines:
+        t.add_row(
+            f"vibration {x.frequency.value:.2f} ± {x.frequency.sigma:.2f} Hz",
+            f"tip {x.tip.value:.2f}, tilt {x.tilt.value:.2f} mas, damping {x.damping:.3f}",
+        )
+    for note in p.notes:
+        t.add_row("note", note)
+    return t

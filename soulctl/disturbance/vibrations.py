@@ -149,9 +149,14 @@ class VibrationSource:
 
     def next(self, n_frames: int) -> np.ndarray:
         """The next (n_frames, 2) samples."""
-        out = np.zeros((n_frames, 2))
-        for a, scale, states in self._lines:
+        return self.next_lines(n_frames).sum(axis=0)
+
+    def next_lines(self, n_frames: int) -> np.ndarray:
+        """The next (n_lines, n_frames, 2) samples of each line (their sum is ``next``'s; the
+        realised RMS of each line in a record, which identification is checked against)."""
+        out = np.zeros((len(self._lines), n_frames, 2))
+        for i, (a, scale, states) in enumerate(self._lines):
             for axis in range(2):
                 x, states[axis] = lfilter([1.0], a, self.rng.standard_normal(n_frames), zi=states[axis])
-                out[:, axis] += x * scale[axis]
+                out[i, :, axis] = x * scale[axis]
         return out

@@ -1,0 +1,154 @@
+"""`soulctl telemetry identify`: the plant of a recorded loop, in this order (each step uses
+the ones before it):
+
+1. the record's window as spectra and moments (``record``);
+2. the delay, chi per group and the noise per mode from the noise rejection (``rejection``);
+3. with an OGTL probe, chi and d of the probed mode from the probe (``probe``): the probe fixes
+   chi's scale, the rejection fit its shape across the groups (``_optical_gains``);
+4. the pseudo-open-loop Tip/Tilt and its vibration lines (``lines``);
+5. r0 and L0 from the pseudo-open-loop modal variances less the noise (``seeing``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..disturbance.vibrations import VibrationSpectrum
+from ..loop.metrics import pseudo_open_loop
+from ..loop.run import calibration_for
+from ..optics.atmosphere import r0_from_seeing
+from ..optics.cache import ArrayCache
+from ..telemetry.analysis import nm_per_mas_tip_tilt
+from . import seeing
+from .lines import LineEstimate, fit_lines
+from .plant import OpticalGainGroup, PlantModel
+from .probe import ProbeFit, fit_probe
+from .record import LoopRecord, pol_variance, read_record
+from .rejection import RejectionFit, fit_rejection, tip_tilt_noise
+
+REJECTION_METHOD = "Whittle fit of the measured-mode PSDs above f_low to sigma^2 |S(f; d, chi)|^2 with the recorded controller"
+PROBE_METHOD = "chi of the probed mode from the OGTL probe (M/C = -chi z^-d), the other groups scaled by the rejection fit's ratios"
+
+
+@dataclass
+class Identification:
+    plant: PlantModel
+    rejection: RejectionFit
+    probe: ProbeFit | None
+    lines: list[LineEstimate]
+    record: LoopRecord
+    pol_variance_nm2: np.ndarray
+    model_variance_nm2: np.ndarray | None  # von Karman at the identified r0, L0
+    line_psd: tuple[np.ndarray, np.ndarray]  # (f, mean PSD of the pseudo-open-loop Tip/Tilt, mas^2/Hz)
+    seconds: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        p = self.plant
+        return {
+            "telemetry": self.record.path,
+            "window": {"first_frame": self.record.first_frame, "frames": self.record.frames, "seconds": self.record.frames / p.rate_hz},
+            "rate_hz": p.rate_hz,
+            "sensitivity": self.record.sensitivity,
+            "delay_frames": p.delay.to_dict() | {"method": p.delay_method, "recorded": _finite(self.record.delay_frames)},
+            "optical_gains": [
+                {"modes": f"{g.first_mode}-{g.last_mode}", "chi": g.chi, "sigma": _finite(g.sigma)} for g in p.optical_gains
+            ],
+            "optical_gain_method": p.optical_gain_method,
+            "rejection_fit_chi": [{"modes": f"{lo}-{hi}", **c.to_dict()} for (lo, hi), c in zip(self.rejection.groups, self.rejection.chi)],
+            "probe": None if self.probe is None else {
+                "mode": self.probe.mode, "frequency_hz": self.probe.frequency_hz,
+                "chi": self.probe.chi.to_dict(), "delay_frames": self.probe.delay.to_dict(),
+            },
+            "noise_nm2": [None if not math.isfinite(x) else float(x) for x in (p.noise_nm2 if p.noise_nm2 is not None else [])],
+            "tip_tilt_noise_mas": _finite(p.tip_tilt_noise_mas),
+            "turbulence": None if p.turbulence is None else {
+                "seeing_arcsec": p.turbulence.seeing_arcsec, "seeing_sigma": _finite(p.turbulence.seeing_sigma),
+                "L0_m": p.turbulence.L0_m, "L0_sigma": _finite(p.turbulence.L0_sigma), "wind_m_s": p.turbulence.wind_m_s,
+            },
+            "vibration_lines": [
+                {"frequency_hz": x.frequency.to_dict(), "damping": x.damping, "tip_mas": x.tip.to_dict(), "tilt_mas": x.tilt.to_dict()}
+                for x in self.lines
+            ],
+            "notes": list(p.notes),
+            "seconds": self.seconds,
+        }  # fmt: skip
+
+
+def _finite(x):
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[OpticalGainGroup, ...], str]:
+    """Per group chi: the rejection fit's, or with a probe the probe's scale on the fit's shape."""
+    scale, rel = 1.0, 0.0
+    if probe is not None and math.isfinite(probe.chi.value) and probe.chi.value > 0:
+        inside = [i for i, (lo, hi) in enumerate(rej.groups) if lo <= probe.mode <= hi]
+        ref = rej.chi[inside[0]] if inside else min(rej.chi, key=lambda c: c.sigma)
+        scale = probe.chi.value / ref.value
+        rel = math.hypot(probe.chi.sigma / probe.chi.value, ref.sigma / ref.value)
+    groups = tuple(
+        OpticalGainGroup(lo, hi, c.value * scale, c.value * scale * math.hypot(c.sigma / c.value, rel))
+        for (lo, hi), c in zip(rej.groups, rej.chi)
+    )
+    tt = groups[0]
+    groups = (OpticalGainGroup(1, 2, tt.chi, tt.sigma),) + groups  # Tip/Tilt: the nearest group's (not fitted)
+    return groups, PROBE_METHOD if scale != 1.0 or probe is not None else REJECTION_METHOD
+
+
+def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> tuple[list[LineEstimate], np.ndarray, np.ndarray]:
+    m, c = record.tip_tilt
+    pol = pseudo_open_loop(m / chi_tt, c, d, record.structure_ba)
+    n, _ = divmod(d, 1.0)
+    pol = pol[int(n) + 1 + 64 :] / nm_per_mas_tip_tilt()  # commands before the record, and the resonance's ring-down
+    return fit_lines(pol, record.rate_hz)
+
+
+def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
+    if record.description is None:
+        table, L0s = seeing.noll_variances(record.n_modes), (seeing.UNKNOWN_L0_M,)
+    else:
+        calibration = calibration_for(record.description.request(), cache)
+        table, L0s = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, seeing.L0_GRID), seeing.L0_GRID
+    t = seeing.fit_turbulence(variance, table, L0s)
+    r0 = r0_from_seeing(t.seeing_arcsec)
+    best = table[L0s.index(t.L0_m)] if t.L0_m in L0s else table[0]
+    return t, best * r0 ** (-5 / 3) * seeing.NM_PER_RAD**2
+
+
+def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None)) -> Identification:
+    """The plant of the record at ``path`` (see the module)."""
+    clock = {"start": time.perf_counter()}
+    record = read_record(path, delay_frames)
+    clock["read"] = time.perf_counter()
+    rej = fit_rejection(record)
+    probe = fit_probe(record, rej.delay.value)
+    groups, method = _optical_gains(rej, probe)
+    clock["delay_and_gains"] = time.perf_counter()
+    plant0 = PlantModel(record.path, record.rate_hz, rej.delay, optical_gains=groups)
+    chi = plant0.chi(record.n_modes)
+    noise = rej.noise_nm2.copy()
+    lines, f_lines, p_lines = _vibrations(record, rej.delay.value, float(chi[0]))
+    clock["vibrations"] = time.perf_counter()
+    variance = pol_variance(record, rej.delay.value, chi) - np.nan_to_num(noise) / chi**2
+    turbulence, model_variance = _turbulence(record, variance, cache)
+    clock["turbulence"] = time.perf_counter()
+    noise[:2] = tip_tilt_noise(record, rej.delay.value, float(chi[0]))
+    tt_noise = math.sqrt(noise[0]) / chi[0] / nm_per_mas_tip_tilt()  # referred to the wavefront: what filter design takes
+    notes = (
+        "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit",
+        "wind speed not estimated",
+    )
+    if probe is None:
+        notes += (
+            "without a probe chi is the rejection fit's, high where the measurement error is coloured (docs/physics.md)",
+        )
+    spectrum = VibrationSpectrum(tuple(x.line() for x in lines), f"identified from {record.path}") if lines else None
+    plant = PlantModel(
+        record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes
+    )
+    seconds = {k: clock[k] - clock["start"] for k in ("read", "delay_and_gains", "vibrations", "turbulence")}
+    return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds)

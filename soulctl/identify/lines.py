@@ -1,0 +1,143 @@
+"""Tip/Tilt vibration lines from the pseudo-open-loop PSD (the elab_lib ``vib_est`` idea:
+peaks above the turbulence's smooth spectrum, each a damped oscillator).
+
+1. Welch PSD of the pseudo-open-loop Tip and Tilt (mas), segments of up to ``SEGMENT_S``
+   (0.125 Hz resolution: a 13 Hz line of damping 0.02 is 0.5 Hz wide at half maximum).
+2. The baseline, a running median of the mean PSD over +-``BASELINE_HZ``; candidates are local
+   maxima between ``F_MIN_HZ`` and 0.45 x the frame rate above the threshold a Welch PSD of
+   that many segments exceeds by chance ``FALSE_ALARMS`` times per spectrum (chi-squared with
+   2 x segments degrees of freedom per axis: 11 x the baseline for one segment, 2.2 for 30).
+3. Each candidate is fitted with the oscillator PSD of ``disturbance.vibrations`` (frequency,
+   damping, variance) on top of the baseline, by least squares on the log PSD over the peak.
+4. Per axis, the line's variance is the PSD in excess of the baseline over the peak, divided
+   by the share of the fitted line's power inside that band.  Lines under ``MIN_RMS_MAS`` on
+   both axes are dropped.
+
+Uncertainties: the frequency's from the fit's covariance; the RMS's from the periodogram's
+scatter, 1/sqrt(segments x bins in the band).  A line of a short record has few segments
+(a 10 s record has one 8 s segment): its RMS is uncertain and the realised RMS of a short
+record scatters around the line's nominal RMS (docs/physics.md gives how long a record
+must be).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import median_filter
+from scipy.optimize import least_squares
+from scipy.signal import welch
+from scipy.stats import chi2
+
+from ..disturbance.vibrations import VibrationLine
+from .plant import Estimate
+
+SEGMENT_S = 8.0
+BASELINE_HZ = 4.0
+FALSE_ALARMS = 0.05  # expected false detections per spectrum (sets the threshold)
+MAX_DAMPING = 0.1
+F_MIN_HZ = 3.0
+MIN_RMS_MAS = 1.0
+PEAK_HALF_WIDTH_HZ = 2.0  # at least; and 8 x the fitted half width, at most MAX_BAND_HZ
+MAX_BAND_HZ = 10.0
+
+
+@dataclass(frozen=True)
+class LineEstimate:
+    frequency: Estimate
+    damping: float
+    tip: Estimate  # mas RMS
+    tilt: Estimate
+
+    def line(self) -> VibrationLine:
+        f, tip, tilt = self.frequency, self.tip, self.tilt
+        note = f"identified: {f.value:.2f} +- {f.sigma:.2f} Hz, tip {tip.value:.2f} +- {tip.sigma:.2f}"
+        note += f", tilt {tilt.value:.2f} +- {tilt.sigma:.2f} mas"
+        damping = float(np.clip(self.damping, 1e-4, 0.9))
+        return VibrationLine(self.frequency.value, damping, max(self.tip.value, 0.0), max(self.tilt.value, 0.0), note)
+
+
+def _oscillator(f: np.ndarray, f0: float, zeta: float) -> np.ndarray:
+    """Unit-variance oscillator PSD (``VibrationLine.psd`` with sigma = 1)."""
+    w, w0 = 2 * np.pi * f, 2 * np.pi * f0
+    return (8 * zeta / w0) * w0**4 / ((w0**2 - w**2) ** 2 + (2 * zeta * w0 * w) ** 2)
+
+
+def _fit_peak(f: np.ndarray, p: np.ndarray, base: np.ndarray, i: int):
+    """(f0, zeta, variance, f0 sigma) of the oscillator on top of ``base`` near bin i."""
+    df = f[1] - f[0]
+    band = np.abs(f - f[i]) <= max(PEAK_HALF_WIDTH_HZ, 3 * df)
+    fb, pb, bb = f[band], p[band], base[band]
+    var0 = max(float(np.sum(pb - bb) * df), 1e-12)
+
+    def resid(x):
+        f0, lz, lv = x
+        return np.log(bb + np.exp(lv) * _oscillator(fb, f0, math.exp(lz))) - np.log(pb)
+
+    x0 = [f[i], math.log(max(df / f[i], 0.003)), math.log(var0)]
+    lo, hi = [f[i] - 2 * df, math.log(1e-4), math.log(var0) - 5], [f[i] + 2 * df, math.log(MAX_DAMPING), math.log(var0) + 5]
+    res = least_squares(resid, x0, bounds=(lo, hi))
+    f0, zeta = res.x[0], math.exp(res.x[1])
+    try:
+        cov = np.linalg.inv(res.jac.T @ res.jac) * np.sum(res.fun**2) / max(1, len(fb) - 3)
+        sf = float(math.sqrt(max(cov[0, 0], 0.0)))
+    except np.linalg.LinAlgError:
+        sf = math.inf
+    return f0, zeta, sf
+
+
+def _axis_variance(f, p_axis, base_axis, f0, zeta, segments: int) -> Estimate:
+    df = f[1] - f[0]
+    half = min(max(PEAK_HALF_WIDTH_HZ, 8 * zeta * f0), MAX_BAND_HZ)
+    band = np.abs(f - f0) <= half
+    share = float(np.sum(_oscillator(f[band], f0, zeta)) * df)  # of a unit-variance line
+    excess = float(np.sum(p_axis[band] - base_axis[band]) * df) / max(share, 1e-6)
+    rms = math.sqrt(max(excess, 0.0))
+    scatter = float(np.sum(p_axis[band]) * df) / max(share, 1e-6) / math.sqrt(max(1, segments * band.sum()))
+    return Estimate(rms, 0.5 * scatter / rms if rms > 0 else math.inf)
+
+
+def _baseline(f: np.ndarray, p: np.ndarray, width: int, masked: np.ndarray) -> np.ndarray:
+    """Running median of log p over ``width`` bins, over the bins outside ``masked`` (the lines
+    found so far, whose tails would raise it), interpolated across them."""
+    keep = ~masked
+    smooth = median_filter(np.log(np.maximum(p[keep], 1e-30)), size=width, mode="nearest")
+    return np.exp(np.interp(f, f[keep], smooth))
+
+
+def _candidates(f, mean, base, inside, threshold) -> list[int]:
+    peaks = [i for i in np.flatnonzero(inside)[1:-1] if mean[i] >= mean[i - 1] and mean[i] >= mean[i + 1] and mean[i] > threshold * base[i]]
+    return sorted(peaks, key=lambda i: -(mean[i] - base[i]))
+
+
+def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEstimate], np.ndarray, np.ndarray]:
+    """The lines of the (frames, 2) pseudo-open-loop Tip/Tilt (mas), with the frequencies and
+    the mean PSD they were found on (for the plots).  The baseline is computed twice: the
+    second time without the bins of the lines found the first time."""
+    n = pol_tip_tilt_mas.shape[0]
+    nperseg = int(min(2 ** round(math.log2(SEGMENT_S * rate_hz)), 2 ** int(math.log2(n))))
+    f, p = welch(pol_tip_tilt_mas, fs=rate_hz, nperseg=nperseg, axis=0, detrend="linear")
+    segments = max(1, n // nperseg)
+    df = f[1] - f[0]
+    width = max(5, int(2 * BASELINE_HZ / df) | 1)
+    mean = p.mean(axis=1)
+    inside = (f >= F_MIN_HZ) & (f <= 0.45 * rate_hz)
+    threshold = chi2.isf(FALSE_ALARMS / max(1, inside.sum()), 4 * segments) / (4 * segments)  # two axes averaged
+    masked = np.zeros(f.shape, dtype=bool)
+    for i in _candidates(f, mean, _baseline(f, mean, width, masked), inside, threshold):
+        masked |= np.abs(f - f[i]) <= max(1.0, 3 * df)
+    bases = np.stack([_baseline(f, p[:, a], width, masked) for a in range(2)], axis=1)
+    base = _baseline(f, mean, width, masked)
+    out: list[LineEstimate] = []
+    model = base.copy()  # the baseline plus the lines fitted so far: a candidate they explain is their skirt
+    for i in _candidates(f, mean, base, inside, threshold):
+        if mean[i] <= threshold * model[i]:
+            continue
+        f0, zeta, sf = _fit_peak(f, mean, base, i)
+        tip, tilt = (_axis_variance(f, p[:, a], bases[:, a], f0, zeta, segments) for a in range(2))
+        model += 0.5 * (tip.value**2 + tilt.value**2) * _oscillator(f, f0, zeta)
+        if max(tip.value, tilt.value) >= MIN_RMS_MAS:
+            out.append(LineEstimate(Estimate(f0, max(sf, 0.0)), zeta, tip, tilt))
+    return sorted(out, key=lambda x: x.frequency.value), f, mean

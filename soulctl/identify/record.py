@@ -1,0 +1,219 @@
+"""The part of a telemetry record that identification reads, as spectra.
+
+The window is the record's last stretch at fixed gains (the frames after the last change, as
+offline MGM takes them: the loop's transfer functions hold only there) over which the slope
+sensitivity k stays within ``K_SPREAD`` of its final value (OGTL changes k every period; once
+it has settled, k chi, the loop's gain, is steady), at most ``MAX_WINDOW_S``.  For every mode, in blocks of modes so that memory stays
+bounded, the Welch auto-spectra of the measurement m/k (k divided out: m/k = chi (phi - mirror)
++ n) and of the commands c (M^-1 c, probe included), and their cross-spectrum: the
+pseudo-open loop for any delay and optical gain follows from these three (``pol_psd``) without
+a second read.  Tip and Tilt are kept as time series for the vibration lines.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import csd, welch
+
+from ..control.filters import Filter
+from ..control.gains import unit_loops
+from ..errors import InputError
+from ..loop.offline import mode_blocks, recorded_run
+from ..run_config import RunConfig
+from ..telemetry.formats import check_decimation, open_telemetry
+from ..telemetry.schema import TelemetryReader
+
+MAX_WINDOW_S = 600.0
+MIN_WINDOW_S = 1.0  # shorter windows are refused: a few Welch segments of ~0.25 s
+K_SPREAD = 0.1  # k within 10 % of its final value
+SEGMENT_S = 0.25  # Welch segment of the loop spectra (~4 Hz resolution)
+NEEDED = ("measured_modes", "command_modes", "gains", "rate_hz")
+
+
+@dataclass(frozen=True)
+class Probe:
+    """The OGTL probe the record holds: its mode (1-based) and frequency."""
+
+    mode: int
+    frequency_hz: float
+
+
+@dataclass
+class LoopRecord:
+    """A record's window as identification reads it (see the module)."""
+
+    path: str
+    rate_hz: float
+    delay_frames: float  # the record's (or the configuration's): the starting point, not the answer
+    description: RunConfig | None
+    filters: list[Filter]  # unit-gain controller of each mode
+    gains: np.ndarray  # in force during the window
+    structure_ba: tuple | None  # the Tip/Tilt structural resonance (b, a) at this rate
+    sensitivity: float  # k at the end of the window (m is divided by each frame's k)
+    f_hz: np.ndarray
+    p_m: np.ndarray  # (n_modes, F) PSD of m/k, nm^2/Hz
+    p_c: np.ndarray  # (n_modes, F) PSD of the commands
+    s_mc: np.ndarray  # (n_modes, F) cross-spectrum E[conj(M) C] (scipy's csd)
+    moments: np.ndarray  # (n_modes, 3 + lags): var m/k, var c, cov(c(k), c(k-1)), cov(m/k(k), c(k-j)) j = 0..lags-1
+    tip_tilt: tuple[np.ndarray, np.ndarray]  # (frames, 2) of m/k and of c
+    probe: Probe | None
+    probe_series: tuple[np.ndarray, np.ndarray] | None  # m/k and c of the probed mode
+    first_frame: int
+    frames: int
+    segments: int  # independent Welch segments (frames / segment)
+
+    @property
+    def n_modes(self) -> int:
+        return self.p_m.shape[0]
+
+
+def _description(tm: TelemetryReader, path) -> RunConfig | None:
+    try:
+        return recorded_run(tm, None, path)
+    except InputError:
+        if tm.has("run_description") or "observation" in tm.configuration():
+            raise
+        return None  # a foreign record: integrators at the recorded gains
+
+
+def _filters(description: RunConfig | None, rate: float, n_modes: int) -> tuple[list[Filter], tuple | None]:
+    if description is None:
+        return [Filter.integrator(1.0)] * n_modes, None
+    obs = description.observation
+    if abs(obs.frame_rate_hz - rate) > 1e-6 * rate:
+        raise InputError(f"the record's rate ({rate:g} Hz) is not its configuration's ({obs.frame_rate_hz:g} Hz)")
+    return unit_loops(obs, description.structure, description.controller.forgetting, n_modes)
+
+
+def _probe(tm: TelemetryReader) -> Probe | None:
+    if not tm.has("aux/ogtl/mode") or not tm.has("aux/ogtl/frequency_hz") or tm.dataset("aux/ogtl/mode").shape[:1] == (0,):
+        return None
+    mode = int(np.asarray(tm.dataset("aux/ogtl/mode")[-1]).reshape(-1)[0])
+    f = float(np.asarray(tm.dataset("aux/ogtl/frequency_hz")[-1]).reshape(-1)[0])
+    if not (1 <= mode <= tm.dim("n_modes") and math.isfinite(f) and 0 < f < 0.5 * tm.attribute("rate_hz")):
+        raise InputError(f"telemetry file {tm.path}: /aux/ogtl holds probe mode {mode} at {f:g} Hz, not a probe of this record")
+    return Probe(mode, f)
+
+
+def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarray | None, np.ndarray]:
+    """(start, k over frames start.., the gains in force): after the last change of the gains
+    (/gain_history), and k within K_SPREAD of its final value."""
+    start, gains = first, None
+    if tm.has("gain_history/frames") and tm.dim("changes"):
+        changes = tm.read("gain_history/frames")
+        inside = np.flatnonzero(changes < frames)
+        if len(inside):
+            start = max(start, int(changes[inside[-1]]))
+            gains = tm.read("gain_history/gains", slice(int(inside[-1]), int(inside[-1]) + 1))[0]
+    k = None
+    if tm.has("sensitivity"):
+        k = tm.read("sensitivity", slice(start, frames)).astype(float)
+        apart = np.flatnonzero(np.abs(k / k[-1] - 1.0) > K_SPREAD)
+        if len(apart):
+            start += int(apart[-1]) + 1
+            k = k[int(apart[-1]) + 1 :]
+    return start, k, np.asarray(tm.read("gains") if gains is None else gains, dtype=float)
+
+
+def read_record(path, delay_frames: float | None = None) -> LoopRecord:
+    """The window of the record at ``path`` as spectra (see the module); InputError for a
+    record identification cannot use (decimated, diverged, shorter than ``MIN_WINDOW_S``)."""
+    with open_telemetry(path, NEEDED) as tm:
+        check_decimation(tm, path, "the identification's spectra")
+        if tm.attribute("diverged_at", -1) >= 0:
+            raise InputError(f"telemetry file {path} records a loop that diverged: identification needs a stable loop")
+        rate = float(tm.attribute("rate_hz"))
+        description = _description(tm, path)
+        n_modes, frames = tm.dim("n_modes"), tm.dim("frames")
+        delay = delay_frames if delay_frames is not None else tm.attribute("delay_frames", None)
+        if delay is None:
+            delay = description.observation.delay_frames if description else math.nan
+        filters, ba = _filters(description, rate, n_modes)
+        first = max(0, frames - round(MAX_WINDOW_S * rate))
+        start, k, gains = _window(tm, frames, first)
+        sensitivity = float(k[-1]) if k is not None else 1.0
+        window = frames - start
+        if window < MIN_WINDOW_S * rate:
+            raise InputError(
+                f"telemetry file {path}: the window at fixed gains and k holds {window} frames ({window / rate:.3g} s): "
+                f"identification needs at least {MIN_WINDOW_S:g} s ({math.ceil(MIN_WINDOW_S * rate)} frames)"
+            )
+        segment = 2 ** int(round(math.log2(SEGMENT_S * rate)))
+        lags = int(math.ceil((delay if math.isfinite(delay) else 2.0) + 2.0)) + 2
+        rows = slice(start, frames)
+        spectra, tt, probe_series = [], None, None
+        probe = _probe(tm)
+        for cols in mode_blocks(n_modes, window):
+            m = tm.read("measured_modes", rows, cols).astype(float)
+            m /= k[:, None] if k is not None else 1.0
+            c = tm.read("command_modes", rows, cols).astype(float)
+            spectra.append(_block_spectra(m, c, rate, segment) + (_moments(m, c, lags),))
+            if cols.start == 0:
+                tt = (m[:, :2].copy(), c[:, :2].copy())
+            if probe and cols.start <= probe.mode - 1 < cols.stop:
+                j = probe.mode - 1 - cols.start
+                probe_series = (m[:, j].copy(), c[:, j].copy())
+    f = spectra[0][0]
+    p_m, p_c, s_mc, moments = (np.concatenate([s[i] for s in spectra]) for i in (1, 2, 3, 4))
+    return LoopRecord(
+        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, p_c, s_mc, moments,
+        tt, probe, probe_series, start, window, window // segment,
+    )  # fmt: skip
+
+
+def _block_spectra(m: np.ndarray, c: np.ndarray, rate: float, segment: int):
+    kw = {"fs": rate, "nperseg": segment, "axis": 0, "detrend": "constant"}
+    f, p_m = welch(m, **kw)
+    _, p_c = welch(c, **kw)
+    _, s_mc = csd(m, c, **kw)
+    return f, p_m.T, p_c.T, s_mc.T
+
+
+def _moments(m: np.ndarray, c: np.ndarray, lags: int) -> np.ndarray:
+    """Per mode: var m, var c, cov(c(k), c(k-1)) and cov(m(k), c(k-j)) for j < lags (the
+    pseudo-open loop's variance for any delay and chi, including the frequencies below the
+    Welch segments' resolution, where most of the turbulence is)."""
+    m = m - m.mean(axis=0)
+    c = c - c.mean(axis=0)
+    n = len(m)
+    out = [np.mean(m * m, axis=0), np.mean(c * c, axis=0), np.sum(c[1:] * c[:-1], axis=0) / n]
+    out += [np.sum(m[j:] * c[: n - j], axis=0) / n for j in range(lags)]
+    return np.stack(out, axis=1)
+
+
+def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
+    """Variance of m/(k chi) + (1 - e) c(k - n) + e c(k - n - 1) per mode (without the
+    structural resonance: Tip/Tilt's variance is the vibrations' and turbulence's, at low
+    frequencies where the resonance does not act)."""
+    n = int(math.floor(delay_frames + 1e-12))
+    e = delay_frames - n
+    mo = record.moments
+    if n + 4 > mo.shape[1]:
+        raise ValueError(f"delay {delay_frames:g} beyond the lags recorded")
+    x = 1.0 / np.asarray(chi, dtype=float)
+    var_dc = ((1 - e) ** 2 + e**2) * mo[:, 1] + 2 * e * (1 - e) * mo[:, 2]
+    cross = (1 - e) * mo[:, 3 + n] + e * mo[:, 4 + n]
+    return x**2 * mo[:, 0] + var_dc + 2 * x * cross
+
+
+def delay_response(f_hz: np.ndarray, rate_hz: float, delay_frames: float) -> np.ndarray:
+    """z^-d with the fractional part as linear interpolation between frames (the delay line)."""
+    n = int(math.floor(delay_frames + 1e-12))
+    e = delay_frames - n
+    zi = np.exp(-2j * np.pi * np.asarray(f_hz) / rate_hz)
+    return zi**n * ((1.0 - e) + e * zi)
+
+
+def pol_psd(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
+    """PSD of the pseudo-open loop m/(k chi) + z^-d c (the mirror's modes; the structural
+    resonance multiplies Tip/Tilt's), (n_modes, F), from the record's auto- and cross-spectra."""
+    D = np.broadcast_to(delay_response(record.f_hz, record.rate_hz, delay_frames), record.p_m.shape).copy()
+    if record.structure_ba is not None:
+        b, a = (np.asarray(x) for x in record.structure_ba)
+        zi = np.exp(-2j * np.pi * record.f_hz / record.rate_hz)
+        D[:2] *= 1.0 + np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi)
+    x = 1.0 / np.asarray(chi, dtype=float)[:, None]
+    return np.maximum(x**2 * record.p_m + np.abs(D) ** 2 * record.p_c + 2.0 * x * np.real(record.s_mc * D), 0.0)
