@@ -79,6 +79,8 @@ STALE = {
     "control.mode_gains": ("control.gains",),
     "vibrations.file": tuple(f"vibrations.{k}" for k in ("line", "source", "scale")),
     "vibrations.enabled": tuple(f"vibrations.{k}" for k in ("line", "source", "scale")),
+    "vibrations.line": ("vibrations.file", "vibrations.enabled"),
+    "delay.frames": tuple(f"delay.{k}" for k in ("t_readout_ms", "t_computation_ms", "t_asm_ms")),
 }
 LAYER_KEYS = ("altitude_m", "fraction", "wind_speed_m_s", "wind_direction_deg")
 FORGETTING = Range(0.0, 1.0)

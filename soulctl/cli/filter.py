@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import typer
@@ -22,6 +22,7 @@ from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_path, same_file
+from ..identify.plant import plant_disturbance, read_plant
 from ..ranges import (
     ANALYSIS_GAIN,
     ANALYSIS_RATE_HZ,
@@ -180,7 +181,9 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
 class AnalyzeOptions:
     """The options of `filter analyze` (an option table: see ``option_table``)."""
 
-    rate: str = typer.Option(..., "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()}).")
+    rate: str | None = typer.Option(
+        None, "--rate", metavar="HZ[,HZ…]", help=f"Frame rate(s) in Hz ({ANALYSIS_RATE_HZ.text()}); required without --plant."
+    )
     control: str = typer.Option("iir", "--control", metavar="iir|int|leaky[,…]", help="Controller(s).")
     gain: str = typer.Option(..., "--gain", metavar="G[,G…]", help=f"Loop gain(s) ({ANALYSIS_GAIN.text()}).")
     delay_frames: str | None = typer.Option(
@@ -192,7 +195,15 @@ class AnalyzeOptions:
     system: str = typer.Option(
         "soul", "--system", metavar="soul|flao[,…]", help="Delay model when no delay is given (tables/delay_model.toml)."
     )
-    chi: str = typer.Option("1", "--chi", metavar="X[,X…]", help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()}).")
+    chi: str | None = typer.Option(
+        None,
+        "--chi",
+        metavar="X[,X…]",
+        help=f"Optical gain χ of the plant ({OPTICAL_GAIN.text()}; default 1, with --plant its Tip/Tilt χ).",
+    )
+    plant: Path | None = typer.Option(
+        None, "--plant", metavar="PLANT.toml", help="Identified plant ('telemetry identify --out'): its rate, delay and Tip/Tilt χ."
+    )
     forgetting: str = typer.Option("0.99", "--forgetting", metavar="A[,A…]", help="Forgetting factor of 'leaky' (0..1).")
     zeros: str | None = typer.Option(
         None,
@@ -241,8 +252,22 @@ def analyze_command(o: AnalyzeOptions) -> int:
     return 0 if all_stable else UNSTABLE_EXIT
 
 
+def _with_plant(o: AnalyzeOptions) -> AnalyzeOptions:
+    """The options with --plant's rate (unless --rate), delay and Tip/Tilt chi (unless --chi)."""
+    if o.plant is None:
+        if o.rate is None:
+            raise InputError("give --rate (or --plant, an identified plant with its rate)")
+        return replace(o, chi=o.chi or "1")
+    if o.delay_frames is not None or o.delay_ms is not None:
+        raise InputError("--plant gives the delay: drop --delay-frames/--delay-ms (or --plant)")
+    plant = read_plant(o.plant)
+    chi = o.chi or repr(float(plant.chi(2)[0]))
+    return replace(o, rate=o.rate or repr(plant.rate_hz), delay_frames=repr(plant.delay.value), chi=chi)
+
+
 def _analyzed_loops(o: AnalyzeOptions) -> list[AnalyzedLoop]:
     """The controllers of `filter analyze`, every option checked (and --plot) before any work."""
+    o = _with_plant(o)
     if o.delay_frames is not None and o.delay_ms is not None:
         raise InputError("give --delay-frames or --delay-ms, not both")
     if o.plot is not None:
@@ -431,6 +456,13 @@ class DesignOptions:
     seed: int = typer.Option(
         defaults.SEED, "--seed", parser=number(SEED), help=f"Seed of the differential-evolution search ({SEED.text()})."
     )
+    plant: Path | None = typer.Option(
+        None,
+        "--plant",
+        metavar="PLANT.toml",
+        help="Identified plant ('telemetry identify --out'): its rate, delay, seeing, L0, vibrations and Tip/Tilt noise "
+        "replace --rate, --delay-ms, --seeing, --L0, --vibrations and --noise.",
+    )
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots').")
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs.")
@@ -446,12 +478,17 @@ def design_command(o: DesignOptions) -> int:
     Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
     """
     rates, delays = _design_inputs(o)
-    disturbance = Disturbance(
-        turbulence=TurbulenceTipTilt(o.seeing, o.outer_scale, o.wind),
-        vibrations=VibrationSpectrum.read(o.vibrations) if o.vibrations is not None else VibrationSpectrum.lbt_default(),
-        noise_mas=o.noise,
-        resonance_mas=o.resonance_line,
-    )
+    if o.plant is not None:
+        plant = read_plant(o.plant)
+        rates, delays = [DESIGN_RATE_HZ.check(plant.rate_hz, f"--plant {o.plant}: rate_hz")], [plant.delay.value]
+        disturbance = plant_disturbance(plant, o.wind, o.resonance_line)
+    else:
+        disturbance = Disturbance(
+            turbulence=TurbulenceTipTilt(o.seeing, o.outer_scale, o.wind),
+            vibrations=VibrationSpectrum.read(o.vibrations) if o.vibrations is not None else VibrationSpectrum.lbt_default(),
+            noise_mas=o.noise,
+            resonance_mas=o.resonance_line,
+        )
     err = make_console(stderr=True)
     results = []
     for r, d in zip(rates, delays):
@@ -489,9 +526,11 @@ def _design_inputs(o: DesignOptions) -> tuple[list[float], list[float | None]]:
     ):
         accepted.check(value, name)
     delays = [None if o.delay_ms is None else _design_delay(o.delay_ms, r) for r in rates]
+    if o.plant is not None and (o.vibrations is not None or o.delay_ms is not None):
+        raise InputError("--plant gives the vibrations and the delay: drop --vibrations/--delay-ms (or --plant)")
     for path, option in ((o.out, "--out"), (o.plot, "--plot")):
         if path is not None:
-            check_output_path(path, option, [("--vibrations", o.vibrations)])
+            check_output_path(path, option, [("--vibrations", o.vibrations), ("--plant", o.plant)])
     if o.out is not None and o.plot is not None and same_file(o.out, o.plot):
         raise InputError(f"--out and --plot name the same file {o.out}")
     if o.plot is not None:

@@ -14,6 +14,7 @@ from .. import defaults
 from ..control.gains import MID_GROUP_END, gain_groups
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
+from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
@@ -135,6 +136,13 @@ class RunOptions:
     mag: str | None = typer.Option(
         None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}, the paper's bright star)."
     )
+    plant: Path | None = typer.Option(
+        None,
+        "--plant",
+        metavar="PLANT.toml",
+        help="A simulated twin of an identified plant ('telemetry identify --out'): its frame rate, delay, seeing, L0 "
+        "and vibration lines (the other options override them).",
+    )
     seeing: float | None = SEEING
     wind: float | None = WIND
     L0: float | None = OUTER_SCALE
@@ -239,7 +247,7 @@ def run_cmd(o: RunOptions) -> int:
 def _checked_overrides(o: RunOptions) -> dict:
     """Every option checked and the outputs checked before any work; the run description's
     overrides (the loop's options and `loop run`'s own)."""
-    inputs = [("--config", o.config), gain_file_input(o.gains), ("--vibrations", o.vibrations)]
+    inputs = [("--config", o.config), gain_file_input(o.gains), ("--vibrations", o.vibrations), ("--plant", o.plant)]
     if o.telemetry is not None:
         check_output_path(o.telemetry, "--telemetry", inputs)
     if o.plot is not None:
@@ -248,7 +256,10 @@ def _checked_overrides(o: RunOptions) -> dict:
     TELEMETRY_EVERY.check(o.telemetry_every, "--telemetry-every")
     telemetry_fields(o.telemetry_fields)
     overrides = loop_overrides(o)
-    return overrides | _run_overrides(o)
+    twin = plant_overrides(read_plant(o.plant)) if o.plant is not None else {}
+    if "vibrations.file" in overrides or "vibrations.enabled" in overrides:
+        twin = {k: v for k, v in twin.items() if not k.startswith("vibrations.")}
+    return twin | overrides | _run_overrides(o)
 
 
 def _run_overrides(o: RunOptions) -> dict:

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..control.design import Disturbance
+from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
 from ..files import read_toml
@@ -227,3 +229,35 @@ def _turbulence(t, where: str) -> Turbulence:
     if wind is not None:
         wind = WIND_M_S.check(_number(t, "wind_m_s", where), f"{where}: turbulence.wind_m_s")
     return Turbulence(seeing, _number(t, "seeing_sigma", where, math.inf), L0, _number(t, "L0_sigma", where, math.inf), wind)
+
+
+def plant_disturbance(plant: PlantModel, wind_m_s: float, resonance_mas: float) -> Disturbance:
+    """The Tip/Tilt disturbance of `filter design` for an identified plant: von Karman
+    Tip/Tilt at its seeing and L0 (the wind given, or the plant's), its vibration lines (none
+    when it found none) and its Tip/Tilt noise referred to the wavefront."""
+    missing = [name for name, v in (("[turbulence]", plant.turbulence), ("noise.tip_tilt_mas", plant.tip_tilt_noise_mas)) if v is None]
+    if missing:
+        raise InputError(f"plant file {plant.source}: filter design needs {' and '.join(missing)}")
+    t = plant.turbulence
+    assert t is not None and plant.tip_tilt_noise_mas is not None
+    turbulence = TurbulenceTipTilt(t.seeing_arcsec, t.L0_m, t.wind_m_s if t.wind_m_s is not None else wind_m_s)
+    vibrations = plant.vibrations or VibrationSpectrum((), "no vibration line identified")
+    return Disturbance(turbulence, vibrations, min(plant.tip_tilt_noise_mas, 1e4 - 1), resonance_mas=resonance_mas)
+
+
+def plant_overrides(plant: PlantModel) -> dict:
+    """The run description's fields of a simulated twin of the plant (`loop run --plant`):
+    frame rate, total delay, seeing, L0 (and wind) and the vibration lines (none if it found none)."""
+    out: dict = {"wfs.frame_rate_hz": plant.rate_hz, "delay.frames": plant.delay.value}
+    if plant.turbulence is not None:
+        t = plant.turbulence
+        out |= {"atmosphere.seeing_arcsec": t.seeing_arcsec, "atmosphere.L0_m": t.L0_m}
+        if t.wind_m_s is not None:
+            out["atmosphere.wind_m_s"] = t.wind_m_s
+    if plant.vibrations is None:
+        return out | {"vibrations.enabled": False}
+    lines = [
+        {"frequency_hz": x.frequency_hz, "damping": x.damping, "tip_mas": x.tip_mas, "tilt_mas": x.tilt_mas, "note": x.note}
+        for x in plant.vibrations.lines
+    ]
+    return out | {"vibrations.line": lines, "vibrations.source": plant.vibrations.source}
