@@ -32,6 +32,7 @@ from . import filter as filter_cli
 from . import loop as loop_cli
 from . import optics as optics_cli
 from . import optimize as optimize_cli
+from . import rtc as rtc_cli
 from . import telemetry as telemetry_cli
 from .output import ascii_fallback
 from .sweep import sweep
@@ -49,6 +50,7 @@ app.add_typer(optics_cli.app, name="optics")
 app.add_typer(loop_cli.app, name="loop")
 app.add_typer(optimize_cli.app, name="optimize")
 app.add_typer(telemetry_cli.app, name="telemetry")
+app.add_typer(rtc_cli.app, name="rtc")
 app.command(name="sweep")(sweep)
 
 

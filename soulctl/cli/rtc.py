@@ -1,0 +1,116 @@
+"""``soulctl rtc check``: the check before a parameter set goes to the real RTC."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from ..control.check import DEFAULT_MODULUS_MARGIN, STATE_BUDGET, Criteria, check_modes, state_count
+from ..control.gains import LoopGains, mode_filters, read_gain_file
+from ..control.structure import sampled_structure
+from ..errors import InputError
+from ..files import input_file
+from ..identify.plant import read_plant
+from ..optics.optical_gains import read_optical_gain_table
+from ..ranges import Range
+from .common import JSON_OUTPUT, RUN_CONFIG, quantity_table, run_description
+from .numbers import number
+from .option_table import command
+from .output import console as make_console
+from .output import print_json
+
+app = typer.Typer(no_args_is_help=True, help="Real-time computer parameter sets: the checks before an upload.")
+
+UNSAFE_EXIT = 3
+MARGIN = Range(0.0, 1.0, lo_open=False)
+WORST = 10  # modes in the table
+
+
+@dataclass(frozen=True)
+class CheckOptions:
+    params: Path = typer.Argument(
+        ..., metavar="GAINS", help="Per-mode gains: a gain file as 'optimize gains --out' writes it (TOML, CSV or text)."
+    )
+    config: Path | None = RUN_CONFIG
+    mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: the look-up table's filters and modes.")
+    plant: Path | None = typer.Option(None, "--plant", metavar="PLANT.toml", help="Identified plant: its delay and optical gains chi_i.")
+    chi_table: Path | None = typer.Option(
+        None, "--chi-table", metavar="FILE.csv", help="Optical gains per mode ('optics gains --out'), instead of the plant's."
+    )
+    modulus_margin: float = typer.Option(
+        DEFAULT_MODULUS_MARGIN, "--modulus-margin", parser=number(MARGIN), help="Least min|1 + L| per mode (0..1; the paper's epsilon 0.2)."
+    )
+    gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(Range(1.0, 1e6)), help="Least gain margin per mode (1: stable).")
+    phase_margin: float = typer.Option(
+        0.0, "--phase-margin", parser=number(Range(0.0, 180.0, "deg")), help="Least phase margin per mode (deg)."
+    )
+    json_output: bool = JSON_OUTPUT
+
+
+@app.command("check")
+@command(CheckOptions)
+def check_cmd(o: CheckOptions) -> int:
+    """Check per-mode gains before an upload: each mode's stability, gain, phase and modulus
+    margins and maximum stable gain on the plant (delay, optical gain chi_i, the 127 Hz
+    structure on Tip/Tilt) and the RTC states against the 672-state budget.  Exit 0 when every
+    mode meets the margins, 3 when a mode is unstable or below one, 2 on malformed input.
+
+    Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
+    """
+    input_file(o.params, "GAINS")
+    description = run_description(o.config, o.mag, {})
+    obs = description.observation
+    gains = read_gain_file(o.params)
+    if len(gains) != obs.modes:
+        raise InputError(f"GAINS {o.params} holds {len(gains)} gains; the configuration controls {obs.modes} modes (--config/--mag)")
+    plant = read_plant(o.plant) if o.plant is not None else None
+    if plant is not None and abs(plant.rate_hz - obs.frame_rate_hz) > 1e-6 * obs.frame_rate_hz:
+        raise InputError(f"--plant {o.plant} is at {plant.rate_hz:g} Hz; the configuration runs at {obs.frame_rate_hz:g} Hz")
+    chi = np.ones(obs.modes) if plant is None else plant.chi(obs.modes)
+    if o.chi_table is not None:
+        chi = read_optical_gain_table(o.chi_table, obs.modes)
+    delay = plant.delay.value if plant is not None else obs.delay_frames
+    filters = mode_filters(obs, LoopGains.from_modes(gains, description.controller.forgetting), obs.modes)
+    structure = sampled_structure(description.structure, obs.frame_rate_hz)
+    ba = None if structure is None else structure.coefficients(obs.frame_rate_hz)
+    criteria = Criteria(o.modulus_margin, o.gain_margin, o.phase_margin)
+    checks = check_modes(filters, chi, delay, obs.frame_rate_hz, ba, criteria)
+    states = state_count(filters)
+    ok = all(c.passed for c in checks) and states <= STATE_BUDGET
+    if o.json_output:
+        print_json(
+            {
+                "passed": ok,
+                "states": states,
+                "state_budget": STATE_BUDGET,
+                "delay_frames": delay,
+                "rate_hz": obs.frame_rate_hz,
+                "criteria": criteria.__dict__,
+                "failed_modes": [c.mode for c in checks if not c.passed],
+                "modes": [c.to_dict() for c in checks],
+            }
+        )
+    else:
+        _render(checks, states, delay, ok)
+    return 0 if ok else UNSAFE_EXIT
+
+
+def _render(checks, states: int, delay: float, ok: bool) -> None:
+    worst = sorted(checks, key=lambda c: (c.passed, c.modulus_margin))[:WORST]
+    t = quantity_table(f"worst modes by modulus margin (delay {delay:.3f} frames)")
+    for c in worst:
+        pm = "-" if c.phase_margin_deg is None else f"{c.phase_margin_deg:.0f} deg"
+        verdict = "ok" if c.passed else ("UNSTABLE" if not c.stable else "below a margin")
+        t.add_row(
+            f"mode {c.mode}: g {c.gain:.3g}, chi {c.chi:.3g}",
+            f"GM {c.gain_margin:.2f}, PM {pm}, min|1+L| {c.modulus_margin:.3f}, g_max {c.max_stable_gain:.3g}: {verdict}",
+        )
+    t.add_row("RTC states", f"{states} of {STATE_BUDGET}")
+    failed = sum(not c.passed for c in checks)
+    t.add_row(
+        "verdict", "safe to upload" if ok else f"NOT safe: {failed} mode(s) fail" + ("" if states <= STATE_BUDGET else ", too many states")
+    )
+    make_console().print(t)
