@@ -108,6 +108,7 @@ def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> tuple[list[LineE
 
 
 def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
+    L0s: tuple[float, ...]
     if record.description is None:
         table, L0s = seeing.noll_variances(record.n_modes), (seeing.UNKNOWN_L0_M,)
     else:
@@ -138,7 +139,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     clock["turbulence"] = time.perf_counter()
     noise[:2] = tip_tilt_noise(record, rej.delay.value, float(chi[0]))
     tt_noise = math.sqrt(noise[0]) / chi[0] / nm_per_mas_tip_tilt()  # referred to the wavefront: what filter design takes
-    notes = (
+    notes: tuple[str, ...] = (
         "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit",
         "wind speed not estimated",
     )

@@ -89,10 +89,11 @@ def _filters(description: RunConfig | None, rate: float, n_modes: int) -> tuple[
 
 
 def _probe(tm: TelemetryReader) -> Probe | None:
-    if not tm.has("aux/ogtl/mode") or not tm.has("aux/ogtl/frequency_hz") or tm.dataset("aux/ogtl/mode").shape[:1] == (0,):
+    modes, frequencies = tm.dataset("aux/ogtl/mode"), tm.dataset("aux/ogtl/frequency_hz")
+    if modes is None or frequencies is None or modes.shape[:1] == (0,):
         return None
-    mode = int(np.asarray(tm.dataset("aux/ogtl/mode")[-1]).reshape(-1)[0])
-    f = float(np.asarray(tm.dataset("aux/ogtl/frequency_hz")[-1]).reshape(-1)[0])
+    mode = int(np.asarray(modes[-1]).reshape(-1)[0])
+    f = float(np.asarray(frequencies[-1]).reshape(-1)[0])
     if not (1 <= mode <= tm.dim("n_modes") and math.isfinite(f) and 0 < f < 0.5 * tm.attribute("rate_hz")):
         raise InputError(f"telemetry file {tm.path}: /aux/ogtl holds probe mode {mode} at {f:g} Hz, not a probe of this record")
     return Probe(mode, f)
@@ -144,7 +145,9 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
         segment = 2 ** int(round(math.log2(SEGMENT_S * rate)))
         lags = int(math.ceil((delay if math.isfinite(delay) else 2.0) + 2.0)) + 2
         rows = slice(start, frames)
-        spectra, tt, probe_series = [], None, None
+        spectra: list = []
+        tt: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 2)), np.zeros((0, 2)))
+        probe_series = None
         probe = _probe(tm)
         for cols in mode_blocks(n_modes, window):
             m = tm.read("measured_modes", rows, cols).astype(float)

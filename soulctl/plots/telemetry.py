@@ -45,7 +45,7 @@ def write_identify_figures(directory: Path, ident) -> list[Path]:
     """The fits of `telemetry identify` against the data: a measured-mode PSD per optical-gain
     group with sigma^2 |S|^2 at the identified delay and chi, the pseudo-open-loop Tip/Tilt PSD
     with the lines found, the modal variances with the von Karman fit."""
-    out = []
+    out: list[Path] = []
     rec, rej, plant = ident.record, ident.rejection, ident.plant
     fig = new_figure((6.4, 4.4))
     ax = fig.subplots()
