@@ -76,7 +76,12 @@ SEED = typer.Option(
     help=f"Seed of turbulence, vibrations and noise ({ranges.SEED.text()}).",
 )
 NO_NOISE = typer.Option(False, "--no-noise", help="Noiseless detector.")
-VIBRATIONS = typer.Option(None, "--vibrations", metavar="FILE", help="Vibration lines (TOML, as tables/lbt_vibrations.toml).")
+VIBRATIONS = typer.Option(
+    None,
+    "--vibrations",
+    metavar="FILE|NAME",
+    help="Vibration lines (TOML, as tables/lbt_vibrations.toml), or a profile: lbt (default), lbt-onsky.",
+)
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 OVERSAMPLING = typer.Option(

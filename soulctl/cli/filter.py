@@ -431,7 +431,10 @@ class DesignOptions:
         help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()}).",
     )
     vibrations: Path | None = typer.Option(
-        None, "--vibrations", metavar="FILE", help="Vibration lines (TOML as tables/lbt_vibrations.toml) instead of the LBT-like default."
+        None,
+        "--vibrations",
+        metavar="FILE|NAME",
+        help="Vibration lines (TOML as tables/lbt_vibrations.toml), or a profile: lbt (default), lbt-onsky.",
     )
     noise: float = typer.Option(
         Disturbance.noise_mas,

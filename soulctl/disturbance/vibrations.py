@@ -23,6 +23,8 @@ from ..files import read_toml
 from ..ranges import VIBRATION_DAMPING, VIBRATION_FREQUENCY_HZ, VIBRATION_RMS_MAS
 
 AXES = ("tip", "tilt", "mean")
+# Named profiles (--vibrations NAME): the proposal the defaults use and the paper's on-sky level.
+PROFILES = {"lbt": "lbt_vibrations.toml", "lbt-onsky": "lbt_vibrations_onsky.toml"}
 LINE_KEYS = ("frequency_hz", "damping", "tip_mas", "tilt_mas")
 
 
@@ -118,7 +120,10 @@ class VibrationSpectrum:
 
     @classmethod
     def read(cls, path: str | Path) -> VibrationSpectrum:
-        """A vibration file in the format of tables/lbt_vibrations.toml."""
+        """A vibration file in the format of tables/lbt_vibrations.toml, or a profile name of
+        ``PROFILES`` when no file of that name exists."""
+        if str(path) in PROFILES and not Path(path).exists():
+            path = tables.tables_dir() / PROFILES[str(path)]
         return cls.from_dict(read_toml(path, "vibration file"), str(path))
 
     @classmethod

@@ -1,5 +1,7 @@
 """Vibration lines: normalisation, shape, and the vibration file format."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy.signal import welch
@@ -103,3 +105,21 @@ def test_blocks_continue_one_stationary_series():
 def test_time_series_needs_a_rate_above_twice_each_line():
     with pytest.raises(InputError, match="frame rate above 116"):
         VibrationSpectrum.lbt_default().time_series(10, 100.0, np.random.default_rng(0))
+
+
+def test_onsky_profile_gives_the_papers_pseudo_open_loop_jitter():
+    """tables/lbt_vibrations_onsky.toml: 3-425 Hz pseudo-open-loop Tip/Tilt per axis (with the
+    night's turbulence) in the paper's 34-43 mas, its ends at the scales the file gives."""
+    from soulctl.disturbance.turbulence import TurbulenceTipTilt
+
+    f = np.linspace(3.0, 425.0, 400_001)
+    df = f[1] - f[0]
+    onsky = VibrationSpectrum.read("lbt-onsky")
+    turbulence = TurbulenceTipTilt(1.3, 25.0, 8.0).psd(f)
+    jitter = {s: float(np.sqrt(np.sum(onsky.psd(f) * s**2 + turbulence) * df)) for s in (0.90, 1.0, 1.13)}
+    assert 34.0 <= jitter[1.0] <= 43.0
+    assert jitter[0.90] == pytest.approx(34.0, abs=0.5) and jitter[1.13] == pytest.approx(43.0, abs=0.6)
+    # the proposal is ~4.45x below it, line for line
+    proposal = VibrationSpectrum.read("lbt")
+    assert [x.frequency_hz for x in onsky.lines] == [x.frequency_hz for x in proposal.lines]
+    assert math.sqrt(onsky.variance_mas2() / proposal.variance_mas2()) == pytest.approx(4.45, rel=0.01)
