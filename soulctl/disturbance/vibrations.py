@@ -121,8 +121,8 @@ class VibrationSpectrum:
     @classmethod
     def read(cls, path: str | Path) -> VibrationSpectrum:
         """A vibration file in the format of tables/lbt_vibrations.toml, or a profile name of
-        ``PROFILES`` when no file of that name exists."""
-        if str(path) in PROFILES and not Path(path).exists():
+        ``PROFILES`` when no regular file of that name exists."""
+        if str(path) in PROFILES and not Path(path).is_file():
             path = tables.tables_dir() / PROFILES[str(path)]
         return cls.from_dict(read_toml(path, "vibration file"), str(path))
 
