@@ -143,8 +143,6 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
         "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit",
         "wind speed not estimated",
     )
-    if probe is None:
-        notes += ("without a probe chi is the rejection fit's, high where the measurement error is coloured (docs/physics.md)",)
     spectrum = VibrationSpectrum(tuple(x.line() for x in lines), f"identified from {record.path}") if lines else None
     plant = PlantModel(
         record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes
