@@ -176,3 +176,18 @@ def test_rtc_check_margins_agree_with_the_analysis(gain):
         assert c.modulus_margin == pytest.approx(a.modulus_margin, rel=1e-3)
         if a.phase_margin_deg is not None and a.stable:
             assert c.phase_margin_deg == pytest.approx(a.phase_margin_deg, abs=0.5)
+
+
+@pytest.mark.parametrize("target", ["run.fits", "Data_20261126_000001"])
+def test_identify_reads_every_format_alike(files, tmp_path, target, capsys):
+    """AOT FITS and LBT tracking-number folders give the plant the HDF5 record gives."""
+    converted = tmp_path / target
+    assert main(["telemetry", "convert", str(files[1]), str(converted)]) == 0
+    results = []
+    for path in (files[1], converted):
+        assert main(["telemetry", "identify", str(path), "--json", "--no-cache"]) == 0
+        results.append(json.loads(capsys.readouterr().out))
+    a, b = results
+    assert b["delay_frames"]["value"] == pytest.approx(a["delay_frames"]["value"], rel=1e-6)
+    assert [g["chi"] for g in b["optical_gains"]] == pytest.approx([g["chi"] for g in a["optical_gains"]], rel=1e-5)
+    assert b["probe"]["chi"]["value"] == pytest.approx(a["probe"]["chi"]["value"], rel=1e-5)
