@@ -355,7 +355,7 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
     for name in ("rate", "", "gain", "GM", "PM", "min|1+L|", "|S(13)|", "|T(127)|", "jitter"):
         perf.add_column(name, justify="left" if name == "" else "right")
     for r in results:
-        rows = [("designed", r.iir, ""), ("paper", r.table, "dim"), ("integrator", r.integrator, "dim")]
+        rows = [("designed", r.iir, ""), ("in use", r.in_use, "dim"), ("paper", r.table, "dim"), ("integrator", r.integrator, "dim")]
         for name, c, style in rows:
             if c is None:
                 continue
@@ -481,10 +481,13 @@ def design_command(o: DesignOptions) -> int:
     Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
     """
     rates, delays = _design_inputs(o)
+    in_use = None
     if o.plant is not None:
         plant = read_plant(o.plant)
         rates, delays = [DESIGN_RATE_HZ.check(plant.rate_hz, f"--plant {o.plant}: rate_hz")], [plant.delay.value]
         disturbance = plant_disturbance(plant, o.wind, o.resonance_line)
+        tt = plant.tip_tilt_filter
+        in_use = tt.with_gain(tt.gain * float(plant.chi(2)[0])) if tt is not None else None  # the design's plant has chi = 1
     else:
         disturbance = Disturbance(
             turbulence=TurbulenceTipTilt(o.seeing, o.outer_scale, o.wind),
@@ -496,7 +499,7 @@ def design_command(o: DesignOptions) -> int:
     results = []
     for r, d in zip(rates, delays):
         with nullcontext() if o.json_output else err.status(f"designing the {r:g} Hz filter…"):
-            results.append(design_tt_filter(r, disturbance, o.epsilon, delay_frames=d, seed=o.seed))
+            results.append(design_tt_filter(r, disturbance, o.epsilon, delay_frames=d, seed=o.seed, in_use=in_use))
     if o.out is not None:
         atomic_write_text(o.out, roots_table_csv(results, _design_header(results, disturbance, o.epsilon, o.delay_ms, o.seed)))
     if o.plot is not None:

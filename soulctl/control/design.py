@@ -217,6 +217,7 @@ class DesignResult:
     table: Controller | None  # the built-in roots table's filter at this rate, at its best gain
     runtime_s: float
     evaluations: int
+    in_use: Controller | None = None  # the filter a recorded loop ran (an identified plant's), at its own gain
 
     @property
     def rejection_ratio(self) -> float:
@@ -233,6 +234,7 @@ class DesignResult:
             "iir": self.iir.to_dict(),
             "integrator": self.integrator.to_dict(),
             "table": self.table.to_dict() if self.table else None,
+            "in_use": self.in_use.to_dict() if self.in_use else None,
             "rejection_ratio_13hz": self.rejection_ratio,
             "runtime_s": self.runtime_s,
             "evaluations": self.evaluations,
@@ -284,9 +286,11 @@ def design_tt_filter(
     seed: int = 1,
     maxiter: int = 400,
     popsize: int = 15,
+    in_use: Filter | None = None,
 ) -> DesignResult:
     """Design the N_f = 8 Tip/Tilt IIR filter at one frame rate (see the module docstring).
-    The delay defaults to SOUL's delay model at that rate."""
+    The delay defaults to SOUL's delay model at that rate; ``in_use``, a filter to evaluate
+    beside the design at its own gain (the one a recorded loop ran)."""
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise InputError(f"frame rate must be a finite number > 0 Hz, got {rate_hz:g}")
     start = time.perf_counter()
@@ -333,6 +337,7 @@ def design_tt_filter(
         table=_controller(cost, best_gain(cost, table_shape)) if table_shape else None,
         runtime_s=time.perf_counter() - start,
         evaluations=int(res.nfev * popsize * len(bounds) + polished.nfev),
+        in_use=_controller(cost, in_use) if in_use is not None else None,
     )
 
 

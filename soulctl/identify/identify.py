@@ -144,8 +144,9 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
         "wind speed not estimated",
     )
     spectrum = VibrationSpectrum(tuple(x.line() for x in lines), f"identified from {record.path}") if lines else None
+    in_use = record.filters[0].with_gain(float(np.mean(record.gains[:2])) * record.sensitivity)  # g k
     plant = PlantModel(
-        record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes
+        record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes, in_use
     )
     seconds = {k: clock[k] - clock["start"] for k in ("read", "delay_and_gains", "vibrations", "turbulence")}
     return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds)

@@ -10,6 +10,8 @@
     [turbulence]     seeing_arcsec, seeing_sigma, r0_m, L0_m, L0_sigma, wind_m_s (or absent)
     [vibrations]     source, [[vibrations.line]] frequency_hz, damping, tip_mas, tilt_mas, note
                      (the format of --vibrations files; per-line uncertainties in the note)
+    [controller]     tip_tilt_zeros, tip_tilt_poles, tip_tilt_gain: the Tip/Tilt filter the record
+                     ran, its gain times the slope sensitivity k (the loop's gain is that x chi)
 
 Every section but delay may be absent when the record did not allow the estimate; the reader
 names what a command needs and is missing.
@@ -24,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..control.design import Disturbance
+from ..control.filters import Filter
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -74,6 +77,7 @@ class PlantModel:
     turbulence: Turbulence | None = None
     vibrations: VibrationSpectrum | None = None
     notes: tuple[str, ...] = field(default=())
+    tip_tilt_filter: Filter | None = None  # the Tip/Tilt controller the record ran, its gain g k (k: the slope sensitivity)
 
     def chi(self, n_modes: int) -> np.ndarray:
         """chi_i per mode: each group's value, the nearest group's beyond them, 1 without any."""
@@ -117,6 +121,10 @@ class PlantModel:
             for v in self.vibrations.lines:
                 lines += ["[[vibrations.line]]", f"frequency_hz = {_num(v.frequency_hz)}", f"damping = {_num(v.damping)}"]
                 lines += [f"tip_mas = {_num(v.tip_mas)}", f"tilt_mas = {_num(v.tilt_mas)}", f"note = {_text(v.note)}", ""]
+        if self.tip_tilt_filter is not None:
+            h = self.tip_tilt_filter
+            lines += ["[controller]", "tip_tilt_zeros = [" + ", ".join(_num(z.real) for z in h.zeros) + "]"]
+            lines += ["tip_tilt_poles = [" + ", ".join(_num(p.real) for p in h.poles) + "]", f"tip_tilt_gain = {_num(h.gain)}", ""]
         if self.notes:
             lines += ["notes = [" + ", ".join(_text(n) for n in self.notes) + "]"]
         return "\n".join(_front(lines)) + "\n"
@@ -162,7 +170,7 @@ def read_plant(path: str | Path) -> PlantModel:
     """A plant file (see the module); InputError naming the key that is wrong."""
     data = read_toml(path, "plant file")
     where = f"plant file {path}"
-    unknown = sorted(set(data) - {"source", "rate_hz", "delay", "optical_gain", "noise", "turbulence", "vibrations", "notes"})
+    unknown = sorted(set(data) - {"source", "rate_hz", "delay", "optical_gain", "noise", "turbulence", "vibrations", "notes", "controller"})
     if unknown:
         raise InputError(f"{where}: unknown key {', '.join(unknown)}")
     rate = FRAME_RATE_HZ.check(_number(data, "rate_hz", where), f"{where}: rate_hz")
@@ -199,8 +207,21 @@ def read_plant(path: str | Path) -> PlantModel:
             raise InputError(f"{where}: [vibrations] must be a table")
         vibrations = VibrationSpectrum.from_dict(vib, f"{where} [vibrations]")
     return PlantModel(
-        str(data.get("source", path)), rate, delay, str(d.get("method", "")), groups, "", modes_nm2, tt_noise, turbulence, vibrations
-    )
+        str(data.get("source", path)), rate, delay, str(d.get("method", "")), groups, "", modes_nm2, tt_noise, turbulence, vibrations,
+        tip_tilt_filter=_controller(data.get("controller"), where),
+    )  # fmt: skip
+
+
+def _controller(c, where: str) -> Filter | None:
+    """The [controller] Tip/Tilt filter (real zeros and poles, the gain), None without one."""
+    if c is None:
+        return None
+    if not isinstance(c, dict) or set(c) != {"tip_tilt_zeros", "tip_tilt_poles", "tip_tilt_gain"}:
+        raise InputError(f"{where}: [controller] holds tip_tilt_zeros, tip_tilt_poles and tip_tilt_gain")
+    roots = [c["tip_tilt_zeros"], c["tip_tilt_poles"]]
+    if not all(isinstance(r, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in roots):
+        raise InputError(f"{where}: controller.tip_tilt_zeros and tip_tilt_poles must be lists of numbers")
+    return Filter.iir(tuple(map(float, roots[0])), tuple(map(float, roots[1])), _number(c, "tip_tilt_gain", where))
 
 
 def _tables(section, key: str, where: str) -> list:

@@ -154,6 +154,7 @@ def test_plant_file_round_trip(tmp_path):
     plant = PlantModel(
         "test", 1700.0, Estimate(3.6, 0.02), "m", (OpticalGainGroup(1, 2, 0.5, 0.01), OpticalGainGroup(3, 9, 0.6, math.inf)), "g",
         np.array([1.0, 2.0, 3.0]), 2.5, Turbulence(1.1, 0.05, 20.0, 5.0, None), VibrationSpectrum.lbt_default(), ("a note",),
+        Filter.iir((0.3, 0.35, 0.35, 0.35), (-0.19, -0.19, 0.85, 1.0), 0.69),
     )  # fmt: skip
     path = tmp_path / "p.toml"
     path.write_text(plant.to_toml())
@@ -162,6 +163,7 @@ def test_plant_file_round_trip(tmp_path):
     assert back.optical_gains[1].sigma == math.inf and back.chi(10).tolist() == [0.5, 0.5] + [0.6] * 8
     assert back.noise_nm2.tolist() == [1.0, 2.0, 3.0] and back.turbulence == plant.turbulence
     assert back.vibrations.lines == plant.vibrations.lines
+    assert back.tip_tilt_filter == plant.tip_tilt_filter
 
 
 @pytest.mark.parametrize("gain", [0.3, 1.2, 2.5])
