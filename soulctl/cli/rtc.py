@@ -10,6 +10,7 @@ import typer
 
 from ..control.check import DEFAULT_MODULUS_MARGIN, STATE_BUDGET, Criteria, check_modes, state_count
 from ..control.gains import LoopGains, mode_filters, read_gain_file
+from ..control.rtc_file import TOLERANCE, compare, is_rtc_file, read_rtc_file
 from ..control.structure import sampled_structure
 from ..errors import InputError
 from ..files import input_file
@@ -53,19 +54,27 @@ class CheckOptions:
 @app.command("check")
 @command(CheckOptions)
 def check_cmd(o: CheckOptions) -> int:
-    """Check per-mode gains before an upload: each mode's stability, gain, phase and modulus
-    margins and maximum stable gain on the plant (delay, optical gain chi_i, the 127 Hz
-    structure on Tip/Tilt) and the RTC states against the 672-state budget.  Exit 0 when every
-    mode meets the margins, 3 when a mode is unstable or below one, 2 on malformed input.
+    """Check per-mode gains or a whole RTC description before an upload: each mode's
+    stability, gain, phase and modulus margins and maximum stable gain on the plant (delay,
+    optical gain chi_i, the 127 Hz structure on Tip/Tilt), the RTC states against the 672-state
+    budget, and for an RTC description Lambda, Delta, Xi, Sigma rebuilt from the declared
+    filters (--config/--mag) and compared.  Exit 0 when all holds, 3 when a mode is unstable or
+    below a margin or the matrices differ, 2 on malformed input.
 
     Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
     """
-    input_file(o.params, "GAINS")
+    input_file(o.params, "PARAMS")
     description = run_description(o.config, o.mag, {})
     obs = description.observation
-    gains = read_gain_file(o.params)
+    comparison = None
+    if is_rtc_file(o.params):
+        unit = mode_filters(obs, LoopGains(1.0, 1.0, 1.0, description.controller.forgetting), obs.modes)
+        comparison = compare(read_rtc_file(o.params), unit)
+        gains = comparison.gains
+    else:
+        gains = read_gain_file(o.params)
     if len(gains) != obs.modes:
-        raise InputError(f"GAINS {o.params} holds {len(gains)} gains; the configuration controls {obs.modes} modes (--config/--mag)")
+        raise InputError(f"PARAMS {o.params} holds {len(gains)} gains; the configuration controls {obs.modes} modes (--config/--mag)")
     plant = read_plant(o.plant) if o.plant is not None else None
     if plant is not None and abs(plant.rate_hz - obs.frame_rate_hz) > 1e-6 * obs.frame_rate_hz:
         raise InputError(f"--plant {o.plant} is at {plant.rate_hz:g} Hz; the configuration runs at {obs.frame_rate_hz:g} Hz")
@@ -79,7 +88,7 @@ def check_cmd(o: CheckOptions) -> int:
     criteria = Criteria(o.modulus_margin, o.gain_margin, o.phase_margin)
     checks = check_modes(filters, chi, delay, obs.frame_rate_hz, ba, criteria)
     states = state_count(filters)
-    ok = all(c.passed for c in checks) and states <= STATE_BUDGET
+    ok = all(c.passed for c in checks) and states <= STATE_BUDGET and (comparison is None or comparison.consistent)
     if o.json_output:
         print_json(
             {
@@ -90,15 +99,16 @@ def check_cmd(o: CheckOptions) -> int:
                 "rate_hz": obs.frame_rate_hz,
                 "criteria": criteria.__dict__,
                 "failed_modes": [c.mode for c in checks if not c.passed],
+                "rebuild_differences": None if comparison is None else comparison.differences,
                 "modes": [c.to_dict() for c in checks],
             }
         )
     else:
-        _render(checks, states, delay, ok)
+        _render(checks, states, delay, ok, comparison)
     return 0 if ok else UNSAFE_EXIT
 
 
-def _render(checks, states: int, delay: float, ok: bool) -> None:
+def _render(checks, states: int, delay: float, ok: bool, comparison) -> None:
     worst = sorted(checks, key=lambda c: (c.passed, c.modulus_margin))[:WORST]
     t = quantity_table(f"worst modes by modulus margin (delay {delay:.3f} frames)")
     for c in worst:
@@ -109,6 +119,12 @@ def _render(checks, states: int, delay: float, ok: bool) -> None:
             f"GM {c.gain_margin:.2f}, PM {pm}, min|1+L| {c.modulus_margin:.3f}, g_max {c.max_stable_gain:.3g}: {verdict}",
         )
     t.add_row("RTC states", f"{states} of {STATE_BUDGET}")
+    if comparison is not None:
+        for name, d in comparison.differences.items():
+            t.add_row(
+                f"{name} against the declared filters",
+                "not compared (no R, M)" if d is None else f"{d:.2e} ({'ok' if d <= TOLERANCE else 'DIFFERS'})",
+            )
     failed = sum(not c.passed for c in checks)
     t.add_row(
         "verdict", "safe to upload" if ok else f"NOT safe: {failed} mode(s) fail" + ("" if states <= STATE_BUDGET else ", too many states")

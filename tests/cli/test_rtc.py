@@ -1,0 +1,108 @@
+"""`soulctl rtc check`: gain files and whole RTC descriptions, exit 0 / 3 / 2."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from soulctl.cli.app import main
+from soulctl.control.gains import LoopGains, mode_filters
+from soulctl.control.rtc import build_rtc
+from soulctl.observation import Observation
+
+MAG = "13"  # the look-up table's R13 point: 980 Hz, 250 modes at binning 2
+
+
+def _observation() -> Observation:
+    from soulctl.cli.common import run_description
+
+    return run_description(None, MAG, {}).observation
+
+
+def _gains(obs, tt=0.5, mid=0.4, high=0.3) -> np.ndarray:
+    return LoopGains(tt, mid, high).per_mode(obs.modes)
+
+
+def _run(args, capsys):
+    status = main(args)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_gain_file_safe_and_unsafe(tmp_path, capsys):
+    obs = _observation()
+    safe, bad = tmp_path / "safe.toml", tmp_path / "bad.toml"
+    safe.write_text("gains = [" + ", ".join(map(str, _gains(obs))) + "]\n")
+    g = _gains(obs)
+    g[40] = 5.0
+    bad.write_text("gains = [" + ", ".join(map(str, g)) + "]\n")
+    status, out, err = _run(["rtc", "check", str(safe), "--mag", MAG, "--json"], capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["passed"] and d["states"] == 2 * 8 + (obs.modes - 2) and len(d["modes"]) == obs.modes
+    status, out, _ = _run(["rtc", "check", str(bad), "--mag", MAG, "--json"], capsys)
+    assert status == 3
+    assert json.loads(out)["failed_modes"] == [41]
+    # a stricter modulus margin fails modes the default passes
+    status, out, _ = _run(["rtc", "check", str(safe), "--mag", MAG, "--modulus-margin", "0.99", "--json"], capsys)
+    assert status == 3 and json.loads(out)["failed_modes"]
+
+
+def test_bad_input_is_exit_2(tmp_path, capsys):
+    short = tmp_path / "short.toml"
+    short.write_text("gains = [0.5, 0.5, 0.3]\n")
+    status, _, err = _run(["rtc", "check", str(short), "--mag", MAG], capsys)
+    assert status == 2 and "controls 250 modes" in err
+    status, _, err = _run(["rtc", "check", str(tmp_path / "none.toml"), "--mag", MAG], capsys)
+    assert status == 2 and "not found" in err
+    status, _, err = _run(["rtc", "check", str(short), "--mag", MAG, "--modulus-margin", "2"], capsys)
+    assert status == 2
+
+
+def _description(obs, forgetting=0.99):
+    rng = np.random.default_rng(1)
+    R, M = rng.standard_normal((obs.modes, 64)), rng.standard_normal((672, obs.modes))
+    filters = mode_filters(obs, LoopGains(0.5, 0.4, 0.3, forgetting), obs.modes)
+    m = build_rtc(filters, R, M)
+    return {"Lambda": m.Lambda, "Delta": m.Delta, "Xi": m.Xi, "Sigma": m.Sigma, "R": R, "M": M}
+
+
+def _write(path, arrays):
+    if path.suffix == ".npz":
+        np.savez(path, **arrays)
+    elif path.suffix == ".h5":
+        with h5py.File(path, "w") as f:
+            for k, v in arrays.items():
+                f[k] = v
+    else:
+        fits.HDUList([fits.PrimaryHDU()] + [fits.ImageHDU(v, name=k.upper()) for k, v in arrays.items()]).writeto(path)
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".h5", ".fits"])
+def test_rtc_description_rebuilt_and_compared(tmp_path, capsys, suffix):
+    obs = _observation()
+    good, wrong = tmp_path / f"rtc{suffix}", tmp_path / f"wrong{suffix}"
+    _write(good, _description(obs))
+    _write(wrong, _description(obs, forgetting=0.98))  # not the declared leaky integrators
+    status, out, err = _run(["rtc", "check", str(good), "--mag", MAG, "--json"], capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert all(v < 1e-12 for v in d["rebuild_differences"].values())
+    assert [m["gain"] for m in d["modes"][:3]] == pytest.approx([0.5, 0.5, 0.4])
+    status, out, _ = _run(["rtc", "check", str(wrong), "--mag", MAG, "--json"], capsys)
+    assert status == 3
+    diffs = json.loads(out)["rebuild_differences"]
+    assert diffs["Lambda"] > 1e-3 and diffs["Xi"] < 1e-12
+
+
+def test_rtc_description_missing_matrix_is_exit_2(tmp_path, capsys):
+    arrays = _description(_observation())
+    del arrays["Sigma"]
+    path = tmp_path / "rtc.npz"
+    _write(path, arrays)
+    status, _, err = _run(["rtc", "check", str(path), "--mag", MAG], capsys)
+    assert status == 2 and "missing Sigma" in err
