@@ -21,7 +21,7 @@ from ..disturbance.vibrations import VibrationSpectrum
 from ..loop.metrics import pseudo_open_loop
 from ..loop.run import calibration_for
 from ..optics.atmosphere import r0_from_seeing
-from ..optics.cache import ArrayCache
+from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..telemetry.analysis import nm_per_mas_tip_tilt
 from . import seeing
 from .lines import LineEstimate, fit_lines
@@ -113,7 +113,14 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
         table, L0s = seeing.noll_variances(record.n_modes), (seeing.UNKNOWN_L0_M,)
     else:
         calibration = calibration_for(record.description.request(), cache)
-        table, L0s = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, seeing.L0_GRID), seeing.L0_GRID
+        L0s = seeing.L0_GRID
+        key = cache_key("von-karman-modal-variances", {"calibration": calibration.setup.key(), "L0": list(L0s)})
+        hit = cache.load(key, EntrySpec({"variances": (len(L0s), record.n_modes)}))
+        if hit is not None:
+            table = hit["variances"]
+        else:
+            table = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, L0s)
+            cache.store(key, {"variances": table})
     t = seeing.fit_turbulence(variance, table, L0s)
     r0 = r0_from_seeing(t.seeing_arcsec)
     best = table[L0s.index(t.L0_m)] if t.L0_m in L0s else table[0]

@@ -3,11 +3,13 @@
 The window is the record's last stretch at fixed gains (the frames after the last change, as
 offline MGM takes them: the loop's transfer functions hold only there) over which the slope
 sensitivity k stays within ``K_SPREAD`` of its final value (OGTL changes k every period; once
-it has settled, k chi, the loop's gain, is steady), at most ``MAX_WINDOW_S``.  For every mode, in blocks of modes so that memory stays
-bounded, the Welch auto-spectra of the measurement m/k (k divided out: m/k = chi (phi - mirror)
-+ n) and of the commands c (M^-1 c, probe included), and their cross-spectrum: the
-pseudo-open loop for any delay and optical gain follows from these three (``pol_psd``) without
-a second read.  Tip and Tilt are kept as time series for the vibration lines.
+it has settled, k chi, the loop's gain, is steady), at most ``MAX_WINDOW_S``.  For every mode
+the Welch auto-spectra of the measurement m/k (k divided out: m/k = chi (phi - mirror) + n)
+and of the commands c (M^-1 c, probe included), their cross-spectrum, and lagged moments: the
+pseudo-open loop for any delay and optical gain follows (``pol_psd``, ``pol_variance``)
+without a second read.  The rows are read once, in blocks of ``ROW_BLOCK`` frames with every
+mode (the files are chunked by frames: blocks of modes decompressed every chunk once per
+block, 7x the time); memory holds one block, the spectra and the Tip/Tilt and probe series.
 """
 
 from __future__ import annotations
@@ -16,12 +18,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import csd, welch
+import scipy.fft
+from scipy.signal import get_window
 
 from ..control.filters import Filter
 from ..control.gains import unit_loops
 from ..errors import InputError
-from ..loop.offline import mode_blocks, recorded_run
+from ..loop.offline import recorded_run
 from ..run_config import RunConfig
 from ..telemetry.formats import check_decimation, open_telemetry
 from ..telemetry.schema import TelemetryReader
@@ -30,6 +33,7 @@ MAX_WINDOW_S = 600.0
 MIN_WINDOW_S = 1.0  # shorter windows are refused: a few Welch segments of ~0.25 s
 K_SPREAD = 0.1  # k within 10 % of its final value
 SEGMENT_S = 0.25  # Welch segment of the loop spectra (~4 Hz resolution)
+ROW_BLOCK = 8192  # frames read at a time (all modes: 16 MB of float32 at 500 modes)
 NEEDED = ("measured_modes", "command_modes", "gains", "rate_hz")
 
 
@@ -144,47 +148,95 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
             )
         segment = 2 ** int(round(math.log2(SEGMENT_S * rate)))
         lags = int(math.ceil((delay if math.isfinite(delay) else 2.0) + 2.0)) + 2
-        rows = slice(start, frames)
-        spectra: list = []
-        tt: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 2)), np.zeros((0, 2)))
-        probe_series = None
         probe = _probe(tm)
-        for cols in mode_blocks(n_modes, window):
-            m = tm.read("measured_modes", rows, cols).astype(float)
-            m /= k[:, None] if k is not None else 1.0
-            c = tm.read("command_modes", rows, cols).astype(float)
-            spectra.append(_block_spectra(m, c, rate, segment) + (_moments(m, c, lags),))
-            if cols.start == 0:
-                tt = (m[:, :2].copy(), c[:, :2].copy())
-            if probe and cols.start <= probe.mode - 1 < cols.stop:
-                j = probe.mode - 1 - cols.start
-                probe_series = (m[:, j].copy(), c[:, j].copy())
-    f = spectra[0][0]
-    p_m, p_c, s_mc, moments = (np.concatenate([s[i] for s in spectra]) for i in (1, 2, 3, 4))
+        stats = _Accumulator(n_modes, segment, lags, probe.mode - 1 if probe else None)
+        for lo in range(start, frames, ROW_BLOCK):
+            hi = min(frames, lo + ROW_BLOCK)
+            m = tm.read("measured_modes", slice(lo, hi)).astype(float)
+            if k is not None:
+                m /= k[lo - start : hi - start, None]
+            stats.add(m, tm.read("command_modes", slice(lo, hi)).astype(float))
+    f, p_m, p_c, s_mc = stats.spectra(rate)
     return LoopRecord(
-        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, p_c, s_mc, moments,
-        tt, probe, probe_series, start, window, window // segment,
+        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, p_c, s_mc, stats.moments(),
+        stats.series(0, 2), probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment,
     )  # fmt: skip
 
 
-def _block_spectra(m: np.ndarray, c: np.ndarray, rate: float, segment: int):
-    kw = {"fs": rate, "nperseg": segment, "axis": 0, "detrend": "constant"}
-    f, p_m = welch(m, **kw)
-    _, p_c = welch(c, **kw)
-    _, s_mc = csd(m, c, **kw)
-    return f, p_m.T, p_c.T, s_mc.T
+class _Accumulator:
+    """Welch auto- and cross-spectra (Hann, half-overlapping segments, each segment's mean
+    removed: scipy's ``welch``/``csd`` defaults) and the lagged moments of m/k and c, fed
+    row block after row block (every row read once: the files are chunked by frames), and
+    the Tip/Tilt and probed mode's series."""
 
+    def __init__(self, n_modes: int, segment: int, lags: int, probe_column: int | None):
+        self.segment, self.hop, self.lags = segment, segment // 2, lags
+        self.window = get_window("hann", segment)
+        self.carry_m = self.carry_c = np.zeros((0, n_modes))
+        F = segment // 2 + 1
+        self.pm, self.pc, self.smc, self.count = np.zeros((F, n_modes)), np.zeros((F, n_modes)), np.zeros((F, n_modes), complex), 0
+        self.sums = np.zeros((5 + lags, n_modes))  # sum m, sum c, sum m^2, sum c^2, sum c(k)c(k-1), sum m(k)c(k-j)
+        self.n = 0
+        self.last_c = np.zeros((0, n_modes))
+        self.columns = sorted({0, 1} | ({probe_column} if probe_column is not None else set()))
+        self.kept: list[tuple[np.ndarray, np.ndarray]] = []
 
-def _moments(m: np.ndarray, c: np.ndarray, lags: int) -> np.ndarray:
-    """Per mode: var m, var c, cov(c(k), c(k-1)) and cov(m(k), c(k-j)) for j < lags (the
-    pseudo-open loop's variance for any delay and chi, including the frequencies below the
-    Welch segments' resolution, where most of the turbulence is)."""
-    m = m - m.mean(axis=0)
-    c = c - c.mean(axis=0)
-    n = len(m)
-    out = [np.mean(m * m, axis=0), np.mean(c * c, axis=0), np.sum(c[1:] * c[:-1], axis=0) / n]
-    out += [np.sum(m[j:] * c[: n - j], axis=0) / n for j in range(lags)]
-    return np.stack(out, axis=1)
+    def add(self, m: np.ndarray, c: np.ndarray) -> None:
+        self._moments(m, c)
+        self.kept.append((m[:, self.columns].copy(), c[:, self.columns].copy()))
+        m, c = np.concatenate([self.carry_m, m]), np.concatenate([self.carry_c, c])
+        starts = range(0, len(m) - self.segment + 1, self.hop)
+        if len(starts):
+            idx = np.asarray(starts)[:, None] + np.arange(self.segment)[None, :]
+            M, C = (self._fft(x[idx]) for x in (m, c))
+            self.pm += np.sum(np.abs(M) ** 2, axis=0)
+            self.pc += np.sum(np.abs(C) ** 2, axis=0)
+            self.smc += np.sum(np.conj(M) * C, axis=0)
+            self.count += len(starts)
+        nxt = starts[-1] + self.hop if len(starts) else 0
+        self.carry_m, self.carry_c = m[nxt:], c[nxt:]
+
+    def _fft(self, seg: np.ndarray) -> np.ndarray:
+        seg -= seg.mean(axis=1, keepdims=True)  # a copy already (fancy indexing)
+        seg *= self.window[None, :, None]
+        return scipy.fft.rfft(seg, axis=1, workers=-1)
+
+    def _moments(self, m: np.ndarray, c: np.ndarray) -> None:
+        cc = np.concatenate([self.last_c, c])  # c with the rows before this block, for the lags
+        off = len(self.last_c)
+        s = self.sums
+        s[0] += m.sum(axis=0)
+        s[1] += c.sum(axis=0)
+        s[2] += np.einsum("ij,ij->j", m, m)
+        s[3] += np.einsum("ij,ij->j", c, c)
+        s[4] += np.einsum("ij,ij->j", cc[off:], cc[off - 1 : -1]) if off else np.einsum("ij,ij->j", c[1:], c[:-1])
+        for j in range(self.lags):
+            lo = max(0, j - off)  # rows of m whose c(k - j) exists
+            s[5 + j] += np.einsum("ij,ij->j", m[lo:], cc[off + lo - j : off + len(m) - j])
+        self.n += len(m)
+        self.last_c = cc[-self.lags :]
+
+    def spectra(self, rate: float):
+        scale = 1.0 / (rate * np.sum(self.window**2) * max(1, self.count))
+        double = np.ones(self.segment // 2 + 1)
+        double[1 : -1 if self.segment % 2 == 0 else None] = 2.0
+        w = (scale * double)[:, None]
+        f = np.fft.rfftfreq(self.segment, 1.0 / rate)
+        return f, (self.pm * w).T, (self.pc * w).T, (self.smc * w).T
+
+    def moments(self) -> np.ndarray:
+        """As the rows of ``pol_variance`` need them: var m, var c, cov c(k)c(k-1), cov m(k)c(k-j)."""
+        n, s = self.n, self.sums
+        mean_m, mean_c = s[0] / n, s[1] / n
+        out = [s[2] / n - mean_m**2, s[3] / n - mean_c**2, s[4] / n - mean_c**2]
+        out += [s[5 + j] / n - mean_m * mean_c for j in range(self.lags)]
+        return np.stack(out, axis=1)
+
+    def series(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        cols = [self.columns.index(i) for i in range(lo, hi)]
+        m = np.concatenate([x[0][:, cols] for x in self.kept])
+        c = np.concatenate([x[1][:, cols] for x in self.kept])
+        return (m, c) if hi - lo > 1 else (m[:, 0], c[:, 0])
 
 
 def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
