@@ -96,6 +96,29 @@ def rtc_cases(work: Path, config: Path) -> dict[str, Path]:
     return {"gain file": gain_file, "RTC description (npz, 6400 slopes)": npz}
 
 
+def in_process_check(params: Path, config: Path) -> float:
+    """Seconds of the check itself (reading, rebuilding, margins of every mode), no start-up."""
+    from soulctl.control.check import Criteria, check_modes
+    from soulctl.control.gains import read_gain_file
+    from soulctl.control.rtc_file import compare, is_rtc_file, read_rtc_file
+    from soulctl.control.structure import sampled_structure
+    from soulctl.run_config import read_run_config
+
+    t0 = time.perf_counter()
+    description = read_run_config(config)
+    obs = description.observation
+    if is_rtc_file(params):
+        unit = mode_filters(obs, LoopGains(1.0, 1.0, 1.0), obs.modes)
+        gains = compare(read_rtc_file(params), unit).gains
+    else:
+        gains = read_gain_file(params)
+    filters = mode_filters(obs, LoopGains.from_modes(gains), obs.modes)
+    structure = sampled_structure(description.structure, obs.frame_rate_hz)
+    ba = None if structure is None else structure.coefficients(obs.frame_rate_hz)
+    check_modes(filters, np.ones(obs.modes), obs.delay_frames, obs.frame_rate_hz, ba, Criteria())
+    return time.perf_counter() - t0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--durations", default="10,30,60")
@@ -122,13 +145,15 @@ def main() -> None:
                 {"seconds": seconds, "file_mb": path.stat().st_size / 2**20, "wall_s": wall, "peak_rss_mb": rss, "stages_s": stages}
             )
             path.unlink()
+        startup = [timed(["soulctl", "--version"], work)[0] for _ in range(args.repeat)]
         for name, params in rtc_cases(work, config).items():
-            walls = [
-                timed(["soulctl", "rtc", "check", str(params), "--config", str(config), "--json"], work)[0] for _ in range(args.repeat)
-            ]
-            rtc_rows.append(
-                {"params": name, "median_s": float(np.median(walls)), "p99_s": float(np.percentile(walls, 99)), "runs": args.repeat}
-            )
+            cmd = ["soulctl", "rtc", "check", str(params), "--config", str(config), "--json"]
+            walls = [timed(cmd, work)[0] for _ in range(args.repeat)]
+            inside = [in_process_check(params, config) for _ in range(args.repeat)]
+            rtc_rows.append({
+                "params": name, "median_s": float(np.median(walls)), "p99_s": float(np.percentile(walls, 99)),
+                "in_process_median_s": float(np.median(inside)), "startup_median_s": float(np.median(startup)), "runs": args.repeat,
+            })  # fmt: skip
     t = Table(title="telemetry identify, R9.7 500 modes 1700 Hz (wall time of the command, stage times cumulative)")
     for col in ("record [s]", "file [MB]", "wall [s]", "read [s]", "delay+chi [s]", "lines [s]", "r0/L0 [s]", "peak RSS [MB]"):
         t.add_column(col, justify="right")
@@ -138,10 +163,12 @@ def main() -> None:
                   f"{s['vibrations']:.2f}", f"{s['turbulence']:.2f}", f"{r['peak_rss_mb']:.0f}")  # fmt: skip
     console.print(t)
     t = Table(title=f"rtc check, 500 modes ({args.repeat} runs of the command)")
-    for col in ("parameters", "median [s]", "p99 [s]"):
+    for col in ("parameters", "command median [s]", "p99 [s]", "in-process median [s]", "soulctl --version [s]"):
         t.add_column(col, justify="right")
     for r in rtc_rows:
-        t.add_row(r["params"], f"{r['median_s']:.2f}", f"{r['p99_s']:.2f}")
+        t.add_row(
+            r["params"], f"{r['median_s']:.2f}", f"{r['p99_s']:.2f}", f"{r['in_process_median_s']:.3f}", f"{r['startup_median_s']:.2f}"
+        )
     console.print(t)
     report = {
         "soulctl": __version__,

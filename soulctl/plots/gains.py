@@ -5,12 +5,15 @@ estimated optical gain and the Strehl ratio (Fig. timeSerie)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from .loop import new_figure
 from .transfer import save_figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 TIME_SERIES_MODES = (1, 2, 10, 50, 200)  # 1-based, as in the paper's figure (no. 1 is Tip)
 LABELS = {"mgm": "MGM", "trial": "trial-and-error"}

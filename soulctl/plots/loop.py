@@ -5,20 +5,24 @@ variance."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.colors import LogNorm
-from matplotlib.figure import Figure
 
 from ..control.transfer import VIBRATION_HZ
 from ..loop.metrics import band_wavelength
 from ..optics.pupil import LBT_DIAMETER_M
 from .transfer import save_figure
 
+if TYPE_CHECKING:  # matplotlib is imported when a figure is made: every command would pay ~0.3 s
+    from matplotlib.figure import Figure
+
 
 def new_figure(size=(6.4, 4.8)) -> Figure:
     """A constrained-layout figure on the Agg canvas (no pyplot state)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
@@ -32,6 +36,8 @@ def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: flo
     half = min(n // 2, 20 * pad)
     crop = psf[n // 2 - half : n // 2 + half, n // 2 - half : n // 2 + half]
     extent = (-half * lambda_over_d_mas / pad, half * lambda_over_d_mas / pad) * 2
+    from matplotlib.colors import LogNorm
+
     im = ax.imshow(np.maximum(crop, 1e-5), norm=LogNorm(vmin=1e-5, vmax=1.0), origin="lower", extent=extent, cmap="inferno")
     fig.colorbar(im, ax=ax, label="intensity / diffraction-limited peak")
     ax.set_xlabel("x [mas]")

@@ -5,15 +5,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.text import Text
 
 from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, frequency_grid
 from ..errors import InputError
 from ..files import atomic_write
+
+if TYPE_CHECKING:  # matplotlib is imported when a figure is made
+    from matplotlib.figure import Figure
+    from matplotlib.text import Text
 
 FORMATS = ("png", "pdf", "svg")
 
@@ -34,8 +36,9 @@ def plot_format(path: Path) -> str:
 
 
 def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None = None) -> Figure:
-    fig = Figure(figsize=(14, 4.6), layout="constrained")
-    FigureCanvasAgg(fig)
+    from .loop import new_figure
+
+    fig = new_figure((14, 4.6))
     ax_s, ax_t, ax_n = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.15, 1.15, 0.9]})
     f_lo = 1.0
     for i, c in enumerate(curves):
@@ -92,6 +95,8 @@ def save_figure(fig: Figure, path: Path) -> None:
     given: '$' in a user's label is a dollar sign, not matplotlib's math mode."""
     fmt = plot_format(path)
     ticks = {id(t) for ax in fig.axes for t in _tick_labels(ax)}  # the formatters' own text: 10^k on log axes is math
+    from matplotlib.text import Text
+
     for text in fig.findobj(Text):
         if id(text) not in ticks:
             text.set_parse_math(False)
