@@ -26,7 +26,9 @@ from .output import print_json
 app = typer.Typer(no_args_is_help=True, help="Real-time computer parameter sets: the checks before an upload.")
 
 UNSAFE_EXIT = 3
-MARGIN = Range(0.0, 1.0, lo_open=False)
+MARGIN = Range(0.0, 1.0)
+GAIN_MARGIN = Range(1.0, 1e6)
+PHASE_MARGIN = Range(0.0, 180.0, "deg")
 WORST = 10  # modes in the table
 
 
@@ -44,9 +46,9 @@ class CheckOptions:
     modulus_margin: float = typer.Option(
         DEFAULT_MODULUS_MARGIN, "--modulus-margin", parser=number(MARGIN), help="Least min|1 + L| per mode (0..1; the paper's epsilon 0.2)."
     )
-    gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(Range(1.0, 1e6)), help="Least gain margin per mode (1: stable).")
+    gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(GAIN_MARGIN), help="Least gain margin per mode (1: stable).")
     phase_margin: float = typer.Option(
-        0.0, "--phase-margin", parser=number(Range(0.0, 180.0, "deg")), help="Least phase margin per mode (deg)."
+        0.0, "--phase-margin", parser=number(PHASE_MARGIN), help="Least phase margin per mode (deg)."
     )
     json_output: bool = JSON_OUTPUT
 
@@ -63,6 +65,12 @@ def check_cmd(o: CheckOptions) -> int:
 
     Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
     """
+    for value, option, accepted in (
+        (o.modulus_margin, "--modulus-margin", MARGIN),
+        (o.gain_margin, "--gain-margin", GAIN_MARGIN),
+        (o.phase_margin, "--phase-margin", PHASE_MARGIN),
+    ):
+        accepted.check(value, option)
     input_file(o.params, "PARAMS")
     description = run_description(o.config, o.mag, {})
     obs = description.observation

@@ -185,6 +185,8 @@ def identify_cmd(o: IdentifyOptions) -> int:
 
     Example: soulctl telemetry identify run.h5 --out plant.toml --plot figs
     """
+    if o.delay_frames is not None:
+        DELAY_FRAMES.check(o.delay_frames, "--delay-frames")
     telemetry_input(o.path)
     for path, option in ((o.out, "--out"), (o.vibrations_out, "--vibrations-out")):
         if path is not None:

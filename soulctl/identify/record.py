@@ -25,6 +25,7 @@ from ..control.filters import Filter
 from ..control.gains import unit_loops
 from ..errors import InputError
 from ..loop.offline import recorded_run
+from ..ranges import DELAY_FRAMES
 from ..run_config import RunConfig
 from ..telemetry.formats import check_decimation, open_telemetry
 from ..telemetry.schema import TelemetryReader
@@ -126,6 +127,8 @@ def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarr
 def read_record(path, delay_frames: float | None = None) -> LoopRecord:
     """The window of the record at ``path`` as spectra (see the module); InputError for a
     record identification cannot use (decimated, diverged, shorter than ``MIN_WINDOW_S``)."""
+    if delay_frames is not None:
+        DELAY_FRAMES.check(delay_frames, "delay_frames")
     with open_telemetry(path, NEEDED) as tm:
         check_decimation(tm, path, "the identification's spectra")
         if tm.attribute("diverged_at", -1) >= 0:

@@ -157,6 +157,9 @@ CASES = [
     ],
     ("telemetry psd", ["{record}"], "--modes", LISTS, 30),
     *[("optimize gains", ["--method", "mgm", "--telemetry", "{record}"], o, NUMBERS, 60) for o in ["--delay-frames"]],
+    ("telemetry identify", ["{record}"], "--delay-frames", NUMBERS, 60),
+    *[("rtc check", ["{gains}", "--mag", "16.5"], o, NUMBERS, 30) for o in ["--modulus-margin", "--gain-margin", "--phase-margin"]],
+    ("rtc check", ["{gains}"], "--mag", NUMBERS, 30),
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
 GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
@@ -206,7 +209,11 @@ def check_contract(args: list[str], limit: float) -> None:
 @pytest.mark.parametrize("command, base, option, values, limit", CASES, ids=[f"{c[0]} {c[2]}" for c in CASES])
 def test_every_numeric_option_keeps_the_contract(command, base, option, values, limit, tmp_path_factory):
     cache = str(tmp_path_factory.getbasetemp() / "property-cache")
-    uses_cache = command.split()[0] in ("loop", "optimize", "sweep") or command in ("optics calibrate", "optics gains")
+    uses_cache = command.split()[0] in ("loop", "optimize", "sweep") or command in (
+        "optics calibrate",
+        "optics gains",
+        "telemetry identify",
+    )
 
     grid = tmp_path_factory.mktemp("grid") / "grid.toml"
     grid.write_text(GRID)
@@ -214,11 +221,18 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
     record = grid.parent / "record.h5"  # a short recorded loop, for the commands that read one
     if "{record}" in base:
         assert main(["loop", "run", *FAST_LOOP[:4], "--duration", "1", "--telemetry", str(record), "--cache-dir", cache, "--json"]) == 0
+    gains = grid.parent / "gains.toml"  # R16.5's 90 modes
+    gains.write_text("gains = [" + ", ".join(["0.3"] * 90) + "]\n")
 
     @PROFILE
     @given(value=values)
     def check(value):
-        fill = {"grid": str(grid), "out": str(grid.parent / f"out{next(outs)}"), "record": str(record)}  # a new folder per sweep
+        fill = {
+            "grid": str(grid),
+            "out": str(grid.parent / f"out{next(outs)}"),
+            "record": str(record),
+            "gains": str(gains),
+        }  # a new folder per sweep
         args = [
             *command.split(),
             *(a.format(**fill) for a in base),
