@@ -47,9 +47,7 @@ class CheckOptions:
         DEFAULT_MODULUS_MARGIN, "--modulus-margin", parser=number(MARGIN), help="Least min|1 + L| per mode (0..1; the paper's epsilon 0.2)."
     )
     gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(GAIN_MARGIN), help="Least gain margin per mode (1: stable).")
-    phase_margin: float = typer.Option(
-        0.0, "--phase-margin", parser=number(PHASE_MARGIN), help="Least phase margin per mode (deg)."
-    )
+    phase_margin: float = typer.Option(0.0, "--phase-margin", parser=number(PHASE_MARGIN), help="Least phase margin per mode (deg).")
     json_output: bool = JSON_OUTPUT
 
 

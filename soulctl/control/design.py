@@ -301,6 +301,29 @@ def design_tt_filter(
     bounds = [(-ROOT_BOUND, ROOT_BOUND)] * (N_ZEROS + N_FREE_POLES) + [GAIN_BOUNDS]
     integ = best_gain(cost, Filter.integrator(1.0))
     init = _initial_population(integ, popsize * len(bounds), seed)
+    best, evaluations = _search(cost, bounds, init, seed, maxiter, popsize)
+    tabulated = [r for r in tables.tt_iir_table() if r.frame_rate_hz == rate_hz]
+    table_shape = Filter.iir(tabulated[0].zeros, tabulated[0].poles, 1.0) if tabulated else None
+    if cost.penalised(best)[0] >= 1e9:
+        raise InputError(
+            f"no stable filter meets the modulus margin epsilon = {epsilon:g} at {rate_hz:g} Hz "
+            f"with a {d:.2f}-frame delay: try a smaller epsilon"
+        )
+    return DesignResult(
+        rate_hz=float(rate_hz),
+        delay_frames=float(d),
+        epsilon=float(epsilon),
+        iir=_controller(cost, theta_filter(best)),
+        integrator=_controller(cost, integ),
+        table=_controller(cost, best_gain(cost, table_shape)) if table_shape else None,
+        runtime_s=time.perf_counter() - start,
+        evaluations=evaluations,
+        in_use=_controller(cost, in_use) if in_use is not None else None,
+    )
+
+
+def _search(cost: DesignCost, bounds: list, init: np.ndarray, seed: int, maxiter: int, popsize: int) -> tuple[np.ndarray, int]:
+    """(best theta, cost evaluations): differential evolution, then a Nelder-Mead polish."""
     res = differential_evolution(
         cost.penalised,
         bounds,
@@ -321,24 +344,7 @@ def design_tt_filter(
         options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 4000},
     )
     best = polished.x if polished.fun <= res.fun else res.x
-    tabulated = [r for r in tables.tt_iir_table() if r.frame_rate_hz == rate_hz]
-    table_shape = Filter.iir(tabulated[0].zeros, tabulated[0].poles, 1.0) if tabulated else None
-    if cost.penalised(best)[0] >= 1e9:
-        raise InputError(
-            f"no stable filter meets the modulus margin epsilon = {epsilon:g} at {rate_hz:g} Hz "
-            f"with a {d:.2f}-frame delay: try a smaller epsilon"
-        )
-    return DesignResult(
-        rate_hz=float(rate_hz),
-        delay_frames=float(d),
-        epsilon=float(epsilon),
-        iir=_controller(cost, theta_filter(best)),
-        integrator=_controller(cost, integ),
-        table=_controller(cost, best_gain(cost, table_shape)) if table_shape else None,
-        runtime_s=time.perf_counter() - start,
-        evaluations=int(res.nfev * popsize * len(bounds) + polished.nfev),
-        in_use=_controller(cost, in_use) if in_use is not None else None,
-    )
+    return best, int(res.nfev * popsize * len(bounds) + polished.nfev)
 
 
 def _initial_population(integ: Filter, n: int, seed: int) -> np.ndarray:
