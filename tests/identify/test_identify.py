@@ -193,3 +193,14 @@ def test_identify_reads_every_format_alike(files, tmp_path, target, capsys):
     assert b["delay_frames"]["value"] == pytest.approx(a["delay_frames"]["value"], rel=1e-6)
     assert [g["chi"] for g in b["optical_gains"]] == pytest.approx([g["chi"] for g in a["optical_gains"]], rel=1e-5)
     assert b["probe"]["chi"]["value"] == pytest.approx(a["probe"]["chi"]["value"], rel=1e-5)
+
+
+def test_realised_line_rms_scatter_follows_the_record_length():
+    """A line's realised RMS over T seconds scatters by ~ 1 / (2 sqrt(zeta w0 T)) around its
+    nominal value (docs/physics.md: the record length for the nominal within 15 %)."""
+    line = VibrationSpectrum.lbt_default().lines[0]  # 13 Hz, zeta 0.02
+    rate, T = 1000.0, 10.0
+    x = VibrationSource(VibrationSpectrum((line,)), rate, np.random.default_rng(1)).next(int(1000 * rate))[:, 0]
+    rms = np.sqrt(np.mean(x.reshape(-1, int(T * rate)) ** 2, axis=1)) / line.tip_mas
+    predicted = 0.5 / math.sqrt(line.damping * 2 * math.pi * line.frequency_hz * T)
+    assert rms.std() == pytest.approx(predicted, rel=0.25)
