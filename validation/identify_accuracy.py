@@ -124,7 +124,8 @@ def evaluate(case, tel: Path, ident: dict) -> dict:
         "L0": ident["turbulence"]["L0_m"],
         "L0_true": config.atmosphere.L0_m,
         "lines": ident["vibration_lines"],
-        "lines_true": _realised_lines(config, ident["window"]["first_frame"], ident["window"]["frames"]),
+        "lines_window_s": ident["lines_window"]["frames"] / config.observation.frame_rate_hz,
+        "lines_true": _realised_lines(config, ident["lines_window"]["first_frame"], ident["lines_window"]["frames"]),
         "identify_s": max(ident["seconds"].values()),  # cumulative clock
     }
     if probe:

@@ -46,11 +46,16 @@ class Identification:
     line_psd: tuple[np.ndarray, np.ndarray]  # (f, mean PSD of the pseudo-open-loop Tip/Tilt, mas^2/Hz)
     seconds: dict = field(default_factory=dict)
 
+    def _lines_window(self) -> dict:
+        skip = _skipped(self.plant.delay.value)
+        return {"first_frame": self.record.tip_tilt_first_frame + skip, "frames": len(self.record.tip_tilt[0]) - skip}
+
     def to_dict(self) -> dict:
         p = self.plant
         return {
             "telemetry": self.record.path,
             "window": {"first_frame": self.record.first_frame, "frames": self.record.frames, "seconds": self.record.frames / p.rate_hz},
+            "lines_window": self._lines_window(),
             "rate_hz": p.rate_hz,
             "sensitivity": self.record.sensitivity,
             "delay_frames": p.delay.to_dict() | {"method": p.delay_method, "recorded": _finite(self.record.delay_frames)},
@@ -99,12 +104,21 @@ def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[Opt
     return groups, PROBE_METHOD if scale != 1.0 or probe is not None else REJECTION_METHOD
 
 
+RING_DOWN = 64  # frames of the structural resonance's start-up left out of the pseudo-open loop
+
+
+def _skipped(d: float) -> int:
+    """Leading frames of the pseudo-open-loop Tip/Tilt left out: those whose delayed commands
+    come from before the window, and the resonance's ring-down."""
+    return int(d) + 1 + RING_DOWN
+
+
 def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> tuple[list[LineEstimate], np.ndarray, np.ndarray]:
+    """The lines of the pseudo-open-loop Tip/Tilt, over the frames since the last change of the
+    gains (m divided by each frame's k; OGTL's k need not have settled)."""
     m, c = record.tip_tilt
     pol = pseudo_open_loop(m / chi_tt, c, d, record.structure_ba)
-    n, _ = divmod(d, 1.0)
-    pol = pol[int(n) + 1 + 64 :] / nm_per_mas_tip_tilt()  # commands before the record, and the resonance's ring-down
-    return fit_lines(pol, record.rate_hz)
+    return fit_lines(pol[_skipped(d) :] / nm_per_mas_tip_tilt(), record.rate_hz)
 
 
 def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):

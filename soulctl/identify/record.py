@@ -63,12 +63,13 @@ class LoopRecord:
     p_c: np.ndarray  # (n_modes, F) PSD of the commands
     s_mc: np.ndarray  # (n_modes, F) cross-spectrum E[conj(M) C] (scipy's csd)
     moments: np.ndarray  # (n_modes, 3 + lags): var m/k, var c, cov(c(k), c(k-1)), cov(m/k(k), c(k-j)) j = 0..lags-1
-    tip_tilt: tuple[np.ndarray, np.ndarray]  # (frames, 2) of m/k and of c
+    tip_tilt: tuple[np.ndarray, np.ndarray]  # (frames, 2) of m/k and of c, from ``tip_tilt_first_frame``
     probe: Probe | None
     probe_series: tuple[np.ndarray, np.ndarray] | None  # m/k and c of the probed mode
     first_frame: int
     frames: int
     segments: int  # independent Welch segments (frames / segment)
+    tip_tilt_first_frame: int  # Tip/Tilt is kept from the last change of the gains (k need not have settled)
 
     @property
     def n_modes(self) -> int:
@@ -104,9 +105,10 @@ def _probe(tm: TelemetryReader) -> Probe | None:
     return Probe(mode, f)
 
 
-def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarray | None, np.ndarray]:
-    """(start, k over frames start.., the gains in force): after the last change of the gains
-    (/gain_history), and k within K_SPREAD of its final value."""
+def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, int, np.ndarray | None, np.ndarray]:
+    """(gains' start, start, k over frames from the gains' start, the gains in force): after
+    the last change of the gains (/gain_history), and from ``start`` on k within K_SPREAD of
+    its final value."""
     start, gains = first, None
     if tm.has("gain_history/frames") and tm.dim("changes"):
         changes = tm.read("gain_history/frames")
@@ -114,14 +116,12 @@ def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarr
         if len(inside):
             start = max(start, int(changes[inside[-1]]))
             gains = tm.read("gain_history/gains", slice(int(inside[-1]), int(inside[-1]) + 1))[0]
-    k = None
+    k, settled = None, start
     if tm.has("sensitivity"):
         k = tm.read("sensitivity", slice(start, frames)).astype(float)
         apart = np.flatnonzero(np.abs(k / k[-1] - 1.0) > K_SPREAD)
-        if len(apart):
-            start += int(apart[-1]) + 1
-            k = k[int(apart[-1]) + 1 :]
-    return start, k, np.asarray(tm.read("gains") if gains is None else gains, dtype=float)
+        settled = start + (int(apart[-1]) + 1 if len(apart) else 0)
+    return start, settled, k, np.asarray(tm.read("gains") if gains is None else gains, dtype=float)
 
 
 def read_record(path, delay_frames: float | None = None) -> LoopRecord:
@@ -141,7 +141,7 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
             delay = description.observation.delay_frames if description else math.nan
         filters, ba = _filters(description, rate, n_modes)
         first = max(0, frames - round(MAX_WINDOW_S * rate))
-        start, k, gains = _window(tm, frames, first)
+        gains_start, start, k, gains = _window(tm, frames, first)
         sensitivity = float(k[-1]) if k is not None else 1.0
         window = frames - start
         if window < MIN_WINDOW_S * rate:
@@ -153,16 +153,23 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
         lags = int(math.ceil((delay if math.isfinite(delay) else 2.0) + 2.0)) + 2
         probe = _probe(tm)
         stats = _Accumulator(n_modes, segment, lags, probe.mode - 1 if probe else None)
-        for lo in range(start, frames, ROW_BLOCK):
+        before: list[tuple[np.ndarray, np.ndarray]] = []  # Tip/Tilt while k settled: the lines' longer window
+        for lo in range(gains_start, frames, ROW_BLOCK):
             hi = min(frames, lo + ROW_BLOCK)
             m = tm.read("measured_modes", slice(lo, hi)).astype(float)
             if k is not None:
-                m /= k[lo - start : hi - start, None]
-            stats.add(m, tm.read("command_modes", slice(lo, hi)).astype(float))
+                m /= k[lo - gains_start : hi - gains_start, None]
+            c = tm.read("command_modes", slice(lo, hi)).astype(float)
+            split = min(max(start - lo, 0), hi - lo)
+            before.append((m[:split, :2], c[:split, :2]))
+            if split < hi - lo:
+                stats.add(m[split:], c[split:])
     f, p_m, p_c, s_mc = stats.spectra(rate)
+    tt_m, tt_c = stats.series(0, 2)
+    tt = (np.concatenate([x[0] for x in before] + [tt_m]), np.concatenate([x[1] for x in before] + [tt_c]))
     return LoopRecord(
         str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, p_c, s_mc, stats.moments(),
-        stats.series(0, 2), probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment,
+        tt, probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment, gains_start,
     )  # fmt: skip
 
 
