@@ -60,13 +60,15 @@ def case_id(case) -> str:
 
 
 def _run(case, workdir: Path) -> tuple[Path, dict]:
+    """The case's telemetry (simulated unless ``workdir`` holds it from an earlier run) and its identification."""
     name, example, seed, probe, duration = case
     tel = workdir / f"{case_id(case)}.h5"
     cmd = ["soulctl", "loop", "run", "--config", str(ROOT / "examples" / example), "--duration", str(duration), "--seed", str(seed)]
     cmd += ["--telemetry", str(tel), "--json"]
     if probe:
         cmd += ["--ogtl", "--probe-mode", str(probe)]
-    subprocess.run(cmd, check=True, capture_output=True, cwd=workdir)
+    if not tel.exists():
+        subprocess.run(cmd, check=True, capture_output=True, cwd=workdir)
     ident = subprocess.run(["soulctl", "telemetry", "identify", str(tel), "--json"], check=True, capture_output=True, cwd=workdir)
     return tel, json.loads(ident.stdout)
 
@@ -138,20 +140,23 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=str(ROOT / "validation" / "results" / "identify_accuracy.jsonl"))
     ap.add_argument("--quick", action="store_true", help="the first case only")
+    ap.add_argument(
+        "--keep", default=str(Path(tempfile.gettempdir()) / "soulctl-identify-validation"), help="folder of the simulated records (reused)"
+    )
     args = ap.parse_args()
     out = Path(args.out)
     done = {json.loads(x)["case"] for x in out.read_text().splitlines()} if out.exists() else set()
-    with tempfile.TemporaryDirectory() as d:
-        for case in CASES[:1] if args.quick else CASES:
-            if case_id(case) in done:
-                continue
-            t0 = time.perf_counter()
-            tel, ident = _run(case, Path(d))
-            row = evaluate(case, tel, ident) | {"wall_s": time.perf_counter() - t0}
-            with out.open("a") as f:
-                f.write(json.dumps(row) + "\n")
-            print(row["case"], "delay", round(row["delay"], 3), row["delay_true"], "seeing", round(row["seeing"], 3), flush=True)
-            tel.unlink()
+    keep = Path(args.keep)
+    keep.mkdir(parents=True, exist_ok=True)
+    for case in CASES[:1] if args.quick else CASES:
+        if case_id(case) in done:
+            continue
+        t0 = time.perf_counter()
+        tel, ident = _run(case, keep)
+        row = evaluate(case, tel, ident) | {"wall_s": time.perf_counter() - t0}
+        with out.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        print(row["case"], "delay", round(row["delay"], 3), row["delay_true"], "seeing", round(row["seeing"], 3), flush=True)
 
 
 if __name__ == "__main__":
