@@ -54,6 +54,22 @@ def psd(path: Path, cwd: Path) -> dict:
     return json.loads(soulctl("telemetry", "psd", str(path), "--modes", "1,2", "--pseudo-open-loop", "--json", cwd=cwd))
 
 
+def realised_lines(seed: int, rate: float, first: int, frames: int) -> list:
+    """Each night line's realised RMS (tip, tilt) over the identification's window (the loop's
+    vibration draws regenerated from the seed)."""
+    import tomllib
+
+    from soulctl.disturbance.vibrations import VibrationSource, VibrationSpectrum
+    from soulctl.loop.stages import VIBRATION_BLOCK
+
+    spectrum = VibrationSpectrum.from_dict(tomllib.loads(NIGHT_VIBRATIONS), "night")
+    _, vib_seed, _ = np.random.default_rng(seed).integers(0, 2**63, size=3)
+    source = VibrationSource(spectrum, rate, np.random.default_rng(vib_seed))
+    x = np.concatenate([source.next_lines(VIBRATION_BLOCK) for _ in range((first + frames) // VIBRATION_BLOCK + 1)], axis=1)
+    rms = np.sqrt(np.mean(x[:, first : first + frames] ** 2, axis=1))
+    return [(line.frequency_hz, float(r[0]), float(r[1])) for line, r in zip(spectrum.lines, rms)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--duration", type=float, default=30.0)
@@ -77,6 +93,7 @@ def main() -> None:
             "seeing": ident["turbulence"]["seeing_arcsec"],
             "L0": ident["turbulence"]["L0_m"],
             "lines": [(x.frequency_hz, x.tip_mas, x.tilt_mas) for x in (plant.vibrations.lines if plant.vibrations else ())],
+            "lines_realised": realised_lines(11, 980.0, ident["lines_window"]["first_frame"], ident["lines_window"]["frames"]),
         },
         "jitter_mas": {
             name: {
