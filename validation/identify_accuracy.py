@@ -136,6 +136,37 @@ def evaluate(case, tel: Path, ident: dict) -> dict:
     return row
 
 
+def table(rows: list[dict]) -> str:
+    """The closing note's table: one row per case."""
+    out = [
+        "| case | window s | delay (true) | chi: probe / its group's fit | noise fit/true, groups | TT noise | seeing (true) "
+        "| lines >= 3 mas: f, RMS found/realised |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        chi = "-"
+        if r.get("probe_mode"):
+            g = r["chi_group_of_probe"]
+            chi = f"mode {r['probe_mode']}: {r['chi_probe']:.3f} / {g['value']:.3f} ({g['value'] / r['chi_probe'] - 1:+.0%})"
+        noise = ", ".join(f"{v:.2f}" for v in r["noise_ratio_groups"].values())
+        lines = []
+        for true in r["lines_true"]:
+            for axis in ("tip_mas", "tilt_mas"):
+                if true[axis] < 3.0:
+                    continue
+                found = [x for x in r["lines"] if abs(x["frequency_hz"]["value"] - true["frequency_hz"]) < 1.0]
+                if not found:
+                    lines.append(f"{true['frequency_hz']:g} Hz {axis[:-4]}: not found")
+                    continue
+                x, rms = found[0], found[0][axis]["value"]
+                lines.append(f"{x['frequency_hz']['value']:.2f} Hz {axis[:-4]} {rms:.2f}/{true[axis]:.2f} ({rms / true[axis] - 1:+.0%})")
+        out.append(
+            f"| {r['case']} | {r['window_s']:.1f} | {r['delay']:.3f} ({r['delay_true']:.3f}) | {chi} | {noise} | "
+            f"{r['noise_ratio_tip_tilt']:.2f} | {r['seeing']:.3f} ({r['seeing_true']:g}) | {'; '.join(lines)} |"
+        )
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=str(ROOT / "validation" / "results" / "identify_accuracy.jsonl"))
@@ -143,8 +174,12 @@ def main() -> None:
     ap.add_argument(
         "--keep", default=str(Path(tempfile.gettempdir()) / "soulctl-identify-validation"), help="folder of the simulated records (reused)"
     )
+    ap.add_argument("--table", action="store_true", help="print the results' table and exit")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.table:
+        print(table([json.loads(x) for x in out.read_text().splitlines()]))
+        return
     done = {json.loads(x)["case"] for x in out.read_text().splitlines()} if out.exists() else set()
     keep = Path(args.keep)
     keep.mkdir(parents=True, exist_ok=True)
