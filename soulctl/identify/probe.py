@@ -1,5 +1,5 @@
 """Optical gain and delay of the probed mode from the OGTL probe (a sine added to the mode's
-commands).
+commands).  On Tip/Tilt the plant carries the structural resonance, z^-d (1 + G), divided out.
 
 With the probe added after the controller, c is what the mirror is given and the mirror
 holds z^-d c, so at the probe frequency the measurement and the commands are related by the
@@ -64,6 +64,10 @@ def fit_probe(record: LoopRecord, near_delay: float) -> ProbeFit | None:
         return None
     w = 2 * np.pi * f / rate
     ratio = -M / C
+    if record.probe.mode <= 2 and record.structure_ba is not None:  # Tip/Tilt's plant is z^-d (1 + G)
+        b, a = (np.asarray(x) for x in record.structure_ba)
+        zi = np.exp(-1j * w)
+        ratio /= 1.0 + np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi)
     d = _delay_from_phase(float(np.angle(ratio)), w, near_delay)
     gain = abs(delay_response(np.array([f]), rate, d)[0]) if math.isfinite(d) else 1.0
     rel = sigma_m / abs(M) if abs(M) > 0 else math.inf
