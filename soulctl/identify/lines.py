@@ -3,7 +3,9 @@ peaks above the turbulence's smooth spectrum, each a damped oscillator).
 
 1. Welch PSD of the pseudo-open-loop Tip and Tilt (mas), segments of up to ``SEGMENT_S``
    (0.125 Hz resolution: a 13 Hz line of damping 0.02 is 0.5 Hz wide at half maximum).
-2. The baseline, a running median of the mean PSD over +-``BASELINE_HZ``; candidates are local
+2. The baseline, a running median of the mean PSD over +-``BASELINE_HZ``, computed again
+   without the bins of the lines a first pass found (out to ``MASK_WIDTHS`` x zeta f0 of each,
+   whose wings would raise it); candidates are local
    maxima between ``F_MIN_HZ`` and 0.45 x the frame rate above the threshold a Welch PSD of
    that many segments exceeds by chance ``FALSE_ALARMS`` times per spectrum (chi-squared with
    2 x segments degrees of freedom per axis: 11 x the baseline for one segment, 2.2 for 30).
@@ -42,6 +44,7 @@ F_MIN_HZ = 3.0
 MIN_RMS_MAS = 1.0
 PEAK_HALF_WIDTH_HZ = 2.0  # at least; and 8 x the fitted half width, at most MAX_BAND_HZ
 MAX_BAND_HZ = 10.0
+MASK_WIDTHS = 5.0  # a line's bins out of the baseline out to 5 zeta f0 (its PSD at 4 % of the peak)
 
 
 @dataclass(frozen=True)
@@ -126,8 +129,10 @@ def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEs
     inside = (f >= F_MIN_HZ) & (f <= 0.45 * rate_hz)
     threshold = chi2.isf(FALSE_ALARMS / max(1, inside.sum()), 4 * segments) / (4 * segments)  # two axes averaged
     masked = np.zeros(f.shape, dtype=bool)
-    for i in _candidates(f, mean, _baseline(f, mean, width, masked), inside, threshold):
-        masked |= np.abs(f - f[i]) <= max(1.0, 3 * df)
+    first = _baseline(f, mean, width, masked)
+    for i in _candidates(f, mean, first, inside, threshold):
+        _, zeta, _ = _fit_peak(f, mean, first, i)  # the line's width sets how much of it to mask
+        masked |= np.abs(f - f[i]) <= max(1.0, 3 * df, MASK_WIDTHS * zeta * f[i])
     bases = np.stack([_baseline(f, p[:, a], width, masked) for a in range(2)], axis=1)
     base = _baseline(f, mean, width, masked)
     out: list[LineEstimate] = []
