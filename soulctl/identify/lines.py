@@ -44,6 +44,7 @@ F_MIN_HZ = 3.0
 MIN_RMS_MAS = 1.0
 PEAK_HALF_WIDTH_HZ = 2.0  # at least; and 8 x the fitted half width, at most MAX_BAND_HZ
 MAX_BAND_HZ = 10.0
+MAX_LINES = 12  # candidates fitted, strongest first (a comb of spurious peaks must not cost minutes)
 MASK_WIDTHS = 5.0  # a line's bins out of the baseline out to 5 zeta f0 (its PSD at 4 % of the peak)
 
 
@@ -130,14 +131,16 @@ def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEs
     threshold = chi2.isf(FALSE_ALARMS / max(1, inside.sum()), 4 * segments) / (4 * segments)  # two axes averaged
     masked = np.zeros(f.shape, dtype=bool)
     first = _baseline(f, mean, width, masked)
-    for i in _candidates(f, mean, first, inside, threshold):
+    for i in _candidates(f, mean, first, inside, threshold)[:MAX_LINES]:
         _, zeta, _ = _fit_peak(f, mean, first, i)  # the line's width sets how much of it to mask
         masked |= np.abs(f - f[i]) <= max(1.0, 3 * df, MASK_WIDTHS * zeta * f[i])
     bases = np.stack([_baseline(f, p[:, a], width, masked) for a in range(2)], axis=1)
     base = _baseline(f, mean, width, masked)
     out: list[LineEstimate] = []
     model = base.copy()  # the baseline plus the lines fitted so far: a candidate they explain is their skirt
-    for i in _candidates(f, mean, base, inside, threshold):
+    for i in _candidates(f, mean, base, inside, threshold)[: 2 * MAX_LINES]:
+        if len(out) == MAX_LINES:
+            break
         if mean[i] <= threshold * model[i]:
             continue
         f0, zeta, sf = _fit_peak(f, mean, base, i)

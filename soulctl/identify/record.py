@@ -161,7 +161,7 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
                 m /= k[lo - gains_start : hi - gains_start, None]
             c = tm.read("command_modes", slice(lo, hi)).astype(float)
             split = min(max(start - lo, 0), hi - lo)
-            before.append((m[:split, :2], c[:split, :2]))
+            before.append((m[:split, :2].copy(), c[:split, :2].copy()))  # copies: a view would keep the block
             if split < hi - lo:
                 stats.add(m[split:], c[split:])
     f, p_m, p_c, s_mc = stats.spectra(rate)
