@@ -25,7 +25,7 @@ from scipy.optimize import brentq
 
 from ..control.ogtl import REFERENCE_BINS, demodulate
 from .plant import Estimate
-from .record import LoopRecord, delay_response
+from .record import LoopRecord, plant_response
 
 
 @dataclass(frozen=True)
@@ -36,17 +36,17 @@ class ProbeFit:
     delay: Estimate
 
 
-def _phase(d: float, w: float) -> float:
-    return float(np.angle(delay_response(np.array([w / (2 * np.pi)]), 1.0, d)[0]))
+def _delay_from_phase(response, phase: float, w: float, near: float) -> float:
+    """The d >= 0 closest to ``near`` whose plant ``response(d)`` has the phase ``phase`` (w: the
+    probe's rad/frame, whose period in frames bounds the search)."""
 
+    def off(d: float) -> float:
+        return float(np.angle(np.exp(1j * (np.angle(response(d)) - phase))))
 
-def _delay_from_phase(phase: float, w: float, near: float) -> float:
-    """The d >= 0 closest to ``near`` whose z^-d has the phase ``phase`` at w (rad/frame)."""
     period = 2 * np.pi / w
     grid = np.arange(max(0.0, near - period), near + period, period / 400.0)
-    diff = np.angle(np.exp(1j * (np.array([_phase(d, w) for d in grid]) - phase)))
-    roots = [brentq(lambda d: float(np.angle(np.exp(1j * (_phase(d, w) - phase)))), a, b)
-             for a, b, da, db in zip(grid, grid[1:], diff, diff[1:]) if da * db < 0 and abs(da - db) < np.pi]  # fmt: skip
+    diff = np.array([off(d) for d in grid])
+    roots = [brentq(off, a, b) for a, b, da, db in zip(grid, grid[1:], diff, diff[1:]) if da * db < 0 and abs(da - db) < np.pi]
     return min(roots, key=lambda d: abs(d - near)) if roots else math.nan
 
 
@@ -63,13 +63,15 @@ def fit_probe(record: LoopRecord, near_delay: float) -> ProbeFit | None:
     if not abs(C) > 0:
         return None
     w = 2 * np.pi * f / rate
-    ratio = -M / C
-    if record.probe.mode <= 2 and record.structure_ba is not None:  # Tip/Tilt's plant is z^-d (1 + G)
-        b, a = (np.asarray(x) for x in record.structure_ba)
-        zi = np.exp(-1j * w)
-        ratio /= 1.0 + np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi)
-    d = _delay_from_phase(float(np.angle(ratio)), w, near_delay)
-    gain = abs(delay_response(np.array([f]), rate, d)[0]) if math.isfinite(d) else 1.0
+    ratio = -M / C  # chi times the plant's response: z^-d, and 1 + G on Tip/Tilt
+
+    tip_tilt = record.probe.mode <= 2
+
+    def response(d: float) -> complex:
+        return complex(plant_response(record, d, tip_tilt, [f])[0])
+
+    d = _delay_from_phase(response, float(np.angle(ratio)), w, near_delay)
+    gain = abs(response(d)) if math.isfinite(d) else 1.0
     rel = sigma_m / abs(M) if abs(M) > 0 else math.inf
     chi = abs(ratio) / gain
     return ProbeFit(record.probe.mode, f, Estimate(chi, chi * rel), Estimate(d, rel / w))

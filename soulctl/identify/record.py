@@ -23,6 +23,7 @@ from scipy.signal import get_window
 
 from ..control.filters import Filter
 from ..control.gains import unit_loops
+from ..control.transfer import Plant
 from ..errors import InputError
 from ..loop.offline import recorded_run
 from ..ranges import DELAY_FRAMES
@@ -264,21 +265,17 @@ def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np
     return x**2 * mo[:, 0] + var_dc + 2 * x * cross
 
 
-def delay_response(f_hz: np.ndarray, rate_hz: float, delay_frames: float) -> np.ndarray:
-    """z^-d with the fractional part as linear interpolation between frames (the delay line)."""
-    n = int(math.floor(delay_frames + 1e-12))
-    e = delay_frames - n
-    zi = np.exp(-2j * np.pi * np.asarray(f_hz) / rate_hz)
-    return zi**n * ((1.0 - e) + e * zi)
+def plant_response(record: LoopRecord, delay_frames: float, tip_tilt: bool, f_hz) -> np.ndarray:
+    """The mirror's response to the commands at f_hz: z^-d as the delay line interpolates it,
+    times 1 + G on Tip/Tilt (``transfer.Plant`` with chi = 1, the structure where the record has it)."""
+    plant = Plant(delay_frames, 1.0, record.structure_ba if tip_tilt else None)
+    return plant.frequency_response(2.0 * np.pi * np.asarray(f_hz, dtype=float) / record.rate_hz)
 
 
 def pol_psd(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
     """PSD of the pseudo-open loop m/(k chi) + z^-d c (the mirror's modes; the structural
     resonance multiplies Tip/Tilt's), (n_modes, F), from the record's auto- and cross-spectra."""
-    D = np.broadcast_to(delay_response(record.f_hz, record.rate_hz, delay_frames), record.p_m.shape).copy()
-    if record.structure_ba is not None:
-        b, a = (np.asarray(x) for x in record.structure_ba)
-        zi = np.exp(-2j * np.pi * record.f_hz / record.rate_hz)
-        D[:2] *= 1.0 + np.polyval(b[::-1], zi) / np.polyval(a[::-1], zi)
+    D = np.broadcast_to(plant_response(record, delay_frames, False, record.f_hz), record.p_m.shape).copy()
+    D[:2] = plant_response(record, delay_frames, True, record.f_hz)
     x = 1.0 / np.asarray(chi, dtype=float)[:, None]
     return np.maximum(x**2 * record.p_m + np.abs(D) ** 2 * record.p_c + 2.0 * x * np.real(record.s_mc * D), 0.0)
