@@ -21,11 +21,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.fft
 from scipy import special
 
 from ..disturbance.modal_psd import radial_order
-from ..optics.asm import ModalBasis, _covariance_kernel
+from ..optics.asm import ModalBasis, covariance_applied
 from ..optics.atmosphere import LAMBDA_REF_M
 from ..optics.pupil import LBT_DIAMETER_M, Pupil
 from .plant import Turbulence
@@ -39,19 +38,10 @@ NOLL = special.gamma(29 / 6) * 0.448 / (2 * special.gamma(1 / 6))  # fixes the T
 
 
 def basis_variances(basis: ModalBasis, pupil: Pupil, L0_values) -> np.ndarray:
-    """(len(L0_values), n_modes) V_i(L0), rad^2 at 500 nm for r0 = 1 m."""
+    """(len(L0_values), n_modes) V_i(L0), rad^2 at 500 nm for r0 = 1 m: s_i^T C s_i / n_p^2."""
     shapes = basis.shapes(pupil)  # (n_valid, n_modes)
-    n, n_p = pupil.n_pixels, shapes.shape[0]
-    rows, cols = np.nonzero(pupil.mask)
-    images = np.zeros((shapes.shape[1], 2 * n, 2 * n))
-    images[:, rows, cols] = shapes.T
-    spectra = scipy.fft.rfft2(images, workers=-1)
-    out = []
-    for L0 in L0_values:
-        kernel = scipy.fft.rfft2(_covariance_kernel(pupil, L0))
-        conv = scipy.fft.irfft2(spectra * kernel, s=(2 * n, 2 * n), workers=-1)[:, rows, cols]
-        out.append(np.einsum("mp,mp->m", conv, shapes.T) / n_p**2)
-    return np.array(out)
+    n_p = shapes.shape[0]
+    return np.array([np.einsum("pm,pm->m", c, shapes) / n_p**2 for c in covariance_applied(shapes, pupil, L0_values)])
 
 
 def noll_variances(n_modes: int, diameter_m: float = LBT_DIAMETER_M) -> np.ndarray:

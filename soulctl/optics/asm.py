@@ -141,6 +141,22 @@ def _covariance_kernel(pupil: Pupil, L0_m: float) -> np.ndarray:
     return phase_covariance(r, 1.0, L0_m)
 
 
+def covariance_applied(functions: np.ndarray, pupil: Pupil, L0_values) -> list[np.ndarray]:
+    """C f for each L0: the von Karman phase covariance (rad^2 at 500 nm, r0 = 1 m) applied to
+    pupil functions (n_valid_pixels, k) by FFT convolution on the doubled grid (no wrap-around);
+    the functions' transform is computed once for all the L0 values."""
+    n = pupil.n_pixels
+    rows, cols = np.nonzero(pupil.mask)
+    images = np.zeros((functions.shape[1], 2 * n, 2 * n))
+    images[:, rows, cols] = functions.T
+    spectra = scipy.fft.rfft2(images, workers=-1)
+    out = []
+    for L0 in L0_values:
+        kernel = scipy.fft.rfft2(_covariance_kernel(pupil, L0))
+        out.append(scipy.fft.irfft2(spectra * kernel, s=(2 * n, 2 * n), workers=-1)[:, rows, cols].T)
+    return out
+
+
 def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
     """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
     if not (L0_m > 0 and np.isfinite(L0_m)):
@@ -162,13 +178,7 @@ def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, e
     Q, _ = np.linalg.qr(np.concatenate([piston, tt], axis=1))
     Q = Q * np.sign(np.diag(Q.T @ np.concatenate([piston, tt], axis=1)))
     # Turbulence covariance of the mirror coordinates: F^T C F / n_p^2 by FFT convolution.
-    n = pupil.n_pixels
-    images = np.zeros((F.shape[1], 2 * n, 2 * n))
-    rows, cols = np.nonzero(pupil.mask)
-    images[:, rows, cols] = F.T
-    kernel = scipy.fft.rfft2(_covariance_kernel(pupil, L0_m))
-    conv = scipy.fft.irfft2(scipy.fft.rfft2(images, workers=-1) * kernel, s=(2 * n, 2 * n), workers=-1)
-    CF = conv[:, rows, cols].T  # (n_p, n_act): C applied to each influence function
+    CF = covariance_applied(F, pupil, (L0_m,))[0]  # (n_p, n_act): C applied to each influence function
     K = W.T @ (F.T @ CF) @ W / n_p**2
     P = np.eye(K.shape[0]) - Q @ Q.T
     evals, evecs = np.linalg.eigh(P @ K @ P)
