@@ -25,7 +25,7 @@ from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..telemetry.analysis import nm_per_mas_tip_tilt
 from . import seeing
 from .lines import LineEstimate, fit_lines
-from .plant import OpticalGainGroup, PlantModel
+from .plant import OpticalGainGroup, PlantModel, chi_per_mode
 from .probe import ProbeFit, fit_probe
 from .record import LoopRecord, pol_variance, read_record
 from .rejection import RejectionFit, fit_rejection, tip_tilt_noise
@@ -90,9 +90,11 @@ def _finite(x):
 def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[OpticalGainGroup, ...], str]:
     """Per group chi: the rejection fit's, or with a probe the probe's scale on the fit's shape."""
     scale, rel = 1.0, 0.0
-    if probe is not None and math.isfinite(probe.chi.value) and probe.chi.value > 0:
-        inside = [i for i, (lo, hi) in enumerate(rej.groups) if lo <= probe.mode <= hi]
-        ref = rej.chi[inside[0]] if inside else min(rej.chi, key=lambda c: c.sigma)
+    used = probe is not None and math.isfinite(probe.chi.value) and probe.chi.value > 0
+    if probe is not None and used:
+        # the probed mode's group; Tip/Tilt takes the first group's chi (it is not fitted)
+        inside = [i for i, (lo, hi) in enumerate(rej.groups) if lo <= probe.mode <= hi] or [0]
+        ref = rej.chi[inside[0]]
         scale = probe.chi.value / ref.value
         rel = math.hypot(probe.chi.sigma / probe.chi.value, ref.sigma / ref.value)
     groups = tuple(
@@ -101,7 +103,7 @@ def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[Opt
     )
     tt = groups[0]
     groups = (OpticalGainGroup(1, 2, tt.chi, tt.sigma),) + groups  # Tip/Tilt: the nearest group's (not fitted)
-    return groups, PROBE_METHOD if scale != 1.0 or probe is not None else REJECTION_METHOD
+    return groups, PROBE_METHOD if used else REJECTION_METHOD
 
 
 RING_DOWN = 64  # frames of the structural resonance's start-up left out of the pseudo-open loop
@@ -150,8 +152,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     probe = fit_probe(record, rej.delay.value)
     groups, method = _optical_gains(rej, probe)
     clock["delay_and_gains"] = time.perf_counter()
-    plant0 = PlantModel(record.path, record.rate_hz, rej.delay, optical_gains=groups)
-    chi = plant0.chi(record.n_modes)
+    chi = chi_per_mode(groups, record.n_modes)
     noise = rej.noise_nm2.copy()
     lines, f_lines, p_lines = _vibrations(record, rej.delay.value, float(chi[0]))
     clock["vibrations"] = time.perf_counter()

@@ -62,6 +62,17 @@ class Turbulence:
     wind_m_s: float | None = None
 
 
+def chi_per_mode(groups: tuple[OpticalGainGroup, ...], n_modes: int) -> np.ndarray:
+    """chi_i per mode: each group's value, the nearest group's beyond them, 1 without any."""
+    out = np.ones(n_modes)
+    for i in range(n_modes if groups else 0):
+        mode = i + 1
+        out[i] = min(
+            groups, key=lambda g: 0 if g.first_mode <= mode <= g.last_mode else min(abs(mode - g.first_mode), abs(mode - g.last_mode))
+        ).chi
+    return out
+
+
 @dataclass(frozen=True)
 class PlantModel:
     """What `telemetry identify` found (see the module)."""
@@ -80,18 +91,7 @@ class PlantModel:
     tip_tilt_filter: Filter | None = None  # the Tip/Tilt controller the record ran, its gain g k (k: the slope sensitivity)
 
     def chi(self, n_modes: int) -> np.ndarray:
-        """chi_i per mode: each group's value, the nearest group's beyond them, 1 without any."""
-        out = np.ones(n_modes)
-        if not self.optical_gains:
-            return out
-        for i in range(n_modes):
-            mode = i + 1
-            g = min(
-                self.optical_gains,
-                key=lambda x: 0 if x.first_mode <= mode <= x.last_mode else min(abs(mode - x.first_mode), abs(mode - x.last_mode)),
-            )
-            out[i] = g.chi
-        return out
+        return chi_per_mode(self.optical_gains, n_modes)
 
     def to_toml(self) -> str:
         lines = [f"source = {_text(self.source)}", f"rate_hz = {_num(self.rate_hz)}", ""]
