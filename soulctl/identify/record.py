@@ -4,10 +4,10 @@ The window is the record's last stretch at fixed gains (the frames after the las
 offline MGM takes them: the loop's transfer functions hold only there) over which the slope
 sensitivity k stays within ``K_SPREAD`` of its final value (OGTL changes k every period; once
 it has settled, k chi, the loop's gain, is steady), at most ``MAX_WINDOW_S``.  For every mode
-the Welch auto-spectra of the measurement m/k (k divided out: m/k = chi (phi - mirror) + n)
-and of the commands c (M^-1 c, probe included), their cross-spectrum, and lagged moments: the
-pseudo-open loop for any delay and optical gain follows (``pol_psd``, ``pol_variance``)
-without a second read.  The rows are read once, in blocks of ``ROW_BLOCK`` frames with every
+the Welch PSD of the measurement m/k (k divided out: m/k = chi (phi - mirror) + n), which
+the rejection fit reads, and the lagged moments of m/k and of the commands c (M^-1 c, probe
+included), from which the pseudo-open loop's variance follows for any delay and optical gain
+(``pol_variance``) without a second read.  The rows are read once, in blocks of ``ROW_BLOCK`` frames with every
 mode (the files are chunked by frames: blocks of modes decompressed every chunk once per
 block, 7x the time); memory holds one block, the spectra and the Tip/Tilt and probe series.
 """
@@ -61,8 +61,6 @@ class LoopRecord:
     sensitivity: float  # k at the end of the window (m is divided by each frame's k)
     f_hz: np.ndarray
     p_m: np.ndarray  # (n_modes, F) PSD of m/k, nm^2/Hz
-    p_c: np.ndarray  # (n_modes, F) PSD of the commands
-    s_mc: np.ndarray  # (n_modes, F) cross-spectrum E[conj(M) C] (scipy's csd)
     moments: np.ndarray  # (n_modes, 3 + lags): var m/k, var c, cov(c(k), c(k-1)), cov(m/k(k), c(k-j)) j = 0..lags-1
     tip_tilt: tuple[np.ndarray, np.ndarray]  # (frames, 2) of m/k and of c, from ``tip_tilt_first_frame``
     probe: Probe | None
@@ -165,27 +163,27 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
             before.append((m[:split, :2].copy(), c[:split, :2].copy()))  # copies: a view would keep the block
             if split < hi - lo:
                 stats.add(m[split:], c[split:])
-    f, p_m, p_c, s_mc = stats.spectra(rate)
+    f, p_m = stats.spectrum(rate)
     tt_m, tt_c = stats.series(0, 2)
     tt = (np.concatenate([x[0] for x in before] + [tt_m]), np.concatenate([x[1] for x in before] + [tt_c]))
     return LoopRecord(
-        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, p_c, s_mc, stats.moments(),
+        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, stats.moments(),
         tt, probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment, gains_start,
     )  # fmt: skip
 
 
 class _Accumulator:
-    """Welch auto- and cross-spectra (Hann, half-overlapping segments, each segment's mean
-    removed: scipy's ``welch``/``csd`` defaults) and the lagged moments of m/k and c, fed
+    """The Welch PSD of m/k (Hann, half-overlapping segments, each segment's mean removed:
+    scipy's ``welch`` defaults) and the lagged moments of m/k and c, fed
     row block after row block (every row read once: the files are chunked by frames), and
     the Tip/Tilt and probed mode's series."""
 
     def __init__(self, n_modes: int, segment: int, lags: int, probe_column: int | None):
         self.segment, self.hop, self.lags = segment, segment // 2, lags
         self.window = get_window("hann", segment)
-        self.carry_m = self.carry_c = np.zeros((0, n_modes))
+        self.carry_m = np.zeros((0, n_modes))  # the rows of m the next segment starts in
         F = segment // 2 + 1
-        self.pm, self.pc, self.smc, self.count = np.zeros((F, n_modes)), np.zeros((F, n_modes)), np.zeros((F, n_modes), complex), 0
+        self.pm, self.count = np.zeros((F, n_modes)), 0
         self.sums = np.zeros((5 + lags, n_modes))  # sum m, sum c, sum m^2, sum c^2, sum c(k)c(k-1), sum m(k)c(k-j)
         self.n = 0
         self.last_c = np.zeros((0, n_modes))
@@ -195,17 +193,14 @@ class _Accumulator:
     def add(self, m: np.ndarray, c: np.ndarray) -> None:
         self._moments(m, c)
         self.kept.append((m[:, self.columns].copy(), c[:, self.columns].copy()))
-        m, c = np.concatenate([self.carry_m, m]), np.concatenate([self.carry_c, c])
+        m = np.concatenate([self.carry_m, m])
         starts = range(0, len(m) - self.segment + 1, self.hop)
         if len(starts):
             idx = np.asarray(starts)[:, None] + np.arange(self.segment)[None, :]
-            M, C = (self._fft(x[idx]) for x in (m, c))
-            self.pm += np.sum(np.abs(M) ** 2, axis=0)
-            self.pc += np.sum(np.abs(C) ** 2, axis=0)
-            self.smc += np.sum(np.conj(M) * C, axis=0)
+            self.pm += np.sum(np.abs(self._fft(m[idx])) ** 2, axis=0)
             self.count += len(starts)
         nxt = starts[-1] + self.hop if len(starts) else 0
-        self.carry_m, self.carry_c = m[nxt:], c[nxt:]
+        self.carry_m = m[nxt:]
 
     def _fft(self, seg: np.ndarray) -> np.ndarray:
         seg -= seg.mean(axis=1, keepdims=True)  # a copy already (fancy indexing)
@@ -227,13 +222,13 @@ class _Accumulator:
         self.n += len(m)
         self.last_c = cc[-self.lags :]
 
-    def spectra(self, rate: float):
+    def spectrum(self, rate: float):
         scale = 1.0 / (rate * np.sum(self.window**2) * max(1, self.count))
         double = np.ones(self.segment // 2 + 1)
         double[1 : -1 if self.segment % 2 == 0 else None] = 2.0
         w = (scale * double)[:, None]
         f = np.fft.rfftfreq(self.segment, 1.0 / rate)
-        return f, (self.pm * w).T, (self.pc * w).T, (self.smc * w).T
+        return f, (self.pm * w).T
 
     def moments(self) -> np.ndarray:
         """As the rows of ``pol_variance`` need them: var m, var c, cov c(k)c(k-1), cov m(k)c(k-j)."""
@@ -270,12 +265,3 @@ def plant_response(record: LoopRecord, delay_frames: float, tip_tilt: bool, f_hz
     times 1 + G on Tip/Tilt (``transfer.Plant`` with chi = 1, the structure where the record has it)."""
     plant = Plant(delay_frames, 1.0, record.structure_ba if tip_tilt else None)
     return plant.frequency_response(2.0 * np.pi * np.asarray(f_hz, dtype=float) / record.rate_hz)
-
-
-def pol_psd(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
-    """PSD of the pseudo-open loop m/(k chi) + z^-d c (the mirror's modes; the structural
-    resonance multiplies Tip/Tilt's), (n_modes, F), from the record's auto- and cross-spectra."""
-    D = np.broadcast_to(plant_response(record, delay_frames, False, record.f_hz), record.p_m.shape).copy()
-    D[:2] = plant_response(record, delay_frames, True, record.f_hz)
-    x = 1.0 / np.asarray(chi, dtype=float)[:, None]
-    return np.maximum(x**2 * record.p_m + np.abs(D) ** 2 * record.p_c + 2.0 * x * np.real(record.s_mc * D), 0.0)
