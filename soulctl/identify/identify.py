@@ -63,7 +63,10 @@ class Identification:
                 {"modes": f"{g.first_mode}-{g.last_mode}", "chi": g.chi, "sigma": _finite(g.sigma)} for g in p.optical_gains
             ],
             "optical_gain_method": p.optical_gain_method,
-            "rejection_fit_chi": [{"modes": f"{lo}-{hi}", **c.to_dict()} for (lo, hi), c in zip(self.rejection.groups, self.rejection.chi)],
+            "rejection_fit_chi": [
+                {"modes": f"{lo}-{hi}", **c.to_dict(), "change_per_percent_excess": e}
+                for (lo, hi), c, e in zip(self.rejection.groups, self.rejection.chi, self.rejection.excess_sensitivity)
+            ],
             "probe": None if self.probe is None else {
                 "mode": self.probe.mode, "frequency_hz": self.probe.frequency_hz,
                 "chi": self.probe.chi.to_dict(), "delay_frames": self.probe.delay.to_dict(),
@@ -104,6 +107,22 @@ def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[Opt
     tt = groups[0]
     groups = (OpticalGainGroup(1, 2, tt.chi, tt.sigma),) + groups  # Tip/Tilt: the nearest group's (not fitted)
     return groups, PROBE_METHOD if used else REJECTION_METHOD
+
+
+WEAK_PER_PERCENT = 0.02  # a group whose chi moves by more than 2 % per 1 % of coloured excess is flagged
+
+
+def _weak_groups(rej: RejectionFit) -> tuple[str, ...]:
+    """A note naming the groups whose chi a small coloured excess of the noise would bias: the
+    loop gain there is too low to shape |S| (docs/physics.md, "Identification from telemetry")."""
+    weak = [f"{lo}-{hi}" for (lo, hi), e in zip(rej.groups, rej.excess_sensitivity) if abs(e) > WEAK_PER_PERCENT]
+    if not weak:
+        return ()
+    return (
+        f"chi of modes {', '.join(weak)} weakly identified: 1 % of coloured excess in the noise (aliasing, turbulence above "
+        f"{rej.f_low_hz:.0f} Hz) moves it by more than {100 * WEAK_PER_PERCENT:.0f} % (their loop gain barely shapes |S|); "
+        "a probe on one of these modes measures it",
+    )
 
 
 RING_DOWN = 64  # frames of the structural resonance's start-up left out of the pseudo-open loop
@@ -164,7 +183,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     notes: tuple[str, ...] = (
         "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit",
         "wind speed not estimated",
-    )
+    ) + _weak_groups(rej)
     spectrum = VibrationSpectrum(tuple(x.line() for x in lines), f"identified from {record.path}") if lines else None
     in_use = record.filters[0].with_gain(float(np.mean(record.gains[:2])) * record.sensitivity)  # g k
     plant = PlantModel(

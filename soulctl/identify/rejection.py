@@ -63,6 +63,7 @@ class RejectionFit:
     chi: tuple[Estimate, ...]  # per group, k divided out
     noise_nm2: np.ndarray  # per mode: variance of the measurement noise of m/k (nm^2 per frame), nan for Tip/Tilt
     f_low_hz: float
+    excess_sensitivity: tuple[float, ...] = ()  # per group: relative chi change per 1 % excess (``_Likelihood.excess_sensitivity``)
 
 
 class _Likelihood:
@@ -99,6 +100,16 @@ class _Likelihood:
         res = minimize_scalar(lambda u: self(d, math.exp(u)), bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
         return math.exp(res.x), float(res.fun)
 
+    def excess_sensitivity(self, d: float, chi: float) -> float:
+        """Relative change of the fitted chi per 1 % excess of the PSD over the lower half of
+        the band: the profiled Whittle fit's linear response, sum(u' x) / sum(u'^2) with
+        u = d ln|S|^2 / d ln chi centred per mode (sigma_i absorbs a common offset)."""
+        a, b = self.parts(d)
+        u = -(chi * a + 2.0 * chi * chi * b) / np.maximum(1.0 + chi * a + chi * chi * b, 1e-12)
+        u = u - u.mean(axis=1, keepdims=True)
+        excess = np.where(self.f < np.median(self.f), 0.01, 0.0)
+        return float(np.sum(u * excess) / max(float(np.sum(u * u)), 1e-300))
+
     def noise(self, d: float, chi: float) -> np.ndarray:
         a, b = self.parts(d)
         return np.mean(self.p * (1.0 + chi * a + chi * chi * b), axis=1)
@@ -132,9 +143,10 @@ def fit_rejection(record: LoopRecord, f_low_hz: float | None = None) -> Rejectio
     profile = np.array([sum(fit.best_chi(float(d))[1] for fit in fits) for d in grid])
     d_hat, d_sigma = _curvature_sigma(grid, profile)
     d_hat = float(np.clip(d_hat, grid[0], grid[-1]))
-    chis = []
+    chis, leverage = [], []
     for fit in fits:
         chi, _ = fit.best_chi(d_hat)
+        leverage.append(fit.excess_sensitivity(d_hat, chi))
         u = np.log(chi) + np.array([-0.02, 0.0, 0.02])
         _, s = _curvature_sigma(u, np.array([fit(d_hat, math.exp(x)) for x in u]))
         k = record.sensitivity  # the fit's gain is k chi (m/k = S (chi phi + n), S with g k chi)
@@ -143,7 +155,7 @@ def fit_rejection(record: LoopRecord, f_low_hz: float | None = None) -> Rejectio
     full = [_Likelihood(record, np.arange(lo - 1, hi), f_low) for lo, hi in groups]
     for fit, est in zip(full, chis):
         noise[fit.modes] = 0.5 * record.rate_hz * fit.noise(d_hat, est.value * record.sensitivity)  # flat one-sided PSD 2 s^2 / rate
-    return RejectionFit(Estimate(d_hat, d_sigma), tuple(groups), tuple(chis), noise, f_low)
+    return RejectionFit(Estimate(d_hat, d_sigma), tuple(groups), tuple(chis), noise, f_low, tuple(leverage))
 
 
 TIP_TILT_BAND = 0.15  # Tip/Tilt's noise from f >= 15 % of the frame rate: above the vibration lines

@@ -5,6 +5,7 @@ issue's tolerance of the truth, and a wrong truth must fail (the tolerances are 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -18,11 +19,12 @@ from soulctl.control.filters import Filter
 from soulctl.control.transfer import Loop, Plant, analyze
 from soulctl.disturbance.vibrations import VibrationSource, VibrationSpectrum
 from soulctl.identify import seeing
+from soulctl.identify.identify import _weak_groups
 from soulctl.identify.lines import fit_lines
 from soulctl.identify.plant import Estimate, OpticalGainGroup, PlantModel, Turbulence, read_plant
 from soulctl.identify.probe import fit_probe
 from soulctl.identify.record import read_record
-from soulctl.identify.rejection import fit_rejection
+from soulctl.identify.rejection import _Likelihood, fit_rejection
 from soulctl.telemetry.hdf5 import write_telemetry
 
 RATE, DELAY, CHI, GAIN, N_MODES, PROBE_MODE = 1000.0, 2.4, 0.6, 0.5, 40, 30
@@ -79,6 +81,24 @@ def test_rejection_fit_finds_delay_chi_and_noise(files):
         assert abs(chi.value / CHI - 1) < 0.1, fit.chi
     noise = fit.noise_nm2[2:]
     assert np.all(np.abs(noise / NOISE**2 - 1) < 0.2), noise
+
+
+def test_excess_sensitivity_predicts_the_fit_on_a_coloured_excess(files):
+    """The closed-form response of chi to 1 % excess over the lower half of the band equals the
+    refit of a PSD carrying that excess (to 20 %), and grows as the loop gain falls."""
+    record = read_record(files[0])
+    fit = fit_rejection(record)
+    f_low = fit.f_low_hz
+    band = record.f_hz[(record.f_hz >= f_low)][:-1]
+    coloured = np.where(record.f_hz < np.median(band), 1.05, 1.0)  # 5 % excess: the linear response x 5
+    again = fit_rejection(dataclasses.replace(record, p_m=record.p_m * coloured))
+    for before, after, per_percent in zip(fit.chi, again.chi, fit.excess_sensitivity):
+        assert after.value / before.value - 1 == pytest.approx(5 * per_percent, rel=0.2, abs=2e-3)
+    likelihood = _Likelihood(record, np.arange(2, N_MODES), f_low)
+    high, low = (likelihood.excess_sensitivity(fit.delay.value, CHI * x) for x in (1.0, 0.1))
+    assert abs(low) > 3 * abs(high)  # a tenth of the loop gain: |S| barely shaped, chi far more exposed
+    low = tuple(10 * x for x in fit.excess_sensitivity)
+    assert not _weak_groups(fit) and "weakly identified" in _weak_groups(dataclasses.replace(fit, excess_sensitivity=low))[0]
 
 
 def test_probe_gives_chi_and_delay_of_the_probed_mode(files):
