@@ -191,10 +191,13 @@ def test_the_safety_net_restores_the_last_good_gains_and_damps_the_optimiser(sma
     assert np.mean(tm.residual_rms_nm[-200:]) < 2 * np.mean(tm.residual_rms_nm[100:300])  # recovered
 
 
-def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration):
+@pytest.mark.parametrize("seed", [4, 6])
+def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration, seed):
+    """The turbulence alone moves the commands' RMS by up to 2.3x within 2 s (seed 6 of 1-8;
+    with a 2x limit on their growth the net restored that steady loop)."""
     net = SafetyNet(20)
     loop = ClosedLoop(
-        OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=4, aux_loops=[net]
+        OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.4, 0.4), noise=True, seed=seed, aux_loops=[net]
     )
     loop.run(2000)
     assert net.events == 0 and np.all(np.isfinite(net.best))
