@@ -157,29 +157,59 @@ def covariance_applied(functions: np.ndarray, pupil: Pupil, L0_values) -> list[n
     return out
 
 
-def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
-    """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
-    if not (L0_m > 0 and np.isfinite(L0_m)):
-        raise InputError(f"outer scale L0 for the KL modes must be a finite number > 0 m, got {L0_m}")
+@dataclass(frozen=True)
+class MirrorSpace:
+    """The mirror's functions in whitened coordinates: ``W`` maps them to actuator commands
+    (F W orthonormal on the pupil), ``G`` is the pupil Gram matrix of the influence functions,
+    ``K`` the von Karman covariance there (rad^2 at 500 nm, r0 = 1 m), ``piston`` the mirror's
+    least-squares piston, ``tip_tilt`` the mirror's least-squares Tip and Tilt (two
+    columns), ``turbulence`` the piston-removed variance of the turbulence on the pupil (the
+    same units)."""
+
+    W: np.ndarray
+    G: np.ndarray
+    K: np.ndarray
+    piston: np.ndarray
+    tip_tilt: np.ndarray
+    turbulence: float
+
+
+def mirror_space(geometry: AsmGeometry, pupil: Pupil, L0_m: float, eigen_floor: float = 1e-6) -> MirrorSpace:
+    """The whitened mirror space and its turbulence covariance (F^T C F / n_p^2 by FFT convolution)."""
     F = geometry.influence_functions(pupil)
     n_p = F.shape[0]
     G = F.T @ F / n_p
     s, U = np.linalg.eigh(G)
     keep = s > eigen_floor * s.max()
     W = U[:, keep] / np.sqrt(s[keep])  # whitening: F W has orthonormal columns (mean-square)
-
-    def whitened(vectors: np.ndarray) -> np.ndarray:  # pupil functions -> whitened coordinates
-        return W.T @ (F.T @ vectors) / n_p
-
-    tip, tilt = pupil.tilt()
-    piston = whitened(np.ones((n_p, 1)))
-    tt = whitened(np.stack([tip, tilt], axis=1))
-    # Piston first, then the mirror's Tip and Tilt, orthonormalised in that order.
-    Q, _ = np.linalg.qr(np.concatenate([piston, tt], axis=1))
-    Q = Q * np.sign(np.diag(Q.T @ np.concatenate([piston, tt], axis=1)))
-    # Turbulence covariance of the mirror coordinates: F^T C F / n_p^2 by FFT convolution.
     CF = covariance_applied(F, pupil, (L0_m,))[0]  # (n_p, n_act): C applied to each influence function
+    C1 = covariance_applied(np.ones((n_p, 1)), pupil, (L0_m,))[0]  # and to piston
     K = W.T @ (F.T @ CF) @ W / n_p**2
+    piston = (W.T @ (F.T @ np.ones((n_p, 1))) / n_p)[:, 0]
+    tip_tilt = W.T @ (F.T @ np.stack(pupil.tilt(), axis=1)) / n_p
+    turbulence = float(phase_covariance(np.zeros(1), 1.0, L0_m)[0] - C1.sum() / n_p**2)
+    return MirrorSpace(W, G, K, piston, tip_tilt, turbulence)
+
+
+def best_fitting_variance(space: MirrorSpace, n_modes: int) -> float:
+    """The turbulence variance no n_modes-dimensional subspace of the mirror fits better: the
+    piston-removed variance less the n_modes largest eigenvalues of K without piston (the
+    bound ``kl_basis``'s modes are measured against; rad^2 at 500 nm for r0 = 1 m)."""
+    u = space.piston / np.linalg.norm(space.piston)
+    P = np.eye(space.K.shape[0]) - np.outer(u, u)
+    evals = np.sort(np.linalg.eigvalsh(P @ space.K @ P))[::-1]
+    return space.turbulence - float(evals[:n_modes].sum())
+
+
+def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
+    """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
+    if not (L0_m > 0 and np.isfinite(L0_m)):
+        raise InputError(f"outer scale L0 for the KL modes must be a finite number > 0 m, got {L0_m}")
+    space = mirror_space(geometry, pupil, L0_m, eigen_floor)
+    W, K, tt = space.W, space.K, space.tip_tilt
+    # Piston first, then the mirror's Tip and Tilt, orthonormalised in that order.
+    Q, _ = np.linalg.qr(np.concatenate([space.piston[:, None], tt], axis=1))
+    Q = Q * np.sign(np.diag(Q.T @ np.concatenate([space.piston[:, None], tt], axis=1)))
     P = np.eye(K.shape[0]) - Q @ Q.T
     evals, evecs = np.linalg.eigh(P @ K @ P)
     order = np.argsort(evals)[::-1][: K.shape[0] - 3]
@@ -187,5 +217,5 @@ def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, e
     modes_w = np.concatenate([Q[:, 1:3], kl], axis=1)
     variance = np.einsum("im,ij,jm->m", modes_w, K, modes_w)
     M = W @ modes_w
-    M_inv = M.T @ G
+    M_inv = M.T @ space.G
     return ModalBasis(M=M, M_inv=M_inv, variance=variance, geometry=geometry, L0_m=L0_m)

@@ -1,0 +1,87 @@
+"""Where the 500-mode fitting gap to a pupil-plane KL basis comes from (fidelity issue, item 2).
+
+For von Karman turbulence (L0 = 25 m, 1" at 500 nm) on the 80-px LBT pupil, the piston-removed
+fitting error of n modes, computed from covariances (no screens):
+
+* ``kl_basis``: soulctl's Tip/Tilt + KL modes of the LBT672 model;
+* mirror bound: the best n-dimensional subspace of the mirror's functions (the largest
+  eigenvalues of the mirror's covariance, ``asm.best_fitting_variance``);
+* pupil KL: the best n-dimensional subspace of all pupil functions (the largest eigenvalues of
+  the pupil's covariance matrix, 4964 pixels; ~40 s), what a KL basis not limited to a mirror
+  reaches.
+
+If soulctl's modes match the mirror bound, the gap to the pupil KL is the mirror model's
+(actuator count and layout, influence functions), not the modes'; the mirror bound is then
+computed for other influence-function couplings (0.15 at one pitch is soulctl's proposal).
+
+    python validation/fitting_error_gap.py [--pixels 80] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+
+from soulctl.optics.asm import AsmGeometry, best_fitting_variance, kl_basis, mirror_space
+from soulctl.optics.atmosphere import phase_covariance, r0_from_seeing
+from soulctl.optics.pupil import Pupil
+
+OUT = Path(__file__).parent / "results" / "fitting_error_gap.json"
+L0_M, SEEING = 25.0, 1.0
+MODES = (100, 300, 500, 600, 671)
+COUPLINGS = (0.05, 0.15, 0.3, 0.45)
+
+
+def pupil_kl_variances(pupil: Pupil, n: int) -> np.ndarray:
+    """The n largest eigenvalues of the piston-removed von Karman covariance of the pupil's
+    pixels (mean-square normalisation, rad^2 at 500 nm for r0 = 1 m)."""
+    rows, cols = np.nonzero(pupil.mask)
+    xy = np.stack([rows, cols], axis=1) * pupil.pixel_scale_m
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    C = phase_covariance(d, 1.0, L0_M) / len(rows)
+    del d
+    C -= C.mean(axis=0, keepdims=True)
+    C -= C.mean(axis=1, keepdims=True)
+    m = len(rows)
+    return scipy.linalg.eigh(C, eigvals_only=True, subset_by_index=[m - n, m - 1])[::-1]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--pixels", type=int, default=80)
+    p.add_argument("--out", type=Path, default=OUT)
+    a = p.parse_args()
+    pupil = Pupil(a.pixels)
+    basis = kl_basis(AsmGeometry(), pupil, L0_M)
+    space = mirror_space(AsmGeometry(), pupil, L0_M)
+    pupil_kl = pupil_kl_variances(pupil, max(MODES))
+    nm = 500.0 / (2.0 * math.pi) * r0_from_seeing(SEEING) ** (-5 / 6)  # rad at r0 = 1 m -> nm at the seeing
+    rows = []
+    for n in MODES:
+        ours = space.turbulence - float(basis.variance[:n].sum())
+        row = {
+            "modes": n,
+            "kl_basis_nm": nm * math.sqrt(ours),
+            "mirror_bound_nm": nm * math.sqrt(best_fitting_variance(space, n)),
+            "pupil_kl_nm": nm * math.sqrt(space.turbulence - float(pupil_kl[:n].sum())),
+        }
+        rows.append(row)
+    couplings = {c: nm * math.sqrt(best_fitting_variance(mirror_space(AsmGeometry(coupling=c), pupil, L0_M), 500)) for c in COUPLINGS}
+    result = {"pixels": a.pixels, "L0_m": L0_M, "seeing_arcsec": SEEING, "rows": rows, "mirror_bound_500_nm_by_coupling": couplings}
+    a.out.write_text(json.dumps(result, indent=1) + "\n")
+    print("| modes | kl_basis nm | mirror bound nm | pupil KL nm | kl_basis / pupil KL |\n|---|---|---|---|---|")
+    for r in rows:
+        ratio = r["kl_basis_nm"] / r["pupil_kl_nm"]
+        print(f"| {r['modes']} | {r['kl_basis_nm']:.1f} | {r['mirror_bound_nm']:.1f} | {r['pupil_kl_nm']:.1f} | {ratio:.3f} |")
+    print("\n| coupling at one pitch | mirror bound, 500 modes nm |\n|---|---|")
+    for c, v in couplings.items():
+        print(f"| {c:g} | {v:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
