@@ -150,7 +150,7 @@ def _offline(o: GainsOptions, cache) -> int:
     if o.chi_table is not None:
         n_modes = observation.modes if observation is not None else None
         gamma = read_optical_gain_table(o.chi_table, n_modes or _recorded_modes(telemetry))
-    result = offline_mgm(telemetry, observation, cache, plant=PlantInputs(o.delay_frames, gamma))
+    result = offline_mgm(telemetry, observation, cache, chi_seeing_arcsec=o.seeing, plant=PlantInputs(o.delay_frames, gamma))
     if out is not None:
         atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
     if json_output:
@@ -171,7 +171,12 @@ def _offline(o: GainsOptions, cache) -> int:
         if result.ogtl
         else f"gamma_i x k (k = {result.sensitivity:.3f})",
     )
-    t.add_row("gamma_i from", str(o.chi_table) if o.chi_table is not None else "the optical model (optics gains)")
+    t.add_row(
+        "gamma_i from",
+        str(o.chi_table)
+        if o.chi_table is not None
+        else f'the optical model (optics gains) at {result.chi_seeing_arcsec:g}" seeing: {result.chi_seeing_from}',
+    )
     if o.delay_frames is not None:
         t.add_row("loop delay", f"{o.delay_frames:g} frames (--delay-frames)")
     if result.capped:
@@ -300,7 +305,9 @@ def gains_cmd(o: GainsOptions) -> int:
     Strehl ratio and residual before and after, both measured in loops closed afresh on the
     run's own turbulence and noise (a paired comparison; the run's own phases, at other times,
     are shown beside them); exit status 3 only if the loop diverged all the same.  With
-    --telemetry FILE: MGM offline on a recorded loop, printing the gains it would apply.
+    --telemetry FILE: MGM offline on a recorded loop, printing the gains it would apply; its
+    optical gains are the model's at --seeing, else at the seeing the record describes, else
+    at the paper's table seeing (0.8").
 
     Example: soulctl optimize gains --method both --mag 10.9 --seeing 1.0 --out gains.toml --plot out/
     """

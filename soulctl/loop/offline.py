@@ -7,10 +7,11 @@ relations between fields and the range of every value read).  The window is the 
 since the last change of the gains (``/gain_history``) or of the slope sensitivity k
 (``/sensitivity``), as live: MGM's model holds for fixed gains and k; at most the last
 ``MAX_WINDOW_S`` (600 s, the longest period of live MGM).  chi_i comes from the optical-gain
-table of the configuration's calibration at the reference correction level, as live:
-gamma_i / gamma_p when the file records OGTL (``/aux/ogtl``: k tracked the optical gain of the
-probed mode p, ``/aux/ogtl/mode``; 30 in files that do not record it), gamma_i times the file's
-k otherwise.
+table of the configuration's calibration at the reference correction level of the record's
+seeing, as live (the seeing given, else the one the record's run description holds, else the
+paper's table seeing, 0.8"; ``plant_seeing``): gamma_i / gamma_p when the file records OGTL
+(``/aux/ogtl``: k tracked the optical gain of the probed mode p, ``/aux/ogtl/mode``; 30 in
+files that do not record it), gamma_i times the file's k otherwise.
 
 The gains returned are always a vector `loop run --gains` accepts: MGM's update (Eq.
 gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
@@ -79,6 +80,8 @@ class OfflineMgmResult:
     segment: int  # Welch segment (frames)
     capped: tuple[int, ...] = ()  # modes (1-based) whose MGM gain was capped at the nominal limit
     probe_mode: int | None = None  # the mode OGTL probed (chi_i = gamma_i / gamma_probe), None without OGTL
+    chi_seeing_arcsec: float | None = None  # the seeing of the optical-gain table, None with gamma given
+    chi_seeing_from: str = ""  # where that seeing came from
 
     def to_dict(self) -> dict:
         return {
@@ -93,6 +96,8 @@ class OfflineMgmResult:
             "probe_mode": self.probe_mode,
             "sensitivity": self.sensitivity,
             "chi": self.chi.tolist(),
+            "chi_seeing_arcsec": self.chi_seeing_arcsec,
+            "chi_seeing_from": self.chi_seeing_from,
             "previous_gains": self.previous_gains.tolist(),
             "optimum": self.optimum.tolist(),
             "gains": self.gains.tolist(),
@@ -232,16 +237,30 @@ def _check_recording(tm, observation: Observation, path, delay_given: bool) -> N
         )
 
 
+def plant_seeing(tm: TelemetryReader, description: RunConfig, given: float | None) -> tuple[float, str]:
+    """The seeing of MGM's optical-gain table and where it comes from: ``given``, else the
+    seeing the record's run description holds, else the paper's table seeing (0.8").  Why the
+    record's: gamma falls from 0.39 to 0.24 to 0.15 between 0.6, 0.8 and 1.0" (R11 flux, 10x10,
+    54 modes); MGM designing for 0.8" a loop that ran at 0.6" over-drives it by 1.6x, past
+    the PWFS's linear range (docs/physics.md, offline MGM)."""
+    if given is not None:
+        return given, "given"
+    if tm.has("run_description"):
+        return description.atmosphere.seeing_arcsec, "the record's run description"
+    return CHI_TABLE_SEEING_ARCSEC, "the paper's table seeing (the record holds none)"
+
+
 def offline_mgm(
     path,
     observation: Observation | None = None,
     cache: ArrayCache = ArrayCache(None),
     settings: mgm.MgmSettings | None = None,
-    chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
+    chi_seeing_arcsec: float | None = None,
     plant: PlantInputs = PlantInputs(),
 ) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
     ``observation``: the configuration to check the file against (default: the file's own);
+    ``chi_seeing_arcsec``: the optical-gain table's seeing (default: ``plant_seeing``);
     ``plant``: a delay or optical gains given instead of the record's and the model's."""
     with open_telemetry(path, tuple(n for n in REQUIRED if n != "delay_frames")) as tm:
         check_decimation(tm, path, "MGM's spectra")
@@ -268,7 +287,8 @@ def offline_mgm(
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
         calibration = calibration_for(description.request(), cache)
-        gamma = plant.optical_gains if plant.optical_gains is not None else optical_gain_table(calibration, cache, chi_seeing_arcsec)
+        seeing, seeing_from = plant_seeing(tm, description, chi_seeing_arcsec)
+        gamma = plant.optical_gains if plant.optical_gains is not None else optical_gain_table(calibration, cache, seeing)
         chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
         machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
         psd = []
@@ -281,6 +301,8 @@ def offline_mgm(
     limits = nominal_limits(observation, structure, settings.margin)
     capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
     gains = np.minimum(gains, limits)
+    table = (None, "--chi-table") if plant.optical_gains is not None else (seeing, seeing_from)
+    window_info = (start, window, settings.segment)
     return OfflineMgmResult(
-        str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, start, window, settings.segment, capped, probe_mode
+        str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, *window_info, capped, probe_mode, *table
     )

@@ -202,6 +202,37 @@ def test_offline_mgm_on_a_recorded_loop(recorded, tmp_path, capsys, cache_dir):
     assert status == 0 and "recorded → MGM" in out
 
 
+def test_offline_chi_is_the_table_at_the_records_seeing(recorded, tmp_path, capsys, cache_dir):
+    """MGM's plant is the loop's: gamma at the 0.6" the record describes (not the paper's 0.8",
+    whose lower gamma over-drove the loop; docs/physics.md); --seeing overrides it, and a
+    record without a run description (LBT's, AOT's) falls back to 0.8" and says so."""
+    from soulctl.loop.offline import recorded_run
+    from soulctl.loop.optimize import optical_gain_table
+    from soulctl.loop.run import calibration_for
+    from soulctl.optics.cache import ArrayCache
+    from soulctl.telemetry.formats import open_telemetry
+
+    def chi(path, *extra):
+        status, out, err = cli(["optimize", "gains", "--telemetry", str(path), "--json", *extra], capsys, cache_dir)
+        assert status == 0, err
+        d = json.loads(out)
+        return np.array(d["chi"]), d["chi_seeing_arcsec"], d["chi_seeing_from"]
+
+    with open_telemetry(recorded, ()) as tm:
+        calibration = calibration_for(recorded_run(tm, None, recorded).request(), ArrayCache(cache_dir))
+    cache = ArrayCache(cache_dir)
+    at_record, seeing, source = chi(recorded)
+    assert seeing == 0.6 and "run description" in source
+    np.testing.assert_allclose(at_record, optical_gain_table(calibration, cache, 0.6), rtol=1e-12)
+    given, seeing, source = chi(recorded, "--seeing", "0.8")
+    assert seeing == 0.8 and source == "given"
+    np.testing.assert_allclose(given, optical_gain_table(calibration, cache, 0.8), rtol=1e-12)
+    assert np.all(at_record > 1.3 * given)  # the over-drive the record's seeing removes
+    bare, seeing, source = chi(_edited(recorded, tmp_path, lambda f: f.attrs.__delitem__("run_description")))
+    assert seeing == 0.8 and "holds none" in source
+    np.testing.assert_allclose(bare, given, rtol=1e-12)
+
+
 def _edited(recorded, tmp_path, edit):
     path = tmp_path / "edited.h5"
     path.write_bytes(recorded.read_bytes())
