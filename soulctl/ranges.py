@@ -95,6 +95,11 @@ DELAY_TERM_MS = Range(0.0, 10.0, "ms")  # each term of the delay model (readout,
 
 # --- the atmosphere and the run (loop run, optimize gains, sweep) ---------------------------
 SEEING_ARCSEC = Range(0.05, 10.0, "arcsec")
+# mis-registration of the adaptive secondary on the pyramid (optics.registration): beyond a
+# pitch or a few degrees the interaction matrix no longer describes the mirror at all
+SHIFT_PITCH = Range(-2.0, 2.0, "actuator pitches")
+ROTATION_DEG = Range(-10.0, 10.0, "deg")
+MAGNIFICATION = Range(0.8, 1.2)
 WIND_M_S = Range(0.0, 100.0, "m/s", lo_open=True)  # the effective (5/3-moment) wind of the profile
 OUTER_SCALE_M = Range(0.5, 1e4, "m")
 DURATION_S = Range(0.0, 600.0, "s", lo_open=True)

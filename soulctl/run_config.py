@@ -20,6 +20,8 @@ look-up table's value for its star, else ``soulctl.defaults``:
                   wind_speed_m_s, wind_direction_deg
     [vibrations]  enabled, file, scale, [[vibrations.line]] (the format of --vibrations files)
     [structure]   enabled, frequency_hz, damping, coupling (the 127 Hz resonance)
+    [misregistration]  shift_x_pitch, shift_y_pitch, rotation_deg, magnification (the mirror
+                  on the pyramid against the calibration; ``optics.registration``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling
@@ -48,11 +50,13 @@ from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.atmosphere import Layer, r0_from_seeing
+from .optics.registration import Misregistration
 from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
 
 HEADER = "# soulctl run description (soulctl loop run --print-config; read by loop run --config).\n"
 OBSERVATION_SECTIONS = ("star", "wfs", "control", "delay", "photometry")
 CONTROLLER_KEYS = ("gains", "mode_gains", "forgetting", "allow_unstable")
+REGISTRATION_KEYS = ("shift_x_pitch", "shift_y_pitch", "rotation_deg", "magnification")
 KEYS: dict[str, tuple[str, ...] | None] = {
     "star": ("magnitude_r",),
     "wfs": ("binning", "frame_rate_hz", "modulation_lambda_over_d"),
@@ -63,6 +67,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "atmosphere": ("seeing_arcsec", "r0_m", "L0_m", "wind_m_s", "layer"),
     "vibrations": ("enabled", "file", "scale", "source", "line"),
     "structure": ("enabled", "frequency_hz", "damping", "coupling"),
+    "misregistration": REGISTRATION_KEYS,
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
@@ -165,6 +170,7 @@ class RunConfig:
     atmosphere: AtmosphereSpec = AtmosphereSpec()
     vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
     structure: StructuralResonance | None = StructuralResonance()
+    registration: Misregistration = Misregistration()
     noise: bool = True
     controller: ControllerSpec = ControllerSpec()
     auxiliary: AuxiliarySpec = AuxiliarySpec()
@@ -201,6 +207,7 @@ class RunConfig:
             self.structure,
             self.controller.allow_unstable,
             a.layers or None,
+            None if self.registration.is_identity else self.registration,
         )
 
     def resolved(self) -> RunConfig:
@@ -292,6 +299,7 @@ def _to_dict(c: RunConfig) -> dict:
     d["vibrations"] = {"enabled": False} if v is None else {"enabled": True, "source": v.source, "line": [_line(x) for x in v.lines]}
     s = c.structure
     d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
+    d["misregistration"] = dataclasses.asdict(c.registration)
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
@@ -328,6 +336,7 @@ def _from_dict(data: dict) -> RunConfig:
             atmosphere=_atmosphere(data.get("atmosphere", {})),
             vibrations=_vibrations(data.get("vibrations", {})),
             structure=_structure(data.get("structure", {})),
+            registration=Misregistration(**{k: _number(v, f"misregistration.{k}") for k, v in data.get("misregistration", {}).items()}),
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),
             controller=ControllerSpec(
                 gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),

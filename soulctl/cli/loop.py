@@ -18,7 +18,8 @@ from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, TELEMETRY_EVERY
+from ..ranges import DURATION_S, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH, TELEMETRY_EVERY
+from ..run_config import REGISTRATION_KEYS
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
@@ -165,6 +166,12 @@ class RunOptions:
     no_vibrations: bool = NO_VIBRATIONS
     no_resonance: bool = NO_RESONANCE
     oversampling: int | None = common.OVERSAMPLING
+    misregistration: str | None = typer.Option(
+        None,
+        "--misregistration",
+        metavar="DX,DY[,ROT[,MAG]]",
+        help="The mirror on the pyramid against the calibration: shift in actuator pitches, rotation (deg), magnification.",
+    )
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode).")
@@ -271,7 +278,25 @@ def _run_overrides(o: RunOptions) -> dict:
         "auxiliary.ogtl": o.ogtl or None,
         "auxiliary.period_s": o.period,
     }
-    return {k: v for k, v in values.items() if v is not None} | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
+    given = {k: v for k, v in values.items() if v is not None} | misregistration_overrides(o.misregistration)
+    return given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
+
+
+def misregistration_overrides(text: str | None) -> dict:
+    """--misregistration DX,DY[,ROT[,MAG]] as the run description's [misregistration] fields."""
+    if text is None:
+        return {}
+    cells = [c.strip() for c in text.split(",")]
+    if not 2 <= len(cells) <= 4:
+        raise InputError(f"--misregistration takes DX,DY[,ROT[,MAG]] (2 to 4 numbers), got {text!r}")
+    values = {}
+    for key, cell, accepted in zip(REGISTRATION_KEYS, cells, (SHIFT_PITCH, SHIFT_PITCH, ROTATION_DEG, MAGNIFICATION)):
+        try:
+            value = float(cell)
+        except ValueError:
+            raise InputError(f"--misregistration {key} must be a number in {accepted.text()}, got {cell!r}") from None
+        values[f"misregistration.{key}"] = accepted.check(value, f"--misregistration {key}")
+    return values
 
 
 def _run_with_progress(request, cache, aux, show: bool, sink=None):

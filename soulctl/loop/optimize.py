@@ -70,7 +70,7 @@ from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from .metrics import PsfAccumulator, band_wavelength
-from .run import RunRequest, calibration_for, closing_frames
+from .run import RunRequest, calibration_for, closed_loop_for, closing_frames
 from .simulation import ClosedLoop, LoopDiverged
 
 METHODS = ("trial", "mgm")
@@ -542,8 +542,7 @@ def plant_model(
 
 def _new_loop(r: RunRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:
     """The run's closed loop at t = 0: same seed, same turbulence, vibrations and noise."""
-    atmosphere = r.atmosphere()
-    return ClosedLoop(r.observation, cal, atmosphere, gains, vibrations=r.vibrations, noise=r.noise, seed=r.seed, structure=structure)
+    return closed_loop_for(r, cal, gains, structure)
 
 
 def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, progress=None) -> PhaseMetrics:

@@ -18,6 +18,7 @@ from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
 from ..optics.pwfs import PyramidConfig
+from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
@@ -46,6 +47,7 @@ class RunRequest:
     structure: StructuralResonance | None = field(default_factory=StructuralResonance)
     allow_unstable: bool = False
     layers: tuple[Layer, ...] | None = None  # explicit turbulence layers; None: the LBT profile at wind_m_s
+    registration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -212,6 +214,23 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
     sink.describe(described, run_configuration(request, gains), {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M})
 
 
+def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None) -> ClosedLoop:
+    """The request's closed loop at t = 0 (its turbulence, vibrations, noise, structure and
+    mis-registration, seeded by its seed), with ``gains``; ``structure`` sampled at its rate."""
+    return ClosedLoop(
+        request.observation,
+        cal,
+        request.atmosphere(),
+        gains,
+        vibrations=request.vibrations,
+        noise=request.noise,
+        seed=request.seed,
+        structure=structure,
+        sink=sink,
+        registration=request.registration,
+    )
+
+
 def run(
     request: RunRequest,
     cache: ArrayCache = ArrayCache(None),
@@ -233,10 +252,7 @@ def run(
     t0 = time.perf_counter()
     cal = calibration or calibration_for(request, cache)
     t_cal = time.perf_counter() - t0
-    atmosphere = request.atmosphere()
-    loop = ClosedLoop(
-        obs, cal, atmosphere, gains, vibrations=request.vibrations, noise=request.noise, seed=request.seed, structure=structure, sink=sink
-    )
+    loop = closed_loop_for(request, cal, gains, structure, sink)
     loop.telemetry.moments_from(request.skip)
     n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
     psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))

@@ -40,6 +40,7 @@ from ..optics.atmosphere import AtmosphereConfig
 from ..optics.calibration import Calibration
 from ..optics.detector import Detector
 from ..optics.pwfs import Pyramid
+from ..optics.registration import Misregistration
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
@@ -96,6 +97,7 @@ class ClosedLoop:
         aux_loops: Sequence[AuxLoop] = (),
         sensitivity: float = 1.0,
         sink: Sink | None = None,
+        registration: Misregistration | None = None,
     ):
         self.observation, self.calibration, self.rate_hz = observation, calibration, observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
@@ -105,7 +107,7 @@ class ClosedLoop:
         self.pupil = pupil = pyramid.pupil
         # the stages, in the order of a frame (``step``)
         self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), np.random.default_rng(vib_seed))
-        self.mirror = Mirror(calibration, pupil, structure, self.rate_hz)
+        self.mirror = Mirror(calibration, pupil, structure, self.rate_hz, registration)
         self.sensor = WavefrontSensor(pyramid, detector, _photons_per_frame(observation, pupil))
         self.n_modes = calibration.basis.n_modes
         self.controller = Controller(mode_filters(observation, gains, self.n_modes), calibration)

@@ -31,6 +31,7 @@ from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
 from ..optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
 from ..optics.calibration import Calibration
 from ..optics.pupil import Pupil
+from ..optics.registration import Misregistration
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 
 VIBRATION_BLOCK = 4096  # vibration samples drawn at a time
@@ -87,13 +88,24 @@ class Disturbance:
 class Mirror:
     """The adaptive secondary with its structure, and the modal projections of pupil OPDs."""
 
-    def __init__(self, calibration: Calibration, pupil: Pupil, structure: StructuralResonance | None, rate_hz: float):
+    def __init__(
+        self,
+        calibration: Calibration,
+        pupil: Pupil,
+        structure: StructuralResonance | None,
+        rate_hz: float,
+        registration: Misregistration | None = None,
+    ):
         basis = calibration.basis
         self.basis, self.pupil, self.structure = basis, pupil, structure
         # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
         # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.
-        self.influence = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
-        self._influence_t = self.influence.T.tocsr()
+        # With a mis-registration the shape is the moved mirror's, F' c, while the modes that
+        # measure the disturbance and residual stay the calibration's (S = F M).
+        nominal = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
+        moved = registration is not None and not registration.is_identity
+        self.influence = basis.geometry.sparse_influence_functions(pupil, registration=registration) if moved else nominal
+        self._influence_t = nominal.T.tocsr()
         self._M_t = np.ascontiguousarray(basis.M.T)
         self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
         # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the

@@ -32,6 +32,7 @@ from .. import defaults
 from ..errors import InputError
 from .atmosphere import phase_covariance
 from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+from .registration import Misregistration
 
 N_ACTUATORS = 672  # the LBT672 adaptive secondary
 
@@ -80,13 +81,16 @@ class AsmGeometry:
         area = np.pi * R**2 * (1 - self.obstruction**2)
         return float(np.sqrt(area / self.n_actuators))
 
-    def sparse_influence_functions(self, pupil: Pupil, floor: float = 1e-4):
+    def sparse_influence_functions(self, pupil: Pupil, floor: float = 1e-4, registration: Misregistration | None = None):
         """The same as a CSR matrix, responses below ``floor`` (of the peak) dropped: beyond
         sqrt(ln(floor) / ln(c)) pitches (2.2 for c = 0.15), ~40 actuators per pixel instead of
-        672.  For the per-frame mirror shape and modal projections of the closed loop."""
+        672.  For the per-frame mirror shape and modal projections of the closed loop;
+        ``registration``: the mirror as a mis-registered pyramid sees it (``optics.registration``)."""
         x, y = pupil.coordinates()
-        p = self.positions()
-        radius2 = np.log(floor) / np.log(self.coupling) * self.pitch_m**2
+        p, pitch = self.positions(), self.pitch_m
+        if registration is not None:
+            p, pitch = registration.positions(p, pitch), registration.pitch(pitch)
+        radius2 = np.log(floor) / np.log(self.coupling) * pitch**2
         tree = cKDTree(p)
         rows_list: list[int] = []
         cols_list: list[int] = []
@@ -95,7 +99,7 @@ class AsmGeometry:
             cols_list.extend(neighbours)
         rows, cols = np.array(rows_list), np.array(cols_list)
         d2 = (x[rows] - p[cols, 0]) ** 2 + (y[rows] - p[cols, 1]) ** 2
-        values = np.exp(np.log(self.coupling) * d2 / self.pitch_m**2)
+        values = np.exp(np.log(self.coupling) * d2 / pitch**2)
         return csr_matrix((values, (rows, cols)), shape=(x.size, self.n_actuators))
 
     def influence_functions(self, pupil: Pupil) -> np.ndarray:

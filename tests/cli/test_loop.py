@@ -83,6 +83,12 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--config", "missing.toml"], "run description not found"),
         (["--mag", "12", "--config", "x.toml"], "either --config or --mag"),
         (["--plot", "no/such/dir"], "--plot must be an existing folder"),
+        (["--misregistration", "0.3"], "--misregistration takes DX,DY[,ROT[,MAG]]"),
+        (["--misregistration", "0.3,0,1,1,1"], "--misregistration takes DX,DY[,ROT[,MAG]]"),
+        (["--misregistration", "3,0"], "--misregistration shift_x_pitch must be in -2..2 actuator pitches"),
+        (["--misregistration", "0,nan"], "--misregistration shift_y_pitch must be in -2..2"),
+        (["--misregistration", "0,0,12"], "--misregistration rotation_deg must be in -10..10 deg"),
+        (["--misregistration", "0,0,0,x"], "--misregistration magnification must be a number in 0.8..1.2"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):

@@ -138,6 +138,7 @@ CASES = [
             ("--seed", NUMBERS),
             ("--oversampling", NUMBERS),
             ("--gains", LISTS),
+            ("--misregistration", LISTS),
         ]
     ],
     *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],
