@@ -3,10 +3,11 @@ checked against the LBT672's figures and against turbulence theory (Noll; fittin
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from soulctl.errors import InputError
 from soulctl.optics.asm import AsmGeometry, best_fitting_variance, kl_basis, mirror_space
-from soulctl.optics.atmosphere import fft_phase_screen, tilt_variance_ratio
+from soulctl.optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere, Layer, fft_phase_screen, tilt_variance_ratio
 from soulctl.optics.pupil import LBT_DIAMETER_M, Pupil
 
 D = LBT_DIAMETER_M
@@ -124,6 +125,33 @@ def test_kl_modes_fit_as_well_as_the_mirror_allows(basis_80):
     # the bound discriminates: the 500 modes of lowest variance fit far worse
     worst = space.turbulence - b.variance[-500:].sum()
     assert np.sqrt(worst / best_fitting_variance(space, 500)) > 3
+
+
+def test_fitting_error_does_not_depend_on_the_wind_sub_pixel_phase(basis_80):
+    """The frozen flow's interpolation keeps the statistics: the 500-mode fitting error of the
+    moving screens at half-pixel offsets is within 2 % of the whole-pixel one (measured: 101.46
+    and 101.45 nm, -0.005 %).  The bilinear interpolation used before (the reference below,
+    map_coordinates order 1 on the screen's grid) gives 86.8 nm, -14 %: it low-passes the screen
+    by cos(pi f) along the shift."""
+    pupil, b = basis_80
+    S = b.shapes(pupil)[:, :500]
+    rows, cols = np.mgrid[0 : pupil.n_pixels, 0 : pupil.n_pixels].astype(float)
+
+    def fitting_error(opd):
+        p = opd[pupil.mask] - opd[pupil.mask].mean()
+        return np.mean((p - S @ (S.T @ p / pupil.n_valid)) ** 2)
+
+    spline, bilinear = {0.0: 0.0, 0.5: 0.0}, {0.0: 0.0, 0.5: 0.0}
+    for seed in range(4):
+        atm = FrozenFlowAtmosphere(AtmosphereConfig(1.0, 25.0, (Layer(0.0, 1.0, 10.0, 0.0),)), pupil.n_pixels, pupil.pixel_scale_m, seed)
+        screen = atm.layer_screens_nm[0]
+        for offset in spline:
+            for start in range(0, 400, 40):
+                shift = start + offset  # pixels along +x
+                spline[offset] += fitting_error(atm.opd_nm(shift * pupil.pixel_scale_m / 10.0))
+                bilinear[offset] += fitting_error(ndimage.map_coordinates(screen, [rows, cols - shift], order=1, mode="grid-wrap"))
+    assert np.sqrt(spline[0.5] / spline[0.0]) == pytest.approx(1.0, abs=0.02)
+    assert np.sqrt(bilinear[0.5] / bilinear[0.0]) < 0.9
 
 
 def test_truncation_and_bad_inputs():
