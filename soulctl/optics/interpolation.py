@@ -45,7 +45,7 @@ def _fine_spectrum(screen: np.ndarray, factor: int) -> np.ndarray:
     and column split between +N/2 and -N/2, scaled so that irfft2 interpolates."""
     N = screen.shape[0]
     h, M = N // 2, factor * N
-    F = scipy.fft.rfft2(screen) * factor**2  # (N, h + 1)
+    F = scipy.fft.rfft2(screen, workers=-1) * factor**2  # (N, h + 1)
     G = np.zeros((M, M // 2 + 1), dtype=F.dtype)
     G[:h, : h + 1] = F[:h]
     G[M - h + 1 :, : h + 1] = F[h + 1 :]
@@ -65,11 +65,14 @@ def band_limited_upsample(screen: np.ndarray, factor: int = UPSAMPLING) -> np.nd
 def fine_spline_coefficients(screen: np.ndarray, factor: int = UPSAMPLING) -> np.ndarray:
     """Periodic cubic B-spline coefficients of ``band_limited_upsample(screen)`` (what
     ``scipy.ndimage.spline_filter(..., order=3, mode='grid-wrap')`` gives), in the same Fourier
-    pass: the spectrum divided by the sampled cubic B-spline's, (4 + 2 cos 2 pi nu) / 6 per axis."""
+    pass: the spectrum divided by the sampled cubic B-spline's, (4 + 2 cos 2 pi nu) / 6 per axis.
+    In float32, the precision the frozen flow stores them in (relative error ~2e-7; 2.5x
+    faster than float64 on the loop's 1024-2048 px screens), on all cores (set-up only)."""
     M = factor * screen.shape[0]
-    b = lambda nu: (4.0 + 2.0 * np.cos(2.0 * np.pi * nu)) / 6.0  # noqa: E731
-    G = _fine_spectrum(screen, factor) / (b(np.fft.fftfreq(M))[:, None] * b(np.fft.rfftfreq(M))[None, :])
-    return scipy.fft.irfft2(G, s=(M, M))
+    b = lambda nu: ((4.0 + 2.0 * np.cos(2.0 * np.pi * nu)) / 6.0).astype(np.float32)  # noqa: E731
+    G = _fine_spectrum(np.asarray(screen, dtype=np.float32), factor)
+    G /= b(np.fft.fftfreq(M))[:, None] * b(np.fft.rfftfreq(M))[None, :]
+    return scipy.fft.irfft2(G, s=(M, M), workers=-1)
 
 
 @functools.lru_cache(maxsize=8)

@@ -293,7 +293,9 @@ def test_band_limited_upsampling_and_its_spline_coefficients():
     assert fine[::2, 1::2] == pytest.approx(half, abs=1e-9)
     assert fine.var() == pytest.approx(screen.var(), rel=0.01)
     ref = ndimage.spline_filter(fine, order=3, mode="grid-wrap")
-    assert fine_spline_coefficients(screen) == pytest.approx(ref, abs=1e-9 * np.abs(ref).max())
+    coefficients = fine_spline_coefficients(screen)
+    assert coefficients.dtype == np.float32  # what the frozen flow stores
+    assert coefficients == pytest.approx(ref, abs=1e-6 * np.abs(ref).max())
 
 
 def test_bspline_weights():
