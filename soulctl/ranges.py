@@ -100,6 +100,9 @@ SEEING_ARCSEC = Range(0.05, 10.0, "arcsec")
 SHIFT_PITCH = Range(-2.0, 2.0, "actuator pitches")
 ROTATION_DEG = Range(-10.0, 10.0, "deg")
 MAGNIFICATION = Range(0.8, 1.2)
+# non-common-path aberrations (optics.ncpa): on-sky instruments carry 10-300 nm
+NCPA_RMS_NM = Range(0.0, 1000.0, "nm")
+NCPA_EXPONENT = Range(0.0, 4.0)  # of the PSD's power law
 WIND_M_S = Range(0.0, 100.0, "m/s", lo_open=True)  # the effective (5/3-moment) wind of the profile
 OUTER_SCALE_M = Range(0.5, 1e4, "m")
 DURATION_S = Range(0.0, 600.0, "s", lo_open=True)

@@ -22,6 +22,8 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [structure]   enabled, frequency_hz, damping, coupling (the 127 Hz resonance)
     [misregistration]  shift_x_pitch, shift_y_pitch, rotation_deg, magnification (the mirror
                   on the pyramid against the calibration; ``optics.registration``)
+    [ncpa]        rms_nm, exponent, compensated, seed (the science path's static aberration and
+                  its reference-slope offsets; ``optics.ncpa``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling
@@ -50,6 +52,7 @@ from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.atmosphere import Layer, r0_from_seeing
+from .optics.ncpa import NcpaSpec
 from .optics.registration import Misregistration
 from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
 
@@ -68,6 +71,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "vibrations": ("enabled", "file", "scale", "source", "line"),
     "structure": ("enabled", "frequency_hz", "damping", "coupling"),
     "misregistration": REGISTRATION_KEYS,
+    "ncpa": ("rms_nm", "exponent", "compensated", "seed"),
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
@@ -171,6 +175,7 @@ class RunConfig:
     vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
     structure: StructuralResonance | None = StructuralResonance()
     registration: Misregistration = Misregistration()
+    ncpa: NcpaSpec = NcpaSpec()
     noise: bool = True
     controller: ControllerSpec = ControllerSpec()
     auxiliary: AuxiliarySpec = AuxiliarySpec()
@@ -208,6 +213,7 @@ class RunConfig:
             self.controller.allow_unstable,
             a.layers or None,
             None if self.registration.is_identity else self.registration,
+            self.ncpa if self.ncpa.active else None,
         )
 
     def resolved(self) -> RunConfig:
@@ -300,6 +306,7 @@ def _to_dict(c: RunConfig) -> dict:
     s = c.structure
     d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
     d["misregistration"] = dataclasses.asdict(c.registration)
+    d["ncpa"] = dataclasses.asdict(c.ncpa)
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
@@ -337,6 +344,7 @@ def _from_dict(data: dict) -> RunConfig:
             vibrations=_vibrations(data.get("vibrations", {})),
             structure=_structure(data.get("structure", {})),
             registration=Misregistration(**{k: _number(v, f"misregistration.{k}") for k, v in data.get("misregistration", {}).items()}),
+            ncpa=_ncpa(data.get("ncpa", {})),
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),
             controller=ControllerSpec(
                 gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),
@@ -403,6 +411,15 @@ def _explicit_delay(delay: dict, rate_hz) -> dict:
     if not (1.0 <= frames <= 10.0):
         raise InputError(f"delay.frames must be in 1..10 (one frame of integration at least), got {frames:g}")
     return {"t_readout_ms": 0.0, "t_computation_ms": (frames - 1.0) / rate * 1e3, "t_asm_ms": 0.0}
+
+
+def _ncpa(n: dict) -> NcpaSpec:
+    return NcpaSpec(
+        rms_nm=_number(n.get("rms_nm", 0.0), "ncpa.rms_nm"),
+        exponent=_number(n.get("exponent", 2.0), "ncpa.exponent"),
+        compensated=_bool(n, "compensated", False, "ncpa"),
+        seed=_integer(n.get("seed", 1), "ncpa.seed"),
+    )
 
 
 def _atmosphere(a: dict) -> AtmosphereSpec:

@@ -18,7 +18,7 @@ from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH, TELEMETRY_EVERY
+from ..ranges import DURATION_S, MAGNIFICATION, NCPA_RMS_NM, ROTATION_DEG, SHIFT_PITCH, TELEMETRY_EVERY
 from ..run_config import REGISTRATION_KEYS
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
@@ -172,6 +172,16 @@ class RunOptions:
         metavar="DX,DY[,ROT[,MAG]]",
         help="The mirror on the pyramid against the calibration: shift in actuator pitches, rotation (deg), magnification.",
     )
+    ncpa: float | None = typer.Option(
+        None,
+        "--ncpa",
+        parser=number(NCPA_RMS_NM),
+        metavar="NM",
+        help="Non-common-path aberration: NM RMS that the science camera sees and the pyramid does not.",
+    )
+    ncpa_offsets: bool = typer.Option(
+        False, "--ncpa-offsets", help="Compensate the NCPA's controlled part with reference-slope offsets (scaled by k as LBT does)."
+    )
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
     ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode).")
@@ -261,6 +271,8 @@ def _checked_overrides(o: RunOptions) -> dict:
         check_output_folder(o.plot, "--plot", LOOP_FIGURES)
     check_run_options(None, None, None, None, None, o.duration)
     TELEMETRY_EVERY.check(o.telemetry_every, "--telemetry-every")
+    if o.ncpa is not None:
+        NCPA_RMS_NM.check(o.ncpa, "--ncpa")
     telemetry_fields(o.telemetry_fields)
     overrides = loop_overrides(o)
     twin = plant_overrides(read_plant(o.plant)) if o.plant is not None else {}
@@ -277,6 +289,8 @@ def _run_overrides(o: RunOptions) -> dict:
         "auxiliary.mgm": o.mgm or None,
         "auxiliary.ogtl": o.ogtl or None,
         "auxiliary.period_s": o.period,
+        "ncpa.rms_nm": o.ncpa,
+        "ncpa.compensated": o.ncpa_offsets or None,
     }
     given = {k: v for k, v in values.items() if v is not None} | misregistration_overrides(o.misregistration)
     return given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)

@@ -30,8 +30,8 @@ class PsfAccumulator:
     is the peak of the long-exposure PSF over the peak of the diffraction-limited one (both
     normalised to unit energy): image formation, not Marechal."""
 
-    def __init__(self, pupil: Pupil, wavelength_m: float, pad: int = 2):
-        self.pupil = pupil
+    def __init__(self, pupil: Pupil, wavelength_m: float, pad: int = 2, static_opd: np.ndarray | None = None):
+        self.pupil, self.static_opd = pupil, static_opd  # static_opd: the science path's own (NCPA), nm
         self.wavelength_m = wavelength_m
         self.n = pupil.n_pixels * pad
         self.sum = np.zeros((self.n, self.n))
@@ -48,8 +48,9 @@ class PsfAccumulator:
         return scipy.fft.fftshift(image) / self.pupil.n_valid**2  # diffraction-limited peak: 1
 
     def add(self, residual_nm: np.ndarray) -> None:
-        """Add one frame's residual OPD (nm on the pupil pixels)."""
-        self.sum += self._image(residual_nm)
+        """Add one frame's residual OPD (nm on the pupil pixels), seen through the science
+        path's static aberration when there is one."""
+        self.sum += self._image(residual_nm if self.static_opd is None else residual_nm + self.static_opd)
         self.frames += 1
 
     @property

@@ -560,7 +560,7 @@ def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gain
     loop.run(request.frames(EVALUATION_SETTLE_S), progress=progress)
     n_measure = request.frames(request.measure_s)
     skip = min(n_measure // 2, request.frames(0.05))
-    psf = PsfAccumulator(loop.pupil, band_wavelength(r.band))
+    psf = loop.psf_accumulator(band_wavelength(r.band))
     start = loop.frame
     loop.run(n_measure, psf=psf, skip=skip, progress=progress)
     return _phase_metrics(loop, psf, start + skip, loop.frame)
@@ -659,7 +659,7 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
 
 def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[PhaseMetrics, tuple[int, int]]:
     """A measurement phase in the run: its metrics and its frames."""
-    psf = PsfAccumulator(loop.pupil, wavelength)
+    psf = loop.psf_accumulator(wavelength)
     start, skip = loop.frame, s.frames["skip"]
     loop.run(s.frames["measure"], psf=psf, skip=skip, progress=tick)
     return _phase_metrics(loop, psf, start + skip, loop.frame), (start, loop.frame)

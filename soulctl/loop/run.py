@@ -17,6 +17,7 @@ from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
+from ..optics.ncpa import NcpaSpec, non_common_path
 from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
@@ -48,6 +49,7 @@ class RunRequest:
     allow_unstable: bool = False
     layers: tuple[Layer, ...] | None = None  # explicit turbulence layers; None: the LBT profile at wind_m_s
     registration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
+    ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -217,6 +219,7 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
 def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None) -> ClosedLoop:
     """The request's closed loop at t = 0 (its turbulence, vibrations, noise, structure and
     mis-registration, seeded by its seed), with ``gains``; ``structure`` sampled at its rate."""
+    pupil = cal.setup.pyramid.pupil
     return ClosedLoop(
         request.observation,
         cal,
@@ -228,6 +231,7 @@ def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, str
         structure=structure,
         sink=sink,
         registration=request.registration,
+        ncpa=None if request.ncpa is None else non_common_path(request.ncpa, pupil, cal.basis.shapes(pupil), cal.interaction_matrix),
     )
 
 
@@ -255,7 +259,7 @@ def run(
     loop = closed_loop_for(request, cal, gains, structure, sink)
     loop.telemetry.moments_from(request.skip)
     n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
-    psf = PsfAccumulator(loop.pupil, band_wavelength(request.band))
+    psf = loop.psf_accumulator(band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
     try:

@@ -39,12 +39,14 @@ from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig
 from ..optics.calibration import Calibration
 from ..optics.detector import Detector
+from ..optics.ncpa import NonCommonPath
 from ..optics.pwfs import Pyramid
 from ..optics.registration import Misregistration
 from ..optics.sensor import WavefrontSensor, photons_in_beam
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloop import AuxLoop, RtcParameters, TelemetryWindow
 from .delay_line import DelayLine
+from .metrics import PsfAccumulator
 from .stages import AuxScheduler, Controller, Disturbance, Mirror
 
 
@@ -98,6 +100,7 @@ class ClosedLoop:
         sensitivity: float = 1.0,
         sink: Sink | None = None,
         registration: Misregistration | None = None,
+        ncpa: NonCommonPath | None = None,
     ):
         self.observation, self.calibration, self.rate_hz = observation, calibration, observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
@@ -117,6 +120,7 @@ class ClosedLoop:
         # the divergence test's ratio and scale, the largest disturbance RMS so far (nm)
         self.divergence_ratio, self._disturbance_peak = divergence_ratio, 0.0
         self.frame, self.stage_seconds = 0, dict.fromkeys(STAGES + ("metrics",), 0.0)
+        self.ncpa = ncpa  # the science path's aberration and the RTC's slope offsets
         self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity)
         self.scheduler = AuxScheduler(self.rtc_parameters, self.telemetry)
         for aux in aux_loops:
@@ -140,6 +144,10 @@ class ClosedLoop:
 
     def remove_aux_loop(self, aux: AuxLoop) -> None:
         self.scheduler.remove(aux)
+
+    def psf_accumulator(self, wavelength_m: float) -> PsfAccumulator:
+        """A long-exposure PSF of this loop's science path (its NCPA included)."""
+        return PsfAccumulator(self.pupil, wavelength_m, static_opd=None if self.ncpa is None else self.ncpa.opd)
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels (``stages.Mirror.project``)."""
@@ -176,6 +184,8 @@ class ClosedLoop:
         k_slopes = self.rtc_parameters.sensitivity
         if k_slopes != 1.0:
             slopes *= np.float32(k_slopes)
+        if self.ncpa is not None and self.ncpa.slope_offset is not None:
+            slopes -= self.ncpa.slope_offset  # the RTC's input: k s - s_off (optics.ncpa)
         t5 = clock()
         commands = self.controller.commands(slopes, self.rtc_parameters.probe, k, self.rate_hz)
         self.delay.push(commands)

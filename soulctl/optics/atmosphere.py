@@ -445,8 +445,8 @@ class FrozenFlowAtmosphere:
             screen = fft_phase_screen(self.screen_pixels, self.pixel_scale_m, r0_i, config.L0_m, rng, subharmonics=False)
             screen.setflags(write=False)
             screens.append(screen)
-            c = fine_spline_coefficients(screen).astype(np.float32)
-            coefficients.append(np.pad(c, (0, self._window), mode="wrap"))  # every window a contiguous slice
+            spline = np.asarray(fine_spline_coefficients(screen), dtype=np.float32)
+            coefficients.append(np.pad(spline, (0, self._window), mode="wrap"))  # every window a contiguous slice
             a = math.radians(layer.wind_direction_deg)
             v = layer.wind_speed_m_s / self.pixel_scale_m  # pixels per second
             c, s = (0.0 if abs(u) < 1e-12 else u for u in (math.cos(a), math.sin(a)))  # 90°: exact

@@ -89,6 +89,8 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--misregistration", "0,nan"], "--misregistration shift_y_pitch must be in -2..2"),
         (["--misregistration", "0,0,12"], "--misregistration rotation_deg must be in -10..10 deg"),
         (["--misregistration", "0,0,0,x"], "--misregistration magnification must be a number in 0.8..1.2"),
+        (["--ncpa", "-5"], "--ncpa must be in 0..1000 nm"),
+        (["--ncpa", "nan"], "--ncpa must be"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):

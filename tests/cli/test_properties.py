@@ -139,6 +139,7 @@ CASES = [
             ("--oversampling", NUMBERS),
             ("--gains", LISTS),
             ("--misregistration", LISTS),
+            ("--ncpa", NUMBERS),
         ]
     ],
     *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],

@@ -1,0 +1,82 @@
+"""Non-common-path aberrations (NCPA): a static OPD that the science camera sees and the
+pyramid does not.
+
+* The aberration: a random map with a power-law PSD, |f|^-exponent (2 by default: the
+  polishing errors of optics, a proposal), piston-free, scaled to ``rms_nm`` on the pupil; the
+  instrument's own draw (``seed``), the same whatever the run's seed.  The paper's daytime
+  images carried ~100 nm of NCPA that the loop did not compensate (LUCI1).
+* Compensation, as LBT does it (Esposito et al. 2020): reference-slope offsets, the slopes the
+  calibrated pyramid would give for minus the aberration's projection a on the controlled
+  modes, s_off = D (-a), subtracted from the RTC's slopes after the sensitivity k scales them:
+  s = k s_wfs - s_off.  In closed loop the pyramid answers with its optical gain gamma_i, so
+  the loop settles where k gamma_i D a_wfs = -D a: the mirror applies -a_i / (k gamma_i), and
+  the science path keeps a_i (1 - 1 / (k gamma_i)).  With k = 1 and gamma < 1 the offsets are
+  over-applied (gamma = 0.6 leaves -0.67 a: no better than none); OGTL, holding k gamma = 1 on
+  its probed mode, makes them right there and near it.  What lies outside the controlled modes
+  stays whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ranges import NCPA_EXPONENT, NCPA_RMS_NM, SEED
+from .pupil import Pupil
+
+
+@dataclass(frozen=True, kw_only=True)
+class NcpaSpec:
+    rms_nm: float = 0.0  # on the pupil, piston removed
+    exponent: float = 2.0  # PSD ~ |f|^-exponent
+    compensated: bool = False  # reference-slope offsets for the controlled modes' part
+    seed: int = 1  # the instrument's draw
+
+    def __post_init__(self):
+        NCPA_RMS_NM.check(self.rms_nm, "ncpa.rms_nm")
+        NCPA_EXPONENT.check(self.exponent, "ncpa.exponent")
+        SEED.check(self.seed, "ncpa.seed")
+
+    @property
+    def active(self) -> bool:
+        return self.rms_nm > 0
+
+
+def ncpa_opd(spec: NcpaSpec, pupil: Pupil) -> np.ndarray:
+    """(n_valid,) the aberration's OPD (nm) on the pupil pixels: white noise filtered by
+    |f|^(-exponent/2) on a grid twice the pupil (no wrap-around correlation), piston removed,
+    scaled to ``rms_nm``."""
+    n = 2 * pupil.n_pixels
+    rng = np.random.default_rng(spec.seed)
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n), indexing="ij"))
+    f[0, 0] = np.inf  # no piston
+    noise = rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))
+    field = np.fft.ifft2(noise * f ** (-spec.exponent / 2)).real[: pupil.n_pixels, : pupil.n_pixels]
+    opd = field[pupil.mask] - field[pupil.mask].mean()
+    rms = float(np.sqrt(np.mean(opd**2)))
+    return opd * (spec.rms_nm / rms) if rms > 0 else opd
+
+
+@dataclass(frozen=True)
+class NonCommonPath:
+    """What the loop holds of the NCPA: the science path's OPD (n_valid,) and the RTC's
+    reference-slope offsets (n_slopes,; None: not compensated)."""
+
+    opd: np.ndarray
+    slope_offset: np.ndarray | None
+
+
+def non_common_path(spec: NcpaSpec, pupil: Pupil, shapes: np.ndarray, interaction_matrix: np.ndarray) -> NonCommonPath:
+    """The aberration of ``spec`` on ``pupil`` and, when compensated, its offsets for the
+    calibration's controlled modes ``shapes`` and interaction matrix."""
+    opd = ncpa_opd(spec, pupil)
+    offset = slope_offsets(opd, shapes, interaction_matrix).astype(np.float32) if spec.compensated else None
+    return NonCommonPath(opd, offset)
+
+
+def slope_offsets(opd: np.ndarray, shapes: np.ndarray, interaction_matrix: np.ndarray) -> np.ndarray:
+    """s_off = D (-a): the reference-slope offsets that compensate ``opd`` (n_valid,) on the
+    controlled modes ``shapes`` (n_valid, n_modes, orthonormal: a = S^T opd / n_valid)."""
+    a = shapes.T @ opd / shapes.shape[0]
+    return interaction_matrix @ (-a)
