@@ -103,6 +103,9 @@ MAGNIFICATION = Range(0.8, 1.2)
 # non-common-path aberrations (optics.ncpa): on-sky instruments carry 10-300 nm
 NCPA_RMS_NM = Range(0.0, 1000.0, "nm")
 NCPA_EXPONENT = Range(0.0, 4.0)  # of the PSD's power law
+# the interaction matrix measured at a finite flux (optics.calibration_noise)
+CALIBRATION_PHOTONS = Range(1.0, 1e12, "photons per frame")
+CALIBRATION_FRAMES = Range(1, 10_000, integer=True)
 WIND_M_S = Range(0.0, 100.0, "m/s", lo_open=True)  # the effective (5/3-moment) wind of the profile
 OUTER_SCALE_M = Range(0.5, 1e4, "m")
 DURATION_S = Range(0.0, 600.0, "s", lo_open=True)

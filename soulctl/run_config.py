@@ -24,6 +24,8 @@ look-up table's value for its star, else ``soulctl.defaults``:
                   on the pyramid against the calibration; ``optics.registration``)
     [ncpa]        rms_nm, exponent, compensated, seed (the science path's static aberration and
                   its reference-slope offsets; ``optics.ncpa``)
+    [calibration] photons_per_frame, frames, seed (the interaction matrix measured at a finite
+                  flux; 0 photons: noiseless; ``optics.calibration_noise``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling
@@ -52,6 +54,7 @@ from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.atmosphere import Layer, r0_from_seeing
+from .optics.calibration_noise import CalibrationNoise
 from .optics.ncpa import NcpaSpec
 from .optics.registration import Misregistration
 from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
@@ -72,6 +75,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "structure": ("enabled", "frequency_hz", "damping", "coupling"),
     "misregistration": REGISTRATION_KEYS,
     "ncpa": ("rms_nm", "exponent", "compensated", "seed"),
+    "calibration": ("photons_per_frame", "frames", "seed"),
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
@@ -176,6 +180,7 @@ class RunConfig:
     structure: StructuralResonance | None = StructuralResonance()
     registration: Misregistration = Misregistration()
     ncpa: NcpaSpec = NcpaSpec()
+    calibration: CalibrationNoise = CalibrationNoise()
     noise: bool = True
     controller: ControllerSpec = ControllerSpec()
     auxiliary: AuxiliarySpec = AuxiliarySpec()
@@ -214,6 +219,7 @@ class RunConfig:
             a.layers or None,
             None if self.registration.is_identity else self.registration,
             self.ncpa if self.ncpa.active else None,
+            self.calibration if self.calibration.active else None,
         )
 
     def resolved(self) -> RunConfig:
@@ -307,6 +313,7 @@ def _to_dict(c: RunConfig) -> dict:
     d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
     d["misregistration"] = dataclasses.asdict(c.registration)
     d["ncpa"] = dataclasses.asdict(c.ncpa)
+    d["calibration"] = dataclasses.asdict(c.calibration)
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
@@ -345,6 +352,7 @@ def _from_dict(data: dict) -> RunConfig:
             structure=_structure(data.get("structure", {})),
             registration=Misregistration(**{k: _number(v, f"misregistration.{k}") for k, v in data.get("misregistration", {}).items()}),
             ncpa=_ncpa(data.get("ncpa", {})),
+            calibration=_calibration(data.get("calibration", {})),
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),
             controller=ControllerSpec(
                 gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),
@@ -419,6 +427,14 @@ def _ncpa(n: dict) -> NcpaSpec:
         exponent=_number(n.get("exponent", 2.0), "ncpa.exponent"),
         compensated=_bool(n, "compensated", False, "ncpa"),
         seed=_integer(n.get("seed", 1), "ncpa.seed"),
+    )
+
+
+def _calibration(c: dict) -> CalibrationNoise:
+    return CalibrationNoise(
+        photons_per_frame=_number(c.get("photons_per_frame", 0.0), "calibration.photons_per_frame"),
+        frames=_integer(c.get("frames", 1), "calibration.frames"),
+        seed=_integer(c.get("seed", 1), "calibration.seed"),
     )
 
 

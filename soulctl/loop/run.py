@@ -17,6 +17,7 @@ from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
+from ..optics.calibration_noise import CalibrationNoise, measured_calibration
 from ..optics.ncpa import NcpaSpec, non_common_path
 from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
@@ -50,6 +51,7 @@ class RunRequest:
     layers: tuple[Layer, ...] | None = None  # explicit turbulence layers; None: the LBT profile at wind_m_s
     registration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
     ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
+    calibration_noise: CalibrationNoise | None = None  # the loop's D measured at a finite flux; None: noiseless
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -217,9 +219,14 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
 
 
 def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None) -> ClosedLoop:
-    """The request's closed loop at t = 0 (its turbulence, vibrations, noise, structure and
-    mis-registration, seeded by its seed), with ``gains``; ``structure`` sampled at its rate."""
+    """The request's closed loop at t = 0 (its turbulence, vibrations, noise, structure,
+    mis-registration, NCPA and calibration noise, seeded by its seed), with ``gains``;
+    ``structure`` sampled at its rate.  With calibration noise the loop's interaction matrix
+    and reconstructor are the measured ones (``cal``, noiseless, stays what the optical-gain
+    tables and the checks use)."""
     pupil = cal.setup.pyramid.pupil
+    if request.calibration_noise is not None:
+        cal = measured_calibration(cal, request.calibration_noise)
     return ClosedLoop(
         request.observation,
         cal,
