@@ -146,10 +146,12 @@ class ControllerSpec:
 
 @dataclass(frozen=True, kw_only=True)
 class AuxiliarySpec:
-    """`loop run --mgm --ogtl`: the auxiliary loops beside the run (None: the operating point's default)."""
+    """`loop run --mgm --ogtl`: the auxiliary loops beside the run (None: the operating point's
+    default).  ``ogtl`` None: on when the run is long enough for OGTL to act (the loop closes,
+    then two updates), as SOUL runs it on sky; ``RunConfig.resolved`` decides."""
 
     mgm: bool = False
-    ogtl: bool = False
+    ogtl: bool | None = None
     period_s: float | None = None
     probe_mode: int = PROBE_MODE
     probe_amplitude_nm: float | None = None
@@ -164,10 +166,19 @@ class AuxiliarySpec:
         return OgtlSettings(self.probe_mode, self.probe_amplitude_nm, self.probe_frequency_hz)
 
     def live(self) -> LiveOptimisers | None:
-        """The auxiliary loops of `loop run --mgm/--ogtl` (None: neither)."""
+        """The auxiliary loops of `loop run --mgm/--ogtl` (None: neither; OGTL's automatic
+        default counts as off until resolved)."""
         if not (self.mgm or self.ogtl):
             return None
-        return LiveOptimisers(self.mgm, self.ogtl, self.period_s, self.probe())
+        return LiveOptimisers(self.mgm, bool(self.ogtl), self.period_s, self.probe())
+
+    def resolved(self, observation, duration_s: float) -> AuxiliarySpec:
+        """``ogtl`` decided: on when the run lasts long enough for the loop to close and OGTL
+        to update twice (``LiveOptimisers.frames_needed``), else off."""
+        if self.ogtl is not None:
+            return self
+        need = LiveOptimisers(False, True, self.period_s, self.probe()).frames_needed(observation)
+        return dataclasses.replace(self, ogtl=round(duration_s * observation.frame_rate_hz) >= need)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -224,12 +235,16 @@ class RunConfig:
 
     def resolved(self) -> RunConfig:
         """The description with the gains the run starts from written out (the defaults'
-        today), so that the stored description does not depend on tomorrow's defaults."""
+        today) and OGTL's automatic default decided, so that the stored description does not
+        depend on tomorrow's defaults."""
+        aux = self.auxiliary.resolved(self.observation, self.duration_s)
         if self.controller.gains or self.controller.mode_gains:
-            return self
+            return dataclasses.replace(self, auxiliary=aux)
         g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
         return dataclasses.replace(
-            self, controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high)))
+            self,
+            controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high))),
+            auxiliary=aux,
         )
 
     def to_dict(self) -> dict:
@@ -362,7 +377,7 @@ def _from_dict(data: dict) -> RunConfig:
             ),
             auxiliary=AuxiliarySpec(
                 mgm=_bool(aux, "mgm", False, "auxiliary"),
-                ogtl=_bool(aux, "ogtl", False, "auxiliary"),
+                ogtl=_bool(aux, "ogtl", True, "auxiliary") if "ogtl" in aux else None,
                 **{k: _number(aux[k], f"auxiliary.{k}") for k in ("period_s", "probe_amplitude_nm", "probe_frequency_hz") if k in aux},
                 probe_mode=_integer(aux.get("probe_mode", PROBE_MODE), "auxiliary.probe_mode"),
             ),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -160,3 +161,32 @@ def test_the_readme_shows_the_resolved_default_the_tool_prints(capsys):
     block = readme.split("<!-- print-config -->", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
     assert main(["loop", "run", "--print-config"]) == 0
     assert capsys.readouterr().out == block
+
+
+def test_ogtl_is_on_by_default_when_the_run_lets_it_act():
+    """SOUL runs OGTL on sky (the paper): on by default once the loop can close and OGTL update
+    twice (2.1 s at 1700 Hz), off below; an explicit value is kept; the stored description
+    holds the decision."""
+    base = RunConfig()  # R9.7, 1700 Hz
+    assert base.auxiliary.ogtl is None and "ogtl" not in base.to_dict()["auxiliary"]
+    assert base.resolved().auxiliary.ogtl is False  # 0.2 s
+    assert base.with_values({"run.duration_s": 2.1}).resolved().auxiliary.ogtl is True
+    assert base.with_values({"run.duration_s": 2.0}).resolved().auxiliary.ogtl is False
+    assert base.with_values({"run.duration_s": 3.0, "auxiliary.ogtl": False}).resolved().auxiliary.ogtl is False
+    stored = base.with_values({"run.duration_s": 3.0}).resolved().to_dict()
+    assert stored["auxiliary"]["ogtl"] is True and RunConfig.from_dict(stored).auxiliary.ogtl is True
+    faint = base.with_values({"star.magnitude_r": 16.5, "run.duration_s": 5.0})  # 250 Hz: 5.4 s needed
+    assert faint.resolved().auxiliary.ogtl is False
+    assert faint.with_values({"run.duration_s": 5.4}).resolved().auxiliary.live().ogtl
+
+
+def test_ideal_turns_ogtl_and_the_error_terms_off(capsys):
+    from soulctl.cli.app import main
+
+    assert main(["loop", "run", "--duration", "3", "--ideal", "--print-config", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["auxiliary"]["ogtl"] is False and d["ncpa"]["rms_nm"] == 0 and d["misregistration"]["shift_x_pitch"] == 0
+    assert main(["loop", "run", "--duration", "3", "--print-config", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["auxiliary"]["ogtl"] is True
+    assert main(["loop", "run", "--ideal", "--ncpa", "50", "--print-config"]) == 2
+    assert "--ideal turns OGTL and the error terms off" in capsys.readouterr().err

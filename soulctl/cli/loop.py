@@ -184,7 +184,15 @@ class RunOptions:
     )
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
-    ogtl: bool = typer.Option(False, "--ogtl", help="Run the optical gain tracking loop beside the loop (probe on --probe-mode).")
+    ogtl: bool | None = typer.Option(
+        None,
+        "--ogtl/--no-ogtl",
+        show_default="on when the run is long enough for two updates",
+        help="Run the optical gain tracking loop beside the loop (probe on --probe-mode), as SOUL does on sky.",
+    )
+    ideal: bool = typer.Option(
+        False, "--ideal", help="Today's idealised loop: no OGTL, no NCPA, no mis-registration, a noiseless calibration."
+    )
     period: float | None = PERIOD
     probe_mode: int | None = PROBE_MODE
     probe_amplitude: float | None = PROBE_AMPLITUDE
@@ -287,13 +295,34 @@ def _run_overrides(o: RunOptions) -> dict:
         "run.duration_s": o.duration,
         "control.allow_unstable": o.allow_unstable or None,
         "auxiliary.mgm": o.mgm or None,
-        "auxiliary.ogtl": o.ogtl or None,
+        "auxiliary.ogtl": o.ogtl,
         "auxiliary.period_s": o.period,
         "ncpa.rms_nm": o.ncpa,
         "ncpa.compensated": o.ncpa_offsets or None,
     }
     given = {k: v for k, v in values.items() if v is not None} | misregistration_overrides(o.misregistration)
-    return given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
+    return _ideal(o, given) | given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
+
+
+IDEAL = {
+    "auxiliary.ogtl": False,
+    "ncpa.rms_nm": 0.0,
+    "misregistration.shift_x_pitch": 0.0,
+    "misregistration.shift_y_pitch": 0.0,
+    "misregistration.rotation_deg": 0.0,
+    "misregistration.magnification": 1.0,
+    "calibration.photons_per_frame": 0.0,
+}
+
+
+def _ideal(o: RunOptions, given: dict) -> dict:
+    """--ideal's fields (InputError if an option sets one of them too)."""
+    if not o.ideal:
+        return {}
+    both = sorted(k for k in given if k in IDEAL or k.startswith(("ncpa.", "misregistration.")))
+    if both:
+        raise InputError(f"--ideal turns OGTL and the error terms off: give it without the option that sets {both[0]}")
+    return IDEAL
 
 
 def misregistration_overrides(text: str | None) -> dict:

@@ -373,7 +373,7 @@ class LiveOptimisers:
         if self.mgm:
             period_settings(self._frames(observation), observation)
         rate = observation.frame_rate_hz
-        need = closing_frames(rate) + 2 * self._frames(observation)
+        need = self.frames_needed(observation)
         if need / rate > DURATION_S.hi:
             raise InputError(
                 f"--period {period_s:g} s: the loop closes, then two updates need {need / rate:.4g} s, more than "
@@ -393,6 +393,10 @@ class LiveOptimisers:
 
     def _frames(self, observation) -> int:
         return max(1, round(self.period(observation) * observation.frame_rate_hz))
+
+    def frames_needed(self, observation) -> int:
+        """Frames of a run in which the loop closes and the auxiliary loops then update twice."""
+        return closing_frames(observation.frame_rate_hz) + 2 * self._frames(observation)
 
     def __call__(self, request: RunRequest, gains: LoopGains, calibration: Calibration, cache: ArrayCache, loop: ClosedLoop):
         obs = request.observation
