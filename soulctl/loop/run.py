@@ -242,6 +242,17 @@ def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, str
     )
 
 
+def _repeat_note(loop: ClosedLoop, request: RunRequest) -> tuple[str, ...]:
+    """A note when the run outlasts the periodic screens (its turbulence then repeats)."""
+    atmosphere = loop.disturbance.atmosphere
+    if atmosphere is None or request.duration_s <= (repeat := atmosphere.repeat_time_s):
+        return ()
+    return (
+        f"the turbulence repeats after {repeat:.3g} s (periodic screens of {atmosphere.screen_pixels} px; "
+        f"this run lasts {request.duration_s:g} s): later frames see the same screens again",
+    )
+
+
 def run(
     request: RunRequest,
     cache: ArrayCache = ArrayCache(None),
@@ -294,5 +305,5 @@ def run(
         spectra,
         loop.rtc_parameters.gains,
         loop.rtc_parameters.sensitivity,
-        loop.notes,
+        loop.notes + _repeat_note(loop, request),
     )
