@@ -125,15 +125,17 @@ def mode_maps(shapes: np.ndarray, pupil: Pupil) -> np.ndarray:
     return maps
 
 
-def push_pull(sensor: WavefrontSensor, maps: np.ndarray, push_nm: float, around: np.ndarray | None = None) -> np.ndarray:
-    """(n_slopes, n_maps): noiseless slope response per nm to each map, by push-pull around
-    ``around`` (an OPD map; the unaberrated beam when None)."""
+def push_pull(sensor: WavefrontSensor, maps: np.ndarray, push_nm: float, around: np.ndarray | None = None, slopes_of=None) -> np.ndarray:
+    """(n_slopes, n_maps): slope response per nm to each map, by push-pull around ``around``
+    (an OPD map; the unaberrated beam when None); ``slopes_of`` maps a stack of OPD maps to
+    their slopes (default: the sensor's noiseless ones)."""
     base = np.zeros(maps.shape[1:], dtype=np.float32) if around is None else np.asarray(around, dtype=np.float32)
+    slopes_of = slopes_of or sensor.noiseless_slopes
     out = np.empty((sensor.n_slopes, maps.shape[0]))
     chunk = 8
     for start in range(0, maps.shape[0], chunk):
         m = maps[start : start + chunk] * np.float32(push_nm)
-        s = sensor.noiseless_slopes(np.concatenate([base + m, base - m]))
+        s = slopes_of(np.concatenate([base + m, base - m]))
         k = m.shape[0]
         out[:, start : start + k] = ((s[:k] - s[k:]) / (2 * push_nm)).T
     return out

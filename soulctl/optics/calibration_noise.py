@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ranges import CALIBRATION_FRAMES, CALIBRATION_PHOTONS, SEED
-from .calibration import Calibration, mode_maps
+from .calibration import Calibration, mode_maps, push_pull
 from .detector import Detector
 from .pwfs import Pyramid
 from .sensor import WavefrontSensor
@@ -41,33 +41,20 @@ class CalibrationNoise:
         return self.photons_per_frame > 0
 
 
-def averaged_slopes(sensor: WavefrontSensor, intensity: np.ndarray, frames: int, rng: np.random.Generator) -> np.ndarray:
-    """The mean slopes of ``frames`` noisy reads of one intensity map."""
-    total = np.zeros(sensor.n_slopes)
-    for _ in range(frames):
-        total += sensor.slopes_of_frame(sensor.detector.read(intensity, sensor.photons_per_frame, rng))
-    return total / frames
-
-
-def noisy_push_pull(sensor: WavefrontSensor, maps: np.ndarray, push_nm: float, frames: int, rng: np.random.Generator) -> np.ndarray:
-    """(n_slopes, n_maps): D by push-pull around the unaberrated beam, each push and pull the
-    mean of ``frames`` noisy frames."""
-    out = np.empty((sensor.n_slopes, maps.shape[0]))
-    chunk = 8
-    for start in range(0, maps.shape[0], chunk):
-        m = maps[start : start + chunk] * np.float32(push_nm)
-        intensities = sensor.pyramid.intensity(np.concatenate([m, -m]))
-        k = m.shape[0]
-        for i in range(k):
-            plus = averaged_slopes(sensor, intensities[i], frames, rng)
-            minus = averaged_slopes(sensor, intensities[k + i], frames, rng)
-            out[:, start + i] = (plus - minus) / (2 * push_nm)
-    return out
+def averaged_slopes(sensor: WavefrontSensor, opd_nm: np.ndarray, frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(n_maps, n_slopes): for each OPD map of the stack, the mean slopes of ``frames`` noisy
+    reads of its intensity (the optics propagated once)."""
+    out = np.zeros((opd_nm.shape[0], sensor.n_slopes))
+    for i, intensity in enumerate(sensor.pyramid.intensity(np.asarray(opd_nm, dtype=np.float32))):
+        for _ in range(frames):
+            out[i] += sensor.slopes_of_frame(sensor.detector.read(intensity, sensor.photons_per_frame, rng))
+    return out / frames
 
 
 def measured_calibration(calibration: Calibration, noise: CalibrationNoise, detector: Detector = Detector()) -> Calibration:
     """``calibration`` with D measured at ``noise``'s flux and R = D^+ of it."""
     sensor = WavefrontSensor(Pyramid(calibration.setup.pyramid), detector, noise.photons_per_frame)
     maps = mode_maps(calibration.basis.shapes(sensor.pupil), sensor.pupil)
-    D = noisy_push_pull(sensor, maps, calibration.setup.push_nm, noise.frames, np.random.default_rng(noise.seed))
+    rng = np.random.default_rng(noise.seed)
+    D = push_pull(sensor, maps, calibration.setup.push_nm, slopes_of=lambda opd: averaged_slopes(sensor, opd, noise.frames, rng))
     return dataclasses.replace(calibration, interaction_matrix=D, reconstructor=np.linalg.pinv(D), from_cache=False)
