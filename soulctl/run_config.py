@@ -23,9 +23,11 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [misregistration]  shift_x_pitch, shift_y_pitch, rotation_deg, magnification (the mirror
                   on the pyramid against the calibration; ``optics.registration``)
     [ncpa]        rms_nm, exponent, compensated, seed (the science path's static aberration and
-                  its reference-slope offsets; ``optics.ncpa``)
-    [calibration] photons_per_frame, frames, seed (the interaction matrix measured at a finite
-                  flux; 0 photons: noiseless; ``optics.calibration_noise``)
+                  its reference-slope offsets; ``optics.ncpa``; default 100 nm, LUCI1's, with
+                  offsets when OGTL runs: ``defaults.NCPA_RMS_NM``)
+    [calibration] photons_per_frame, frames, seed, seeing_arcsec (the interaction matrix measured
+                  at a finite flux, 0 photons: noiseless; around the residual of a seeing, 0: none;
+                  ``optics.calibration_noise``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling
@@ -75,7 +77,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "structure": ("enabled", "frequency_hz", "damping", "coupling"),
     "misregistration": REGISTRATION_KEYS,
     "ncpa": ("rms_nm", "exponent", "compensated", "seed"),
-    "calibration": ("photons_per_frame", "frames", "seed"),
+    "calibration": ("photons_per_frame", "frames", "seed", "seeing_arcsec"),
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
@@ -190,7 +192,7 @@ class RunConfig:
     vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
     structure: StructuralResonance | None = StructuralResonance()
     registration: Misregistration = Misregistration()
-    ncpa: NcpaSpec = NcpaSpec()
+    ncpa: NcpaSpec = NcpaSpec(rms_nm=defaults.NCPA_RMS_NM, compensated=None)  # sky-like; None: offsets with OGTL
     calibration: CalibrationNoise = CalibrationNoise()
     noise: bool = True
     controller: ControllerSpec = ControllerSpec()
@@ -212,14 +214,14 @@ class RunConfig:
 
     def request(self) -> RunRequest:
         """The run's request: the one place a ``RunRequest`` is built from a description."""
-        a = self.atmosphere
+        a, resolved = self.atmosphere, self.resolved()
         return RunRequest(
             self.observation,
             a.seeing_arcsec,
             a.wind_m_s,
             a.L0_m,
             self.duration_s,
-            self.resolved().controller.loop_gains(),
+            resolved.controller.loop_gains(),
             self.band,
             self.seed,
             self.noise,
@@ -229,7 +231,7 @@ class RunConfig:
             self.controller.allow_unstable,
             a.layers or None,
             None if self.registration.is_identity else self.registration,
-            self.ncpa if self.ncpa.active else None,
+            resolved.ncpa if resolved.ncpa.active else None,
             self.calibration if self.calibration.active else None,
         )
 
@@ -238,13 +240,15 @@ class RunConfig:
         today) and OGTL's automatic default decided, so that the stored description does not
         depend on tomorrow's defaults."""
         aux = self.auxiliary.resolved(self.observation, self.duration_s)
+        ncpa = self.ncpa if self.ncpa.compensated is not None else dataclasses.replace(self.ncpa, compensated=bool(aux.ogtl))
         if self.controller.gains or self.controller.mode_gains:
-            return dataclasses.replace(self, auxiliary=aux)
+            return dataclasses.replace(self, auxiliary=aux, ncpa=ncpa)
         g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
         return dataclasses.replace(
             self,
             controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high))),
             auxiliary=aux,
+            ncpa=ncpa,
         )
 
     def to_dict(self) -> dict:
@@ -327,7 +331,7 @@ def _to_dict(c: RunConfig) -> dict:
     s = c.structure
     d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
     d["misregistration"] = dataclasses.asdict(c.registration)
-    d["ncpa"] = dataclasses.asdict(c.ncpa)
+    d["ncpa"] = {k: v for k, v in dataclasses.asdict(c.ncpa).items() if v is not None}
     d["calibration"] = dataclasses.asdict(c.calibration)
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
@@ -438,9 +442,9 @@ def _explicit_delay(delay: dict, rate_hz) -> dict:
 
 def _ncpa(n: dict) -> NcpaSpec:
     return NcpaSpec(
-        rms_nm=_number(n.get("rms_nm", 0.0), "ncpa.rms_nm"),
+        rms_nm=_number(n.get("rms_nm", defaults.NCPA_RMS_NM), "ncpa.rms_nm"),
         exponent=_number(n.get("exponent", 2.0), "ncpa.exponent"),
-        compensated=_bool(n, "compensated", False, "ncpa"),
+        compensated=_bool(n, "compensated", False, "ncpa") if "compensated" in n else None,
         seed=_integer(n.get("seed", 1), "ncpa.seed"),
     )
 
@@ -450,6 +454,7 @@ def _calibration(c: dict) -> CalibrationNoise:
         photons_per_frame=_number(c.get("photons_per_frame", 0.0), "calibration.photons_per_frame"),
         frames=_integer(c.get("frames", 1), "calibration.frames"),
         seed=_integer(c.get("seed", 1), "calibration.seed"),
+        seeing_arcsec=_number(c.get("seeing_arcsec", 0.0), "calibration.seeing_arcsec"),
     )
 
 

@@ -10,7 +10,7 @@ import soulctl
 
 PACKAGE = Path(soulctl.__file__).parent
 MAX_FUNCTION_LINES = 59  # "under 60 lines", the def line to the last line, docstring included
-MAX_CLOSED_LOOP_INIT = 42  # wiring only: one line per stage or parameter
+MAX_CLOSED_LOOP_INIT = 44  # wiring only: one line per stage or parameter (19 parameters)
 
 
 def _functions() -> list[tuple[int, str]]:

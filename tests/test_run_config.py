@@ -180,6 +180,20 @@ def test_ogtl_is_on_by_default_when_the_run_lets_it_act():
     assert faint.with_values({"run.duration_s": 5.4}).resolved().auxiliary.live().ogtl
 
 
+def test_the_sky_default_carries_luci1s_ncpa_compensated_where_ogtl_runs():
+    """100 nm of NCPA (the paper's LUCI1) in every plain run; the reference-slope offsets come
+    with OGTL (short runs: neither), unless the description says otherwise."""
+    assert RunConfig().ncpa.rms_nm == defaults.NCPA_RMS_NM == 100.0
+    assert RunConfig(duration_s=0.2).resolved().ncpa.compensated is False
+    long = RunConfig(duration_s=3.0).resolved()
+    assert long.auxiliary.ogtl is True and long.ncpa.compensated is True
+    assert RunConfig(duration_s=3.0).with_values({"auxiliary.ogtl": False}).resolved().ncpa.compensated is False
+    assert RunConfig(duration_s=0.2).with_values({"ncpa.compensated": True}).resolved().ncpa.compensated is True
+    stored = RunConfig.from_dict(tomllib.loads(long.to_toml()))
+    assert stored.ncpa == long.ncpa and stored.request().ncpa == long.ncpa
+    assert RunConfig.from_dict({}).ncpa == RunConfig().ncpa  # a section left out is the default
+
+
 def test_ideal_turns_ogtl_and_the_error_terms_off(capsys):
     from soulctl.cli.app import main
 

@@ -34,6 +34,7 @@ from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, optimize
 from soulctl.loop.run import run
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
+from soulctl.optics.ncpa import NcpaSpec
 from soulctl.plots.gains import write_gain_figures
 from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
 
@@ -42,6 +43,7 @@ from gain_optimisation import observation, settling_time  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 AT_1_ARCSEC = AtmosphereSpec(seeing_arcsec=1.0)  # the paper's faint cases
+NO_NCPA = NcpaSpec()  # the paper's simulations carry no NCPA: the figures compare with them
 PAPER = {"R13": (0.58, "0.61-0.67"), "R16.5": (0.18, "0.19-0.23")}
 
 
@@ -59,7 +61,10 @@ def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
     rows = []
     for seed in seeds:
         r = optimize(
-            OptimizeRequest(RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, band=band, seed=seed).request(), "mgm", measure_s=1.0), cache
+            OptimizeRequest(
+                RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, band=band, seed=seed, ncpa=NO_NCPA).request(), "mgm", measure_s=1.0
+            ),
+            cache,
         )
         rows.append(
             {
@@ -90,7 +95,7 @@ def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
 def transient(obs, seconds: float, cache) -> dict:
     start = RunConfig(observation=obs).resolved().controller.gains
     low = RunConfig(
-        observation=obs, atmosphere=AT_1_ARCSEC, band="FeII", controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
+        observation=obs, atmosphere=AT_1_ARCSEC, band="FeII", ncpa=NO_NCPA, controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
     ).request()
     r = optimize(OptimizeRequest(low, "mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
     (RESULTS / "transient_r13").mkdir(parents=True, exist_ok=True)
@@ -110,7 +115,9 @@ def transient(obs, seconds: float, cache) -> dict:
 def ogtl_alone(seconds: float, cache) -> dict:
     obs = observation_for_magnitude(17.5)
     result = run(
-        RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, duration_s=seconds).request(), cache, aux=LiveOptimisers(mgm=False, ogtl=True)
+        RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, duration_s=seconds, ncpa=NO_NCPA).request(),
+        cache,
+        aux=LiveOptimisers(mgm=False, ogtl=True),
     )
     og = result.telemetry.aux_arrays("ogtl")
     k = og.get("sensitivity", np.array([1.0]))

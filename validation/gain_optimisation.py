@@ -32,6 +32,7 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, optimize
 from soulctl.observation import observation_for_magnitude, tt_filter_roots
 from soulctl.optics.cache import ArrayCache
+from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
 
 CASES = [
@@ -94,8 +95,8 @@ def main() -> None:
         label, mag, rate, seeing, wind, paper = CASES[i]
         obs = observation(mag, rate)
         run = RunConfig(
-            observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing, wind_m_s=wind), band="FeII", seed=args.seed
-        ).request()
+            observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing, wind_m_s=wind), band="FeII", seed=args.seed, ncpa=NcpaSpec()
+        ).request()  # no NCPA: the paper's simulations have none
         row = {"case": label, "paper": paper, "observation": obs.to_dict()}
         t0 = time.perf_counter()
         row["trial"] = summary(optimize(OptimizeRequest(run, "trial", measure_s=args.measure_s), cache))

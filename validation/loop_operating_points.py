@@ -51,11 +51,12 @@ def observation(mag, rate, binning, modes, tt):
     return obs
 
 
-def _run(obs, seeing: float, duration: float, gains, band: str, seed: int):
-    """A case's run: its observation and gains, defaults elsewhere."""
+def _run(obs, seeing: float, duration: float, gains, band: str, seed: int) -> RunConfig:
+    """A case's run description: its observation and gains, defaults elsewhere (OGTL and the
+    NCPA as `loop run` resolves them)."""
     controller = ControllerSpec(gains=(gains.tip_tilt, gains.mid, gains.high))
     atmosphere = AtmosphereSpec(seeing_arcsec=seeing)
-    return RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed).request()
+    return RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed).resolved()
 
 
 def main() -> None:
@@ -76,7 +77,8 @@ def main() -> None:
             gains = dataclasses.replace(gains, tip_tilt=g_tt)
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
-            r = run(_run(obs, seeing, args.duration, gains, band, seed), cache)
+            description = _run(obs, seeing, args.duration, gains, band, seed)
+            r = run(description.request(), cache, aux=description.auxiliary.live())
             m = r.metrics
             rows.append(
                 {

@@ -63,7 +63,9 @@ def main() -> None:
     for i in (int(c) for c in a.cases.split(",")):
         label, values = CASES[i]
         for seed in range(1, a.seeds + 1):
-            base = RunConfig().with_values({**values, "atmosphere.seeing_arcsec": 1.0, "run.duration_s": a.duration, "run.seed": seed})
+            base = RunConfig().with_values(
+                {**values, "ncpa.rms_nm": 0.0, "atmosphere.seeing_arcsec": 1.0, "run.duration_s": a.duration, "run.seed": seed}
+            )
             for kind, value, registration in points():
                 if (label, kind, value, seed) in have:
                     continue

@@ -335,6 +335,8 @@ def aux_rows(telemetry) -> list[tuple[str, str]]:
                 f"{o['updates']} (k_max {o['k_max']:.3g}): " + ", ".join(f"{n} {name}" for name, n in o["statuses"].items()),
             )
         )
+        if o.get("ncpa_offsets_at_frame") is not None:
+            rows.append(("NCPA offsets applied (OGTL's k calibrated)", f"from frame {o['ncpa_offsets_at_frame']}"))
     if "mgm" in s:
         rows.append(("MGM updates (noise-dominated modes, last)", f"{s['mgm']['updates']} ({s['mgm']['noise_dominated_modes_last']})"))
     if "safety" in s:

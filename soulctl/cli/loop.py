@@ -177,10 +177,14 @@ class RunOptions:
         "--ncpa",
         parser=number(NCPA_RMS_NM),
         metavar="NM",
+        show_default="100 (LUCI1's, the paper's Sec. 5.1)",
         help="Non-common-path aberration: NM RMS that the science camera sees and the pyramid does not.",
     )
-    ncpa_offsets: bool = typer.Option(
-        False, "--ncpa-offsets", help="Compensate the NCPA's controlled part with reference-slope offsets (scaled by k as LBT does)."
+    ncpa_offsets: bool | None = typer.Option(
+        None,
+        "--ncpa-offsets/--no-ncpa-offsets",
+        show_default="with OGTL, once it has calibrated k",
+        help="Compensate the NCPA's controlled part with reference-slope offsets (scaled by k as LBT does).",
     )
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
@@ -190,9 +194,7 @@ class RunOptions:
         show_default="on when the run is long enough for two updates",
         help="Run the optical gain tracking loop beside the loop (probe on --probe-mode), as SOUL does on sky.",
     )
-    ideal: bool = typer.Option(
-        False, "--ideal", help="Today's idealised loop: no OGTL, no NCPA, no mis-registration, a noiseless calibration."
-    )
+    ideal: bool = typer.Option(False, "--ideal", help="The idealised loop: no OGTL, no NCPA, no mis-registration, a noiseless calibration.")
     period: float | None = PERIOD
     probe_mode: int | None = PROBE_MODE
     probe_amplitude: float | None = PROBE_AMPLITUDE
@@ -298,7 +300,7 @@ def _run_overrides(o: RunOptions) -> dict:
         "auxiliary.ogtl": o.ogtl,
         "auxiliary.period_s": o.period,
         "ncpa.rms_nm": o.ncpa,
-        "ncpa.compensated": o.ncpa_offsets or None,
+        "ncpa.compensated": o.ncpa_offsets,
     }
     given = {k: v for k, v in values.items() if v is not None} | misregistration_overrides(o.misregistration)
     return _ideal(o, given) | given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
@@ -312,6 +314,7 @@ IDEAL = {
     "misregistration.rotation_deg": 0.0,
     "misregistration.magnification": 1.0,
     "calibration.photons_per_frame": 0.0,
+    "calibration.seeing_arcsec": 0.0,
 }
 
 

@@ -3,6 +3,7 @@ loop (with the optical gain tracking loop) or offline on a recorded telemetry fi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -319,7 +320,10 @@ def gains_cmd(o: GainsOptions) -> int:
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
         telemetry_input(o.telemetry)
         return _offline(o, cache)
-    description = run_description(o.config, o.mag, overrides).resolved()
+    description = run_description(o.config, o.mag, overrides)
+    if description.ncpa.compensated is None:  # the NCPA offsets come with this command's OGTL
+        description = dataclasses.replace(description, ncpa=dataclasses.replace(description.ncpa, compensated=o.ogtl))
+    description = description.resolved()
     run = description.request()  # its duration is not used: --duration and --measure set the phases
     probe_of_run = description.auxiliary.probe()
     requests = {m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence) for m in methods}

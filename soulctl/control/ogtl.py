@@ -30,6 +30,10 @@ OGTL knows when it does not know (``estimate``, ``next_sensitivity``):
   convergence the steps are small and the rule is idle, so it does not bias k.
 * *Growth*: k is not raised while the commands' RMS grows by more than 30 % from one update to
   the next.
+* *NCPA offsets*: reference-slope offsets wait until a reliable estimate puts the probed
+  mode's chi within ``OFFSETS_CHI_TOLERANCE`` (20 %) of 1, as SOUL applies them once k is
+  calibrated: at k = 1 they are over-applied by 1 / gamma (``optics.ncpa``), and at R9.7 with
+  100 nm applied from the first frame the loop lost lock (H Strehl 0.08, residual 1.65 um).
 Every update records its status (``STATUS``: why k moved less than the integrator asked).
 
 Probe defaults (``default_amplitude``, ``PROBE_FREQUENCY_PER_RATE``): at a quarter of the
@@ -61,6 +65,7 @@ WORST_SEEING_ARCSEC = 2.0  # k_max = 1 / gamma_probe at this seeing (SOUL's nigh
 MIN_SNR = 5.0  # an estimate moves k only from this SNR on
 MAX_STEP = 1.5  # k changes by at most this factor per update
 SPIRAL_RAISE = 1.2  # a raise of k since the last reliable estimate that chi must follow
+OFFSETS_CHI_TOLERANCE = 0.2  # NCPA offsets are applied once the probed mode's |chi - 1| is this or less
 REFERENCE_BINS = (-6, -5, -4, -3, 3, 4, 5, 6)  # off-frequency bins (of the window) of the noise reference
 # Why an update moved k less than the integrator asked (recorded per update as ``status``).
 STATUS = (

@@ -8,8 +8,9 @@ The closed loop knows only this interface:
   sensitivity k that were in force during them;
 * :class:`RtcParameters` - what a task may write: the modal gains (the diagonal of Delta), the
   slope sensitivity k (the RTC multiplies the slopes by k before reconstruction), a modal
-  probe (a sinusoid the RTC adds to one mode's commands, as SOUL's disturbance injection) and
-  a reset of the RTC's state (the loop opened and closed again);
+  probe (a sinusoid the RTC adds to one mode's commands, as SOUL's disturbance injection), the
+  reference-slope offsets (NCPA; subtracted after k) and a reset of the RTC's state (the loop
+  opened and closed again);
 * :class:`AuxLoop` - ``start`` once before the first frame, ``update`` every period; ``update``
   returns a record (numbers or arrays) stored in the telemetry as a time series.
 
@@ -71,13 +72,15 @@ class RtcParameters:
     """The RTC parameters an auxiliary loop may change between two frames (see the module
     docstring); applied from the next frame on."""
 
-    def __init__(self, n_modes: int, gains: np.ndarray, apply_gains, sensitivity: float = 1.0):
+    def __init__(self, n_modes: int, gains: np.ndarray, apply_gains, sensitivity: float = 1.0, slope_offset: np.ndarray | None = None):
         self.n_modes = n_modes
         self._gains = np.asarray(gains, dtype=float).copy()
         self._apply_gains = apply_gains
         self.sensitivity = float(sensitivity)
         self.probe: ModalProbe | None = None
         self.reset_requested = False  # the loop zeroes the RTC's state before the next frame
+        self.slope_offset = slope_offset  # in force: the RTC's input is k s - slope_offset
+        self.held_offset: np.ndarray | None = None  # loaded, not yet applied (``hold_slope_offset``)
 
     @property
     def gains(self) -> np.ndarray:
@@ -95,6 +98,19 @@ class RtcParameters:
         if not (math.isfinite(k) and lo <= k <= hi):
             raise InputError(f"slope sensitivity k must be in {lo:g}..{hi:g}, got {k:g}")
         self.sensitivity = float(k)
+
+    def hold_slope_offset(self) -> None:
+        """Keep the offsets out of the loop until ``apply_slope_offset`` (OGTL applies them once
+        k is calibrated: at k = 1 they are over-applied by 1 / gamma; ``optics.ncpa``)."""
+        if self.slope_offset is not None:
+            self.held_offset, self.slope_offset = self.slope_offset, None
+
+    def apply_slope_offset(self) -> bool:
+        """Put held offsets in force from the next frame; True if it did."""
+        if self.held_offset is None:
+            return False
+        self.slope_offset, self.held_offset = self.held_offset, None
+        return True
 
     def request_reset(self) -> None:
         """Open the loop and close it again from the next frame: the RTC's state zeta is set

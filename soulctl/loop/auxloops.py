@@ -57,6 +57,7 @@ class OgtlTask(AuxLoop):
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
         self.frequency_hz = self.settings.probe_frequency(rate_hz)
         rtc.set_probe(ModalProbe(self.settings.mode - 1, self.amplitude_nm, self.frequency_hz))
+        rtc.hold_slope_offset()  # NCPA offsets wait for a calibrated k (``ogtl.OFFSETS_CHI_TOLERANCE``)
 
     def damp(self) -> None:
         self.step_scale *= 0.5
@@ -83,6 +84,8 @@ class OgtlTask(AuxLoop):
         elif self.chi_now is not None:
             self.chi_now *= k / window.sensitivity
         rtc.set_sensitivity(k)
+        calibrated = reliable and self.chi_now is not None and abs(self.chi_now - 1.0) <= ogtl.OFFSETS_CHI_TOLERANCE
+        applied = calibrated and rtc.apply_slope_offset()
         return {
             "chi": est.chi,
             "chi_sigma": est.sigma,
@@ -91,6 +94,7 @@ class OgtlTask(AuxLoop):
             "sensitivity": k,
             "status": status,
             "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
+            "offsets_applied": bool(applied),
             "mode": self.settings.mode,
             "amplitude_nm": self.amplitude_nm,
             "frequency_hz": self.frequency_hz,
@@ -442,8 +446,9 @@ class SafetyNet(AuxLoop):
 
 def summary(records: dict) -> dict:
     """What the auxiliary loops did, from the telemetry's records (``TelemetryRecorder.aux_arrays`` per
-    task name): OGTL's probe, bound and update statuses; MGM's updates and noise-dominated
-    modes; the safety net's restores."""
+    task name): OGTL's probe, bound and update statuses, the frame its NCPA offsets entered
+    (None: not in this run); MGM's updates and noise-dominated modes; the safety net's
+    restores."""
     out: dict = {}
     og = records.get("ogtl", {})
     if len(og.get("frame", [])):
@@ -455,6 +460,7 @@ def summary(records: dict) -> dict:
             "probe_frequency_hz": float(og["frequency_hz"][-1]),
             "k_max": float(og["k_max"][-1]),
             "statuses": {ogtl.STATUS[i]: int(np.sum(status == i)) for i in np.unique(status)},
+            "ncpa_offsets_at_frame": next((int(f) for f, a in zip(og["frame"], og.get("offsets_applied", ())) if a), None),
         }
     mg = records.get("mgm", {})
     if len(mg.get("frame", [])):

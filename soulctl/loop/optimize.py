@@ -544,23 +544,36 @@ def plant_model(
     return mgm_chi(optical_gain_table(calibration, cache, seeing_arcsec), ogtl, probe_mode)
 
 
-def _new_loop(r: RunRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:
-    """The run's closed loop at t = 0: same seed, same turbulence, vibrations and noise."""
-    return closed_loop_for(r, cal, gains, structure)
+def _new_loop(request: OptimizeRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:
+    """The run's closed loop at t = 0: same seed, same turbulence, vibrations and noise; its
+    turbulence does not repeat within the session (``session_seconds``)."""
+    return closed_loop_for(request.run, cal, gains, structure, duration_s=session_seconds(request))
+
+
+def session_seconds(request: OptimizeRequest) -> float:
+    """An upper bound of the simulated time of an optimisation (closing and one period,
+    OGTL's settling at most, *before* and *after*, the optimisation: MGM's duration, or every
+    trial sequence of the three groups and one more)."""
+    rate = request.run.observation.frame_rate_hz
+    optimise = request.duration if request.method == "mgm" else request.sequence * (3 * (TRIAL_VALUES + 1) + 1)
+    settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
+    return closing_frames(rate) / rate + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
 
 
 def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, progress=None) -> PhaseMetrics:
     """Metrics of ``gains`` at slope sensitivity ``k`` on the run's own turbulence and noise: a
-    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k set, settled for
+    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k and the NCPA offsets set, settled for
     EVALUATION_SETTLE_S, measured for ``measure_s``; no auxiliary loop.  *before* and *after*
     so measured differ by the gains and k alone - a paired comparison: measured in the run's
     own phases, 0.5 s apart in time, they differ by the turbulence too, by up to +-0.05 in
     Strehl at 1.0" (docs/physics.md).  Raises LoopDiverged."""
     r = request.run
-    loop = _new_loop(r, cal, design, sampled_structure(r.structure, r.observation.frame_rate_hz))
+    loop = _new_loop(request, cal, design, sampled_structure(r.structure, r.observation.frame_rate_hz))
     loop.set_gains(gains)
+    loop.rtc_parameters.hold_slope_offset()  # NCPA offsets once k is set, as OGTL applies them
     loop.run(closing_frames(r.observation.frame_rate_hz), progress=progress)
     loop.rtc_parameters.set_sensitivity(k)
+    loop.rtc_parameters.apply_slope_offset()
     loop.run(request.frames(EVALUATION_SETTLE_S), progress=progress)
     n_measure = request.frames(request.measure_s)
     skip = min(n_measure // 2, request.frames(0.05))
@@ -644,7 +657,9 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     OGTL's updates and MGM's windows are whole periods: tasks run when frame % period == 0)."""
     r = request.run
     obs = r.observation
-    loop = _new_loop(r, cal, gains, sampled_structure(r.structure, obs.frame_rate_hz))
+    loop = _new_loop(request, cal, gains, sampled_structure(r.structure, obs.frame_rate_hz))
+    if request.ogtl:
+        loop.rtc_parameters.hold_slope_offset()  # OGTL applies the NCPA offsets once k is calibrated
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
     loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
     period = request.frames(request.period)

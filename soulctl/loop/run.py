@@ -201,6 +201,8 @@ def _prepare(loop: ClosedLoop, request: RunRequest, gains: LoopGains, cal: Calib
     (frames the loop runs at k = 1 before the tasks start, the tasks, the gains it starts with)."""
     n_close, tasks = 0, None
     if aux is not None:
+        if aux.ogtl:
+            loop.rtc_parameters.hold_slope_offset()  # OGTL applies the NCPA offsets once k is calibrated
         tasks, initial = aux(request, gains, cal, cache, loop)
         loop.set_gains(initial)
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
@@ -218,10 +220,13 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
     sink.describe(described, run_configuration(request, gains), {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M})
 
 
-def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None) -> ClosedLoop:
+def closed_loop_for(
+    request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None, duration_s: float | None = None
+) -> ClosedLoop:
     """The request's closed loop at t = 0 (its turbulence, vibrations, noise, structure,
     mis-registration, NCPA and calibration noise, seeded by its seed), with ``gains``;
-    ``structure`` sampled at its rate.  With calibration noise the loop's interaction matrix
+    ``structure`` sampled at its rate; turbulence that does not repeat within ``duration_s``
+    (default: the request's).  With calibration noise the loop's interaction matrix
     and reconstructor are the measured ones (``cal``, noiseless, stays what the optical-gain
     tables and the checks use)."""
     pupil = cal.setup.pyramid.pupil
@@ -239,16 +244,19 @@ def closed_loop_for(request: RunRequest, cal: Calibration, gains: LoopGains, str
         sink=sink,
         registration=request.registration,
         ncpa=None if request.ncpa is None else non_common_path(request.ncpa, pupil, cal.basis.shapes(pupil), cal.interaction_matrix),
+        duration_s=request.duration_s if duration_s is None else duration_s,
     )
 
 
 def _repeat_note(loop: ClosedLoop, request: RunRequest) -> tuple[str, ...]:
-    """A note when the run outlasts the periodic screens (its turbulence then repeats)."""
+    """A note when the run outlasts its screens (longer than ``MAX_SCREEN_PIXELS`` allows: its
+    turbulence then repeats)."""
     atmosphere = loop.disturbance.atmosphere
     if atmosphere is None or request.duration_s <= (repeat := atmosphere.repeat_time_s):
         return ()
+    largest = max(atmosphere.screen_shapes, key=lambda shape: shape[0] * shape[1])
     return (
-        f"the turbulence repeats after {repeat:.3g} s (periodic screens of {atmosphere.screen_pixels} px; "
+        f"the turbulence repeats after {repeat:.3g} s (periodic screens of at most {largest[0]} x {largest[1]} px; "
         f"this run lasts {request.duration_s:g} s): later frames see the same screens again",
     )
 

@@ -81,7 +81,8 @@ def _photons_per_frame(observation: Observation, pupil) -> float:
 
 class ClosedLoop:
     """A simulated SOUL-like loop for ``observation`` with ``calibration`` (which fixes the
-    pyramid's binning, modulation and sampling and the controlled modes)."""
+    pyramid's binning, modulation and sampling and the controlled modes); its turbulence does
+    not repeat within ``duration_s`` (None: the default screens, ``FrozenFlowAtmosphere``)."""
 
     def __init__(
         self,
@@ -101,6 +102,7 @@ class ClosedLoop:
         sink: Sink | None = None,
         registration: Misregistration | None = None,
         ncpa: NonCommonPath | None = None,
+        duration_s: float | None = None,
     ):
         self.observation, self.calibration, self.rate_hz = observation, calibration, observation.frame_rate_hz
         self.rng = np.random.default_rng(seed)
@@ -109,7 +111,7 @@ class ClosedLoop:
         pyramid = Pyramid(calibration.setup.pyramid)
         self.pupil = pupil = pyramid.pupil
         # the stages, in the order of a frame (``step``)
-        self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), np.random.default_rng(vib_seed))
+        self.disturbance = Disturbance(atmosphere, vibrations, pupil, self.rate_hz, int(atm_seed), int(vib_seed), duration_s)
         self.mirror = Mirror(calibration, pupil, structure, self.rate_hz, registration)
         self.sensor = WavefrontSensor(pyramid, detector, _photons_per_frame(observation, pupil))
         self.n_modes = calibration.basis.n_modes
@@ -121,7 +123,8 @@ class ClosedLoop:
         self.divergence_ratio, self._disturbance_peak = divergence_ratio, 0.0
         self.frame, self.stage_seconds = 0, dict.fromkeys(STAGES + ("metrics",), 0.0)
         self.ncpa = ncpa  # the science path's aberration and the RTC's slope offsets
-        self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity)
+        offset = None if ncpa is None else ncpa.slope_offset
+        self.rtc_parameters = RtcParameters(self.n_modes, gains.per_mode(self.n_modes), self.controller.apply_gains, sensitivity, offset)
         self.scheduler = AuxScheduler(self.rtc_parameters, self.telemetry)
         for aux in aux_loops:
             self.add_aux_loop(aux)
@@ -184,8 +187,8 @@ class ClosedLoop:
         k_slopes = self.rtc_parameters.sensitivity
         if k_slopes != 1.0:
             slopes *= np.float32(k_slopes)
-        if self.ncpa is not None and self.ncpa.slope_offset is not None:
-            slopes -= self.ncpa.slope_offset  # the RTC's input: k s - s_off (optics.ncpa)
+        if (offset := self.rtc_parameters.slope_offset) is not None:
+            slopes -= offset  # the RTC's input: k s - s_off (optics.ncpa)
         t5 = clock()
         commands = self.controller.commands(slopes, self.rtc_parameters.probe, k, self.rate_hz)
         self.delay.push(commands)

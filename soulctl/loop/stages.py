@@ -47,10 +47,14 @@ class Disturbance:
         pupil: Pupil,
         rate_hz: float,
         atmosphere_seed: int,
-        vibration_rng: np.random.Generator,
+        vibration_seed: int,
+        duration_s: float | None = None,
     ):
-        self.pupil, self.rate_hz, self.vibration_rng = pupil, rate_hz, vibration_rng
-        self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, atmosphere_seed) if atmosphere else None
+        self.pupil, self.rate_hz, self.vibration_rng = pupil, rate_hz, np.random.default_rng(vibration_seed)
+        # screens that do not repeat within duration_s (``FrozenFlowAtmosphere``)
+        self.atmosphere = None
+        if atmosphere is not None:
+            self.atmosphere = FrozenFlowAtmosphere(atmosphere, pupil.n_pixels, pupil.pixel_scale_m, atmosphere_seed, duration_s=duration_s)
         self.vibrations, dropped = vibrations.below_nyquist(rate_hz) if vibrations is not None else (None, ())
         # What the loop changed of what it was given, for the run's report.
         self.notes: tuple[str, ...] = tuple(

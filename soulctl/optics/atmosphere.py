@@ -207,15 +207,25 @@ def _central_k2_moment(half_width: float, r0: float, L0: float) -> float:
     return float(PSD_COEFFICIENT * r0 ** (-5 / 3) * 8 * radial.mean() * (math.pi / 4))
 
 
-def _fft_variances(n: int, dx: float, r0: float, L0: float) -> np.ndarray:
-    """Variance (rad^2) of each FFT frequency sample of an n x n screen: W(k) df^2, 0 at k = 0."""
-    df = 1.0 / (n * dx)
-    f = scipy.fft.fftfreq(n, dx)
-    k2 = f[:, None] ** 2 + f[None, :] ** 2
+def _fft_variances(shape: tuple[int, int], dx: float, r0: float, L0: float) -> np.ndarray:
+    """Variance (rad^2) of each FFT frequency sample of an ny x nx screen: W(k) dfy dfx, 0 at
+    k = 0."""
+    ny, nx = shape
+    fy, fx = scipy.fft.fftfreq(ny, dx), scipy.fft.fftfreq(nx, dx)
+    k2 = fy[:, None] ** 2 + fx[None, :] ** 2
     k2[0, 0] = 1.0
-    var = phase_psd(np.sqrt(k2), r0, L0) * df**2
+    var = phase_psd(np.sqrt(k2), r0, L0) * ((1.0 / (ny * dx)) * (1.0 / (nx * dx)))
     var[0, 0] = 0.0
     return var
+
+
+def periodic_phase_screen(shape: tuple[int, int], pixel_scale_m: float, r0_m: float, L0_m: float, rng) -> np.ndarray:
+    """An ny x nx periodic von Kármán screen, rad at 500 nm (float64): complex Gaussian
+    coefficients of variance 2 W(k) dfy dfx on the FFT grid (none at k = 0), the real part of
+    their inverse FFT; no power below 1/(n pixel_scale) along either axis nor above Nyquist."""
+    amp = np.sqrt(_fft_variances(shape, pixel_scale_m, r0_m, L0_m))
+    noise = rng.standard_normal((2, *shape))
+    return scipy.fft.ifft2((noise[0] + 1j * noise[1]) * amp, norm="forward").real
 
 
 def _inner_fft_k2_deficit(df: float, r0: float, L0: float) -> float:
@@ -274,10 +284,7 @@ def fft_phase_screen(n: int, pixel_scale_m: float, r0_m: float, L0_m: float, rng
     L0 = _check_positive("outer scale L0", L0_m, "m", allow_inf=True)
     rng = np.random.default_rng(rng)
 
-    amp = np.sqrt(_fft_variances(n, dx, r0, L0))
-    noise = rng.standard_normal((2, n, n))
-    coeff = (noise[0] + 1j * noise[1]) * amp
-    screen = scipy.fft.ifft2(coeff, norm="forward").real
+    screen = periodic_phase_screen((n, n), dx, r0, L0, rng)
     if subharmonics:
         kx, ky, var = _subharmonic_samples(n, dx, r0, L0)
         c = (rng.standard_normal(kx.size) + 1j * rng.standard_normal(kx.size)) * np.sqrt(var)
@@ -401,24 +408,36 @@ class FrozenFlowAtmosphere:
     """Frozen-flow layers moving across the pupil: OPD (nm) on an n_pixels grid at any time.
 
     One periodic FFT screen per layer (no subharmonics: it wraps seamlessly), r0_i =
-    r0 w_i^(-3/5), independent generators spawned from ``seed``.  Default screen size: the
-    smallest power of two >= max(4 L0, 8 pupils) in pixels, at most 4096.  Runs of any length
-    wrap around: a layer repeats after screen size / wind speed (``repeat_time_s``; exactly
-    for winds along x or y), and spatial frequencies below 1/screen size are missing: < 0.1% of
-    the tilt variance for L0 <= 100 m at the default size, but 17-25% for L0 = 10 km and
-    28-35% for Kolmogorov (80-160 px across 8.2 m; docs/physics.md).  The OPD at pupil pixel x
-    is the screen at x - v t (the pattern moves with the wind): the screen's Fourier series,
-    evaluated once on a grid twice as fine (``band_limited_upsample``), interpolated there with
-    periodic cubic B-splines (``fine_spline_coefficients``, in the same Fourier pass).  At whole-pixel offsets this
-    is the screen itself; at fractional ones a band-limited translation to within 0.2 % of the
-    500-mode fitting error (bilinear interpolation on the screen's own grid low-passed it by
-    cos(pi f), 14 % at half a pixel, so the statistics varied with the wind's sub-pixel phase;
-    quintic splines there 1.5-2 %: docs/physics.md).  Memory: 24 bytes x screen_pixels^2 per
-    layer (the screen, float64, and the coefficients on the finer grid, float32: 25 MB at 1024,
-    400 MB at 4096); set-up ~0.2 s per layer at 1024.
+    r0 w_i^(-3/5), independent generators spawned from ``seed``.  Screen size: at least the
+    smallest power of two >= max(4 L0, 8 pupils) in pixels, at most 4096, along both axes
+    (``screen_pixels``); spatial frequencies below 1/screen size are missing: < 0.1% of the
+    tilt variance for L0 <= 100 m at the default size, but 17-25% for L0 = 10 km and 28-35%
+    for Kolmogorov (80-160 px across 8.2 m; docs/physics.md).  **No repetition within
+    ``duration_s``**: each axis of a layer's screen is lengthened (a rectangle, to an even FFT
+    size) until the pupil, moving |v_axis| duration_s across it, never reaches screen it has
+    shown before, up to ``MAX_SCREEN_PIXELS`` per layer; ``repeat_time_s`` is the first time a
+    layer does show it again (for longer runs the screens wrap, as they all did before).
+    The OPD at pupil pixel x is the screen at x - v t (the pattern moves with the wind): the
+    screen's Fourier series, evaluated once on a grid twice as fine (``band_limited_upsample``),
+    interpolated there with periodic cubic B-splines (``fine_spline_coefficients``, in the
+    same Fourier pass).  At whole-pixel offsets this is the screen itself; at fractional ones a
+    band-limited translation to within 0.2 % of the 500-mode fitting error (bilinear
+    interpolation on the screen's own grid low-passed it by cos(pi f), 14 % at half a pixel,
+    so the statistics varied with the wind's sub-pixel phase; quintic splines there 1.5-2 %:
+    docs/physics.md).  Memory: 24 bytes per screen pixel and layer (the screen, float64, and
+    the coefficients on the finer grid, float32: 25 MB at 1024^2, 400 MB at 4096^2, 800 MB at
+    ``MAX_SCREEN_PIXELS``); set-up ~0.2 s per layer at 1024^2.
     """
 
-    def __init__(self, config: AtmosphereConfig, n_pixels: int, pixel_scale_m: float, seed: int, screen_pixels: int | None = None):
+    def __init__(
+        self,
+        config: AtmosphereConfig,
+        n_pixels: int,
+        pixel_scale_m: float,
+        seed: int,
+        screen_pixels: int | None = None,
+        duration_s: float | None = None,
+    ):
         if not isinstance(config, AtmosphereConfig):
             raise InputError("config must be an AtmosphereConfig")
         if int(n_pixels) != n_pixels or n_pixels < 2:
@@ -431,10 +450,12 @@ class FrozenFlowAtmosphere:
         if int(screen_pixels) != screen_pixels or not (self.n_pixels <= screen_pixels <= 16384):
             raise InputError(f"screen size must be an integer in {self.n_pixels}..16384 pixels (>= the pupil), got {screen_pixels}")
         self.screen_pixels = int(screen_pixels)
+        if duration_s is not None and not (math.isfinite(duration_s) and duration_s >= 0):
+            raise InputError(f"the frozen flow's duration must be a finite number of seconds >= 0, got {duration_s}")
 
         weights = config.weights
         rngs = np.random.default_rng(seed).spawn(len(config.layers))
-        screens, coefficients, r0s, vel = [], [], [], []
+        screens, coefficients, r0s, vel, shapes = [], [], [], [], []
         self._window = UPSAMPLING * (self.n_pixels - 1) + SPLINE_ORDER + 1  # fine samples a pupil row reads
         for layer, w, rng in zip(config.layers, weights, rngs):
             if w == 0:
@@ -442,18 +463,19 @@ class FrozenFlowAtmosphere:
                 continue
             r0_i = config.r0_m * w ** (-3 / 5)
             r0s.append(r0_i)
-            screen = fft_phase_screen(self.screen_pixels, self.pixel_scale_m, r0_i, config.L0_m, rng, subharmonics=False)
+            velocity = _velocity_px_s(layer, self.pixel_scale_m)
+            shape = _screen_shape(velocity, duration_s or 0.0, self.n_pixels, self.screen_pixels)
+            screen = _NM_PER_RAD * periodic_phase_screen(shape, self.pixel_scale_m, r0_i, config.L0_m, rng)
             screen.setflags(write=False)
             screens.append(screen)
             spline = np.asarray(fine_spline_coefficients(screen), dtype=np.float32)
             coefficients.append(np.pad(spline, (0, self._window), mode="wrap"))  # every window a contiguous slice
-            a = math.radians(layer.wind_direction_deg)
-            v = layer.wind_speed_m_s / self.pixel_scale_m  # pixels per second
-            c, s = (0.0 if abs(u) < 1e-12 else u for u in (math.cos(a), math.sin(a)))  # 90°: exact
-            vel.append((v * c, v * s))
+            vel.append(velocity)
+            shapes.append(shape)
         self._screens = tuple(screens)
         self._coefficients = tuple(coefficients)
         self._velocity_px_s = tuple(vel)
+        self.screen_shapes: tuple[tuple[int, int], ...] = tuple(shapes)
         self.layer_r0_m = tuple(r0s)
 
     @property
@@ -463,10 +485,15 @@ class FrozenFlowAtmosphere:
 
     @property
     def repeat_time_s(self) -> float:
-        """Shortest time for a layer to move by one screen length (inf if none moves)."""
-        L = self.screen_pixels * self.pixel_scale_m
-        speeds = [layer.wind_speed_m_s for layer, w in zip(self.config.layers, self.config.weights) if w > 0]
-        return min((L / v for v in speeds if v > 0), default=math.inf)
+        """The first time a layer's pupil footprint reaches screen it has shown before (inf if
+        none moves): min over layers and axes of (screen - pupil) / |v_axis|."""
+        times = [
+            (n - self.n_pixels) / abs(v)
+            for shape, velocity in zip(self.screen_shapes, self._velocity_px_s)
+            for n, v in zip(shape, (velocity[1], velocity[0]))
+            if v != 0
+        ]
+        return min(times, default=math.inf)
 
     def opd_nm(self, t_s: float) -> np.ndarray:
         """OPD (nm, float64, n_pixels x n_pixels) at time t_s: the sum of the layers, each
@@ -478,14 +505,56 @@ class FrozenFlowAtmosphere:
         if not np.isfinite(t):
             raise InputError(f"time must be a finite number of seconds, got {t_s}")
         stride, n = UPSAMPLING, self.n_pixels
-        N = stride * self.screen_pixels  # the finer grid's size
         out = np.zeros((n, n))
-        for coefficients, (vx, vy) in zip(self._coefficients, self._velocity_px_s):
+        for coefficients, (vx, vy), (ny, nx) in zip(self._coefficients, self._velocity_px_s, self.screen_shapes):
+            Ny, Nx = stride * ny, stride * nx  # the finer grid's size
             # pupil pixel (r, c) sees screen point (r - vy t, c - vx t), fine point stride x that, modulo N
-            py = -math.fmod(stride * vy * t, N)
-            px = -math.fmod(stride * vx * t, N)
+            py = -math.fmod(stride * vy * t, Ny)
+            px = -math.fmod(stride * vx * t, Nx)
             iy, ix = math.floor(py), math.floor(px)
-            r0, c0 = (iy - SPLINE_ORDER // 2) % N, (ix - SPLINE_ORDER // 2) % N
+            r0, c0 = (iy - SPLINE_ORDER // 2) % Ny, (ix - SPLINE_ORDER // 2) % Nx
             window = coefficients[r0 : r0 + self._window, c0 : c0 + self._window]
             out += separable_sums(window, bspline_weights(py - iy), bspline_weights(px - ix), stride, n)
         return out
+
+
+MAX_SCREEN_PIXELS = 1 << 25  # per layer (800 MB with its coefficients): longer runs wrap
+SPLINE_MARGIN_PX = 2  # coarse pixels the spline taps read beyond the pupil
+
+
+def _velocity_px_s(layer: Layer, pixel_scale_m: float) -> tuple[float, float]:
+    """(vx, vy) of a layer in pixels per second (exact zeros along the axes)."""
+    a = math.radians(layer.wind_direction_deg)
+    v = layer.wind_speed_m_s / pixel_scale_m
+    c, s = (0.0 if abs(u) < 1e-12 else u for u in (math.cos(a), math.sin(a)))  # 90°: exact
+    return v * c, v * s
+
+
+def _even_fft_size(n: int) -> int:
+    m = scipy.fft.next_fast_len(n)
+    while m % 2:
+        m = scipy.fft.next_fast_len(m + 1)
+    return m
+
+
+def _screen_shape(velocity: tuple[float, float], duration_s: float, n_pixels: int, minimum: int) -> tuple[int, int]:
+    """(ny, nx) of a layer's screen: along each axis ``minimum``, or longer where the pupil,
+    moving |v_axis| per second, would otherwise come back within ``duration_s`` to screen it
+    has shown.  Where ny nx would pass MAX_SCREEN_PIXELS, the longest time the cap allows,
+    the same along both axes (bisection)."""
+
+    def shape(seconds: float) -> tuple[int, int]:
+        def axis(v: float) -> int:
+            span = math.ceil(abs(v) * seconds) + n_pixels + SPLINE_MARGIN_PX
+            return minimum if span <= minimum else _even_fft_size(span)
+
+        return axis(velocity[1]), axis(velocity[0])
+
+    ny, nx = shape(duration_s)
+    if ny * nx <= MAX_SCREEN_PIXELS:
+        return ny, nx
+    lo, hi = 0.0, duration_s
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if math.prod(shape(mid)) <= MAX_SCREEN_PIXELS else (lo, mid)
+    return shape(lo)

@@ -41,16 +41,17 @@ UPSAMPLING = 2  # ... on the screen band-limited to twice its sampling (docs/phy
 
 
 def _fine_spectrum(screen: np.ndarray, factor: int) -> np.ndarray:
-    """rfft2 of the periodic ``screen`` (N x N, N even) zero-padded to factor N, the Nyquist row
-    and column split between +N/2 and -N/2, scaled so that irfft2 interpolates."""
-    N = screen.shape[0]
-    h, M = N // 2, factor * N
-    F = scipy.fft.rfft2(screen, workers=-1) * factor**2  # (N, h + 1)
-    G = np.zeros((M, M // 2 + 1), dtype=F.dtype)
-    G[:h, : h + 1] = F[:h]
-    G[M - h + 1 :, : h + 1] = F[h + 1 :]
-    G[h, : h + 1] = G[M - h, : h + 1] = 0.5 * F[h]
-    G[:, h] *= 0.5  # irfft2 counts column h of the finer grid as +h and -h
+    """rfft2 of the periodic ``screen`` (ny x nx, both even) zero-padded to factor ny x factor
+    nx, the Nyquist row and column split between +n/2 and -n/2, scaled so that irfft2
+    interpolates."""
+    ny, nx = screen.shape
+    hy, hx, My, Mx = ny // 2, nx // 2, factor * ny, factor * nx
+    F = scipy.fft.rfft2(screen, workers=-1) * factor**2  # (ny, hx + 1)
+    G = np.zeros((My, Mx // 2 + 1), dtype=F.dtype)
+    G[:hy, : hx + 1] = F[:hy]
+    G[My - hy + 1 :, : hx + 1] = F[hy + 1 :]
+    G[hy, : hx + 1] = G[My - hy, : hx + 1] = 0.5 * F[hy]
+    G[:, hx] *= 0.5  # irfft2 counts column hx of the finer grid as +hx and -hx
     return G
 
 
@@ -58,8 +59,8 @@ def band_limited_upsample(screen: np.ndarray, factor: int = UPSAMPLING) -> np.nd
     """The periodic ``screen`` on a grid ``factor`` times finer: its Fourier series evaluated
     there.  It passes through every sample of ``screen`` and adds no frequency above the
     screen's Nyquist."""
-    M = factor * screen.shape[0]
-    return scipy.fft.irfft2(_fine_spectrum(screen, factor), s=(M, M))
+    shape = (factor * screen.shape[0], factor * screen.shape[1])
+    return scipy.fft.irfft2(_fine_spectrum(screen, factor), s=shape)
 
 
 def fine_spline_coefficients(screen: np.ndarray, factor: int = UPSAMPLING) -> np.ndarray:
@@ -68,11 +69,11 @@ def fine_spline_coefficients(screen: np.ndarray, factor: int = UPSAMPLING) -> np
     pass: the spectrum divided by the sampled cubic B-spline's, (4 + 2 cos 2 pi nu) / 6 per axis.
     In float32, the precision the frozen flow stores them in (relative error ~2e-7; 2.5x
     faster than float64 on the loop's 1024-2048 px screens), on all cores (set-up only)."""
-    M = factor * screen.shape[0]
+    My, Mx = factor * screen.shape[0], factor * screen.shape[1]
     b = lambda nu: ((4.0 + 2.0 * np.cos(2.0 * np.pi * nu)) / 6.0).astype(np.float32)  # noqa: E731
     G = _fine_spectrum(np.asarray(screen, dtype=np.float32), factor)
-    G /= b(np.fft.fftfreq(M))[:, None] * b(np.fft.rfftfreq(M))[None, :]
-    return scipy.fft.irfft2(G, s=(M, M), workers=-1)
+    G /= b(np.fft.fftfreq(My))[:, None] * b(np.fft.rfftfreq(Mx))[None, :]
+    return scipy.fft.irfft2(G, s=(My, Mx), workers=-1)
 
 
 @functools.lru_cache(maxsize=8)

@@ -30,7 +30,7 @@ from .pupil import Pupil
 class NcpaSpec:
     rms_nm: float = 0.0  # on the pupil, piston removed
     exponent: float = 2.0  # PSD ~ |f|^-exponent
-    compensated: bool = False  # reference-slope offsets for the controlled modes' part
+    compensated: bool | None = False  # reference-slope offsets for the controlled modes' part; None: with OGTL (run_config)
     seed: int = 1  # the instrument's draw
 
     def __post_init__(self):

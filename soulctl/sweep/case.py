@@ -110,7 +110,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
         request = description.request()
         cache = ArrayCache(cache_dir)
         if p["gain_method"] == "default":
-            result = run(request, cache, calibration=calibration)
+            result = run(request, cache, calibration=calibration, aux=description.auxiliary.live())  # as `loop run --config` runs it
             if result.diverged_at is not None:
                 row.update(status="diverged", reason=f"loop diverged at frame {result.diverged_at}")
             else:

@@ -43,15 +43,18 @@ def test_request_limits():
     assert r.frames == 1700 and r.skip == 340
 
 
-def test_a_run_longer_than_its_screens_says_the_turbulence_repeats(optics_cache):
-    """The periodic screens repeat after screen length / wind speed (~1 s for the 105 m screens
-    at 100 m/s): a longer run says so; a shorter one does not."""
+def test_a_run_longer_than_its_screens_says_the_turbulence_repeats(optics_cache, monkeypatch):
+    """Screens grow with the run so that its turbulence does not repeat (1.3 s at 100 m/s: the
+    fastest layer crosses 440 m); where the memory cap stops them (here lowered to 512^2 px),
+    the run says its turbulence repeats."""
     from soulctl.loop.run import run
+    from soulctl.optics import atmosphere
     from soulctl.run_config import RunConfig
 
     obs = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-    base = RunConfig(observation=obs, oversampling=1).with_values({"atmosphere.wind_m_s": 100.0})
-    long_run = run(base.with_values({"run.duration_s": 1.3}).request(), optics_cache)
-    assert any("the turbulence repeats after" in n for n in long_run.notes), long_run.notes
-    short_run = run(base.with_values({"run.duration_s": 0.3}).request(), optics_cache)
-    assert not any("repeats" in n for n in short_run.notes)
+    base = RunConfig(observation=obs, oversampling=1).with_values({"atmosphere.wind_m_s": 100.0, "run.duration_s": 1.3})
+    grown = run(base.request(), optics_cache)
+    assert not any("repeats" in n for n in grown.notes), grown.notes
+    monkeypatch.setattr(atmosphere, "MAX_SCREEN_PIXELS", 512**2)
+    capped = run(base.request(), optics_cache)
+    assert any("the turbulence repeats after" in n for n in capped.notes), capped.notes

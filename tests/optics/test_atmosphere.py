@@ -325,8 +325,9 @@ def test_frozen_flow_seeds_layers_and_repeat_time():
     # each layer's r0 from its Cn2 weight; the r0^(-5/3) add up to the total's
     assert a.layer_r0_m == pytest.approx((cfg.r0_m * 0.5**-0.6,) * 2)
     assert sum(r ** (-5 / 3) for r in a.layer_r0_m) == pytest.approx(cfg.r0_m ** (-5 / 3))
-    # the fastest layer repeats first: 64 px x 0.5 m / 16 m/s = 2 s; along x, exactly
-    assert a.repeat_time_s == pytest.approx(2.0)
+    # the fastest layer first reaches screen it has shown after (64 - 16) px x 0.5 m / 16 m/s
+    # = 1.5 s; the pattern repeats exactly after 64 px x 0.5 m / 16 m/s = 2 s (along x)
+    assert a.repeat_time_s == pytest.approx(1.5)
     assert a.opd_nm(0.3 + 8.0) == pytest.approx(a.opd_nm(0.3), abs=1e-9)  # both layers: 8 s = lcm(8, 2)
     assert not np.allclose(a.opd_nm(0.3 + 2.0), a.opd_nm(0.3))
 
@@ -501,3 +502,53 @@ def test_zernike_noll_indexing_and_orthonormality():
     assert Z @ Z.T / mask.sum() == pytest.approx(np.eye(21), abs=0.02)
     tip = zernike(2, 64)
     assert tip[32, 60] > 0 > tip[32, 3] and abs(tip[60, 32]) < 0.1  # Z2 along x (columns)
+
+
+def test_screens_are_long_enough_for_the_run_and_unchanged_for_short_runs():
+    """Each axis of a layer's screen grows with |v_axis| x duration so that the pupil never
+    reaches screen it has shown; runs shorter than the default screens keep them (the same
+    numbers as before the sizing)."""
+    cfg = AtmosphereConfig(1.0, 25.0, (Layer(0.0, 0.5, 10.0, 0.0), Layer(5e3, 0.5, 20.0, 45.0)))
+    n, ps = 16, 0.5
+    short = FrozenFlowAtmosphere(cfg, n, ps, seed=4, duration_s=2.0)
+    assert short.screen_shapes == ((256, 256), (256, 256))
+    np.testing.assert_array_equal(short.opd_nm(1.37), FrozenFlowAtmosphere(cfg, n, ps, seed=4).opd_nm(1.37))
+    long = FrozenFlowAtmosphere(cfg, n, ps, seed=4, duration_s=60.0)
+    (ny0, nx0), (ny1, nx1) = long.screen_shapes
+    assert ny0 == 256 and nx0 >= 10 / ps * 60 + n and min(ny1, nx1) >= 20 / ps * 60 / np.sqrt(2) + n
+    assert long.repeat_time_s >= 60.0 > short.repeat_time_s
+    assert short.repeat_time_s == pytest.approx((256 - n) / (20 / ps / np.sqrt(2)))
+
+
+def test_a_ten_minute_run_has_no_periodicity():
+    """The pupil's OPD (piston and tilt removed) 10 s apart or more is uncorrelated over a
+    10-minute run (largest |correlation| 0.04 at lags of 10-300 s); the same layer on the
+    default periodic screen correlates fully again after screen size / wind speed (12.8 s)."""
+    cfg, n, ps, v = single_layer(10.0, 0.0), 16, 1.0, 10.0
+    times = np.arange(0.0, 600.0, 0.5)
+
+    def correlations(atm):
+        mask = pupil_mask(n)
+        Z = np.array([zernike(j, n)[mask] for j in (1, 2, 3)]).T
+        x = np.array([atm.opd_nm(t)[mask] for t in times])
+        x -= (x @ np.linalg.pinv(Z).T) @ Z.T  # piston and tilt removed
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        lags = np.arange(20, len(times) // 2)  # 10 s to 300 s
+        return np.array([np.mean(np.sum(x[:-lag] * x[lag:], axis=1)) for lag in lags])
+
+    long = FrozenFlowAtmosphere(cfg, n, ps, seed=5, duration_s=600.0)
+    assert long.repeat_time_s >= 600.0 and long.screen_shapes[0][1] >= v / ps * 600
+    assert np.max(np.abs(correlations(long))) < 0.15
+    periodic = FrozenFlowAtmosphere(cfg, n, ps, seed=5)
+    assert periodic.repeat_time_s < 30.0
+    assert np.max(correlations(periodic)) > 0.99
+
+
+def test_the_band_limited_grid_of_a_rectangle_is_that_of_its_tiles():
+    """A screen tiled twice along an axis is a periodic rectangle: its 2x grid and spline
+    coefficients are the tiles' (the rectangular Fourier pass is exact)."""
+    square = np.random.default_rng(2).standard_normal((64, 64))
+    for reps in ((1, 2), (3, 1)):
+        np.testing.assert_allclose(band_limited_upsample(np.tile(square, reps)), np.tile(band_limited_upsample(square), reps), atol=1e-12)
+        coefficients = fine_spline_coefficients(np.tile(square, reps))
+        np.testing.assert_allclose(coefficients, np.tile(fine_spline_coefficients(square), reps), atol=1e-5)
