@@ -552,3 +552,23 @@ def test_the_band_limited_grid_of_a_rectangle_is_that_of_its_tiles():
         np.testing.assert_allclose(band_limited_upsample(np.tile(square, reps)), np.tile(band_limited_upsample(square), reps), atol=1e-12)
         coefficients = fine_spline_coefficients(np.tile(square, reps))
         np.testing.assert_allclose(coefficients, np.tile(fine_spline_coefficients(square), reps), atol=1e-5)
+
+
+def test_a_screen_grown_for_a_minute_keeps_the_structure_function():
+    """Frames 5-60 s into a minute-long run, on screens grown for it (864 x 2304 px for 10 m/s
+    at 20°): D(r) at 2, 4 and 8 px within 5 % of von Kármán theory (measured 0.962, 0.979,
+    0.975 over 12 seeds x 12 frames; the default square screens 0.975, 1.004, 1.03).  At 1 px
+    both are 11 % low: an FFT screen has no power above its Nyquist frequency."""
+    n, ps = 32, 0.25
+    cfg = AtmosphereConfig(1.0, 25.0, (Layer(0.0, 1.0, 10.0, 20.0),))
+    lags = (2, 4, 8)
+    d = {lag: [] for lag in lags}
+    for seed in range(1, 13):
+        atm = FrozenFlowAtmosphere(cfg, n, ps, seed=seed, duration_s=60.0)
+        assert atm.repeat_time_s >= 60.0
+        for t in np.arange(5.0, 61.0, 5.0):
+            phase = atm.opd_nm(t) * (2 * math.pi / 500.0)
+            for lag in lags:
+                d[lag].append(0.5 * (np.mean((phase[:, lag:] - phase[:, :-lag]) ** 2) + np.mean((phase[lag:] - phase[:-lag]) ** 2)))
+    for lag in lags:
+        assert np.mean(d[lag]) == pytest.approx(structure_function(lag * ps, cfg.r0_m, 25.0), rel=0.05), lag
