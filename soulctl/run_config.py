@@ -212,9 +212,14 @@ class RunConfig:
         if n not in (0, self.observation.modes):
             raise InputError(f"control.mode_gains has {n} gains but {self.observation.modes} modes are controlled")
 
-    def request(self) -> RunRequest:
-        """The run's request: the one place a ``RunRequest`` is built from a description."""
+    def request(self, ogtl: bool | None = None) -> RunRequest:
+        """The run's request: the one place a ``RunRequest`` is built from a description.  NCPA
+        offsets left automatic (``ncpa.compensated`` None) follow OGTL: ``ogtl`` where the
+        caller runs its own (`optimize gains`), else the description's resolved decision."""
         a, resolved = self.atmosphere, self.resolved()
+        ncpa = resolved.ncpa
+        if ncpa.compensated is None:
+            ncpa = dataclasses.replace(ncpa, compensated=bool(resolved.auxiliary.ogtl if ogtl is None else ogtl))
         return RunRequest(
             self.observation,
             a.seeing_arcsec,
@@ -231,7 +236,7 @@ class RunConfig:
             self.controller.allow_unstable,
             a.layers or None,
             None if self.registration.is_identity else self.registration,
-            resolved.ncpa if resolved.ncpa.active else None,
+            ncpa if ncpa.active else None,
             self.calibration if self.calibration.active else None,
         )
 
@@ -240,15 +245,13 @@ class RunConfig:
         today) and OGTL's automatic default decided, so that the stored description does not
         depend on tomorrow's defaults."""
         aux = self.auxiliary.resolved(self.observation, self.duration_s)
-        ncpa = self.ncpa if self.ncpa.compensated is not None else dataclasses.replace(self.ncpa, compensated=bool(aux.ogtl))
         if self.controller.gains or self.controller.mode_gains:
-            return dataclasses.replace(self, auxiliary=aux, ncpa=ncpa)
+            return dataclasses.replace(self, auxiliary=aux)
         g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
         return dataclasses.replace(
             self,
             controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high))),
             auxiliary=aux,
-            ncpa=ncpa,
         )
 
     def to_dict(self) -> dict:

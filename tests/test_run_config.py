@@ -182,15 +182,20 @@ def test_ogtl_is_on_by_default_when_the_run_lets_it_act():
 
 def test_the_sky_default_carries_luci1s_ncpa_compensated_where_ogtl_runs():
     """100 nm of NCPA (the paper's LUCI1) in every plain run; the reference-slope offsets come
-    with OGTL (short runs: neither), unless the description says otherwise."""
+    with OGTL (short runs: neither), unless the description says otherwise.  The description
+    keeps the choice automatic, so that a stored run re-run without OGTL drops the offsets
+    too (applied at k = 1 they lose the loop)."""
     assert RunConfig().ncpa.rms_nm == defaults.NCPA_RMS_NM == 100.0
-    assert RunConfig(duration_s=0.2).resolved().ncpa.compensated is False
+    assert RunConfig(duration_s=0.2).request().ncpa.compensated is False
     long = RunConfig(duration_s=3.0).resolved()
-    assert long.auxiliary.ogtl is True and long.ncpa.compensated is True
-    assert RunConfig(duration_s=3.0).with_values({"auxiliary.ogtl": False}).resolved().ncpa.compensated is False
-    assert RunConfig(duration_s=0.2).with_values({"ncpa.compensated": True}).resolved().ncpa.compensated is True
+    assert long.auxiliary.ogtl is True and long.ncpa.compensated is None and long.request().ncpa.compensated is True
+    assert RunConfig(duration_s=3.0).with_values({"auxiliary.ogtl": False}).request().ncpa.compensated is False
+    assert RunConfig(duration_s=0.2).with_values({"ncpa.compensated": True}).request().ncpa.compensated is True
+    assert RunConfig(duration_s=0.2).request(ogtl=True).ncpa.compensated is True  # `optimize gains`' own OGTL
     stored = RunConfig.from_dict(tomllib.loads(long.to_toml()))
-    assert stored.ncpa == long.ncpa and stored.request().ncpa == long.ncpa
+    assert stored.ncpa == long.ncpa and stored.request().ncpa == long.request().ncpa
+    rerun = stored.with_values({"auxiliary.ogtl": False})
+    assert rerun.request().ncpa.compensated is False
     assert RunConfig.from_dict({}).ncpa == RunConfig().ncpa  # a section left out is the default
 
 

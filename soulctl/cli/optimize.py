@@ -3,7 +3,6 @@ loop (with the optical gain tracking loop) or offline on a recorded telemetry fi
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -20,7 +19,7 @@ from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
 from ..loop.offline import PlantInputs, offline_mgm
-from ..loop.optimize import METHODS, OptimizeRequest, OptimizeResult, optimize
+from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
 from ..ranges import DELAY_FRAMES, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
@@ -269,7 +268,7 @@ class GainsOptions:
         parser=number(SEQUENCE_S),
         help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames).",
     )
-    ogtl: bool = typer.Option(True, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k).")
+    ogtl: bool = typer.Option(OPTIMISER_OGTL, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k).")
     probe_mode: int | None = PROBE_MODE
     probe_amplitude: float | None = PROBE_AMPLITUDE
     probe_frequency: float | None = PROBE_FREQUENCY
@@ -320,11 +319,9 @@ def gains_cmd(o: GainsOptions) -> int:
             raise InputError("--telemetry runs MGM offline: use it with --method mgm")
         telemetry_input(o.telemetry)
         return _offline(o, cache)
-    description = run_description(o.config, o.mag, overrides)
-    if description.ncpa.compensated is None:  # the NCPA offsets come with this command's OGTL
-        description = dataclasses.replace(description, ncpa=dataclasses.replace(description.ncpa, compensated=o.ogtl))
-    description = description.resolved()
-    run = description.request()  # its duration is not used: --duration and --measure set the phases
+    description = run_description(o.config, o.mag, overrides).resolved()
+    # its duration is not used (--duration and --measure set the phases); automatic NCPA offsets come with this command's OGTL
+    run = description.request(ogtl=o.ogtl)
     probe_of_run = description.auxiliary.probe()
     requests = {m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence) for m in methods}
     results = _optimize_each(requests, cache, show=not o.json_output and sys.stderr.isatty())

@@ -99,6 +99,7 @@ SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts withi
 # 0.2 s the evaluation measured MGM's gains mid-transient (Strehl 0.129 -> 0.111), with 1 s in
 # the steady state (0.127 -> 0.152; over 1-3 s the residual is 386 against 401 nm).
 EVALUATION_SETTLE_S = 1.0
+OPTIMISER_OGTL = True  # `optimize gains` and a sweep's optimised cases run OGTL unless told not to
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,7 @@ class OptimizeRequest:
     method: str = "mgm"
     duration_s: float | None = None  # MGM's optimisation phase; None: ``default_duration_s``
     period_s: float | None = None  # MGM's and OGTL's update period; None: ``default_period_s``
-    ogtl: bool = True
+    ogtl: bool = OPTIMISER_OGTL
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
     measure_s: float = 0.5  # before and after
     trial_sequence_s: float | None = None  # one trial-and-error sequence (20 % settling); None: ``default_sequence_s``
@@ -284,6 +285,7 @@ class OptimizeResult:
     phases: dict = field(default_factory=dict)  # name -> (first frame, end frame)
     during_run: dict = field(default_factory=dict)  # "before"/"after" -> PhaseMetrics of the run's own phases
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
+    offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
 
 
 def optical_gain_table(
@@ -552,17 +554,20 @@ def _new_loop(request: OptimizeRequest, cal: Calibration, gains: LoopGains, stru
 
 def session_seconds(request: OptimizeRequest) -> float:
     """An upper bound of the simulated time of an optimisation (closing and one period,
-    OGTL's settling at most, *before* and *after*, the optimisation: MGM's duration, or every
-    trial sequence of the three groups and one more)."""
+    OGTL's settling at most, *before* and *after*, the optimisation: MGM's duration, or twice
+    every trial sequence of the three groups and one more, the most ``_run_optimiser`` runs)."""
     rate = request.run.observation.frame_rate_hz
-    optimise = request.duration if request.method == "mgm" else request.sequence * (3 * (TRIAL_VALUES + 1) + 1)
+    optimise = request.duration if request.method == "mgm" else 2 * request.sequence * (3 * (TRIAL_VALUES + 1) + 1)
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     return closing_frames(rate) / rate + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
 
 
-def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, progress=None) -> PhaseMetrics:
+def evaluate(
+    request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, offsets: bool = False, progress=None
+) -> PhaseMetrics:
     """Metrics of ``gains`` at slope sensitivity ``k`` on the run's own turbulence and noise: a
-    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k and the NCPA offsets set, settled for
+    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k set and the NCPA
+    offsets applied if ``offsets`` (as they were in the run at that point), settled for
     EVALUATION_SETTLE_S, measured for ``measure_s``; no auxiliary loop.  *before* and *after*
     so measured differ by the gains and k alone - a paired comparison: measured in the run's
     own phases, 0.5 s apart in time, they differ by the turbulence too, by up to +-0.05 in
@@ -573,7 +578,8 @@ def evaluate(request: OptimizeRequest, cal: Calibration, design: LoopGains, gain
     loop.rtc_parameters.hold_slope_offset()  # NCPA offsets once k is set, as OGTL applies them
     loop.run(closing_frames(r.observation.frame_rate_hz), progress=progress)
     loop.rtc_parameters.set_sensitivity(k)
-    loop.rtc_parameters.apply_slope_offset()
+    if offsets:
+        loop.rtc_parameters.apply_slope_offset()
     loop.run(request.frames(EVALUATION_SETTLE_S), progress=progress)
     n_measure = request.frames(request.measure_s)
     skip = min(n_measure // 2, request.frames(0.05))
@@ -698,7 +704,7 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
                 break
         result.phases["settling"] = (result.phases["closing"][1], loop.frame)
     result.during_run["before"], result.phases["before"] = _measure(loop, s, wavelength, tick)
-    k_before = loop.rtc_parameters.sensitivity
+    k_before, offsets_before = loop.rtc_parameters.sensitivity, loop.rtc_parameters.slope_offset is not None
     start = loop.frame
     loop.remove_aux_loop(s.net)  # the net acts after the optimiser in an update
     loop.add_aux_loop(s.optimiser)
@@ -709,6 +715,7 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
     result.gains = loop.rtc_parameters.gains
     result.during_run["after"], result.phases["after"] = _measure(loop, s, wavelength, tick)
     result.sensitivities = (k_before, loop.rtc_parameters.sensitivity)
+    result.offsets = (offsets_before, loop.rtc_parameters.slope_offset is not None)
 
 
 def optimize(
@@ -747,8 +754,8 @@ def optimize(
         result.gains = s.loop.rtc_parameters.gains
     if result.diverged_at is None:
         try:
-            result.before = evaluate(request, cal, gains, initial, result.sensitivities[0], tick)
-            result.after = evaluate(request, cal, gains, result.gains, result.sensitivities[1], tick)
+            result.before = evaluate(request, cal, gains, initial, result.sensitivities[0], result.offsets[0], tick)
+            result.after = evaluate(request, cal, gains, result.gains, result.sensitivities[1], result.offsets[1], tick)
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = s.net.events

@@ -231,7 +231,7 @@ def closed_loop_for(
     tables and the checks use)."""
     pupil = cal.setup.pyramid.pupil
     if request.calibration_noise is not None:
-        cal = measured_calibration(cal, request.calibration_noise)
+        cal = measured_calibration(cal, request.calibration_noise, L0_m=request.L0_m)
     return ClosedLoop(
         request.observation,
         cal,
@@ -246,6 +246,13 @@ def closed_loop_for(
         ncpa=None if request.ncpa is None else non_common_path(request.ncpa, pupil, cal.basis.shapes(pupil), cal.interaction_matrix),
         duration_s=request.duration_s if duration_s is None else duration_s,
     )
+
+
+def _offsets_note(loop: ClosedLoop) -> tuple[str, ...]:
+    """A note when the NCPA offsets waited for OGTL to calibrate k and the run ended first."""
+    if loop.rtc_parameters.held_offset is None:
+        return ()
+    return ("the NCPA offsets were never applied: OGTL did not calibrate k (chi within 20 % of 1) within the run",)
 
 
 def _repeat_note(loop: ClosedLoop, request: RunRequest) -> tuple[str, ...]:
@@ -313,5 +320,5 @@ def run(
         spectra,
         loop.rtc_parameters.gains,
         loop.rtc_parameters.sensitivity,
-        loop.notes + _repeat_note(loop, request),
+        loop.notes + _repeat_note(loop, request) + _offsets_note(loop),
     )

@@ -66,9 +66,12 @@ def averaged_slopes(sensor: WavefrontSensor, opd_nm: np.ndarray, frames: int, rn
     return out / frames
 
 
-def measured_calibration(calibration: Calibration, conditions: CalibrationNoise, detector: Detector = Detector()) -> Calibration:
-    """``calibration`` with D measured in ``conditions`` (finite flux and/or around a residual;
-    see the module) and R = D^+ of it."""
+def measured_calibration(
+    calibration: Calibration, conditions: CalibrationNoise, detector: Detector = Detector(), L0_m: float = defaults.L0_M
+) -> Calibration:
+    """``calibration`` with D measured in ``conditions`` (finite flux and/or around a residual
+    of outer scale ``L0_m``; see the module) and R = D^+ of it.  Around residuals, each of the
+    ``SCREENS`` realisations is measured with ``frames`` frames per push."""
     pupil = calibration.setup.pyramid.pupil
     shapes = calibration.basis.shapes(pupil)
     maps = mode_maps(shapes, pupil)
@@ -80,7 +83,7 @@ def measured_calibration(calibration: Calibration, conditions: CalibrationNoise,
         sensor, slopes_of = calibration_sensor(calibration.setup.pyramid), None
     arounds: list[np.ndarray | None] = [None]
     if conditions.seeing_arcsec > 0:
-        level = CorrectionLevel(conditions.seeing_arcsec, defaults.L0_M)
+        level = CorrectionLevel(conditions.seeing_arcsec, L0_m)
         arounds = list(residual_screens(level, shapes, pupil, SCREENS, np.random.default_rng([conditions.seed, 1])))
     D = np.mean([push_pull(sensor, maps, calibration.setup.push_nm, around=a, slopes_of=slopes_of) for a in arounds], axis=0)
     return dataclasses.replace(calibration, interaction_matrix=D, reconstructor=np.linalg.pinv(D), from_cache=False)

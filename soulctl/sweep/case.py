@@ -12,7 +12,7 @@ import traceback
 
 from .. import __version__, defaults, tables
 from ..errors import InputError
-from ..loop.optimize import OptimizeRequest, default_period_s, optimize
+from ..loop.optimize import OPTIMISER_OGTL, OptimizeRequest, default_period_s, optimize
 from ..loop.run import RunRequest, run
 from ..loop.run import calibration_setup as run_calibration_setup
 from ..observation import BINNINGS, Observation
@@ -119,8 +119,9 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
         else:
             period = optimisation_period_s(p["duration"], request.observation)
+            run_request = description.request(ogtl=OPTIMISER_OGTL)  # automatic NCPA offsets come with the optimiser's OGTL
             optimised = optimize(
-                OptimizeRequest(request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"]),
+                OptimizeRequest(run_request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"]),
                 cache,
                 calibration=calibration,
             )
