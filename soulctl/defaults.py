@@ -12,7 +12,8 @@ DURATION_S = 0.2  # simulated time of `loop run`
 BAND = "H"  # science band of the Strehl ratio
 SEED = 1
 OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
-# The science path's NCPA: the paper's LUCI1 carried ~100 nm (Sec. 5.1, Table 3's caption),
-# compensated on sky by reference-slope offsets once OGTL has calibrated k (Sec. 3.3).
+# The science path's NCPA: the paper's LUCI1 carried ~100 nm (Sec. 3.1 and the caption of the
+# Tip/Tilt results table), compensated on sky by reference-slope offsets once OGTL has
+# calibrated k (Sec. 2.4, Modal Gain Machine).
 NCPA_RMS_NM = 100.0
 MEASURE_S = 0.5  # `optimize gains`: before and after
