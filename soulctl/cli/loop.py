@@ -177,7 +177,7 @@ class RunOptions:
         "--ncpa",
         parser=number(NCPA_RMS_NM),
         metavar="NM",
-        show_default=f"{defaults.NCPA_RMS_NM:g} (LUCI1's, the paper's Sec. 3.1)",
+        show_default=f"{defaults.NCPA_RMS_NM:g} nm, LUCI1's in the paper's Sec. 3.1",
         help="Non-common-path aberration: NM RMS that the science camera sees and the pyramid does not.",
     )
     ncpa_offsets: bool | None = typer.Option(
