@@ -7,7 +7,8 @@ frame rate, binning and modes, seeing on the line of sight, default gains (not o
   R10.9  1212 Hz 40x40, seeing 1.0": FeII SR 0.47-0.64 on sky (simulations 0.48-0.67).
   R13     980 Hz 20x20, seeing 1.0": FeII SR ~0.55-0.67.
   R16.5   390 Hz 10x10, seeing 1.0": Ks SR 0.19-0.23.
-Run:  python validation/loop_operating_points.py [--duration 2] [--seeds 1] [--out validation/results.json]
+Run:  python validation/loop_operating_points.py [--duration 2] [--seeds 1] [--cases 0,3] [--vibrations lbt-onsky]
+      [--out validation/results.json]
 """
 
 from __future__ import annotations
@@ -51,12 +52,15 @@ def observation(mag, rate, binning, modes, tt):
     return obs
 
 
-def _run(obs, seeing: float, duration: float, gains, band: str, seed: int) -> RunConfig:
+def _run(obs, seeing: float, duration: float, gains, band: str, seed: int, vibrations: str | None) -> RunConfig:
     """A case's run description: its observation and gains, defaults elsewhere (OGTL and the
-    NCPA as `loop run` resolves them)."""
+    NCPA as `loop run` resolves them; ``vibrations`` a named profile instead of the default)."""
     controller = ControllerSpec(gains=(gains.tip_tilt, gains.mid, gains.high))
     atmosphere = AtmosphereSpec(seeing_arcsec=seeing)
-    return RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed).resolved()
+    description = RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed)
+    if vibrations is not None:
+        description = description.with_values({"vibrations.file": vibrations})
+    return description.resolved()
 
 
 def main() -> None:
@@ -64,6 +68,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=2.0)
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--cases", default="all", help="comma list of case indices (0-based) or 'all'")
+    p.add_argument("--vibrations", default=None, help="a named vibration profile (e.g. lbt-onsky) instead of the default")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "loop_operating_points.json")
     args = p.parse_args()
     cache = ArrayCache(default_cache_dir())
@@ -77,7 +82,7 @@ def main() -> None:
             gains = dataclasses.replace(gains, tip_tilt=g_tt)
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
-            description = _run(obs, seeing, args.duration, gains, band, seed)
+            description = _run(obs, seeing, args.duration, gains, band, seed, args.vibrations)
             r = run(description.request(), cache, aux=description.auxiliary.live())
             m = r.metrics
             rows.append(
