@@ -10,6 +10,7 @@ import numpy as np
 
 from .. import defaults
 from ..control.gains import LoopGains, check_stability, default_gains
+from ..control.ogtl import OFFSETS_CHI_TOLERANCE
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ
 from ..disturbance.vibrations import VibrationSpectrum
@@ -252,7 +253,8 @@ def _offsets_note(loop: ClosedLoop) -> tuple[str, ...]:
     """A note when the NCPA offsets waited for OGTL to calibrate k and the run ended first."""
     if loop.rtc_parameters.held_offset is None:
         return ()
-    return ("the NCPA offsets were never applied: OGTL did not calibrate k (chi within 20 % of 1) within the run",)
+    tolerance = f"{OFFSETS_CHI_TOLERANCE:.0%}".replace("%", " %")
+    return (f"the NCPA offsets were never applied: OGTL did not calibrate k (chi within {tolerance} of 1) within the run",)
 
 
 def _repeat_note(loop: ClosedLoop, request: RunRequest) -> tuple[str, ...]:
