@@ -24,6 +24,7 @@ with these weights 0.2-0.5% (both from the samples' variances).
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -223,9 +224,11 @@ def periodic_phase_screen(shape: tuple[int, int], pixel_scale_m: float, r0_m: fl
     """An ny x nx periodic von Kármán screen, rad at 500 nm (float64): complex Gaussian
     coefficients of variance 2 W(k) dfy dfx on the FFT grid (none at k = 0), the real part of
     their inverse FFT; no power below 1/(n pixel_scale) along either axis nor above Nyquist."""
-    amp = np.sqrt(_fft_variances(shape, pixel_scale_m, r0_m, L0_m))
     noise = rng.standard_normal((2, *shape))
-    return scipy.fft.ifft2((noise[0] + 1j * noise[1]) * amp, norm="forward").real
+    c = noise[0] + 1j * noise[1]
+    del noise  # in place from here: a long screen's set-up holds ~2 complex grids, not 4
+    c *= np.sqrt(_fft_variances(shape, pixel_scale_m, r0_m, L0_m))
+    return scipy.fft.ifft2(c, norm="forward", overwrite_x=True).real
 
 
 def _inner_fft_k2_deficit(df: float, r0: float, L0: float) -> float:
@@ -413,10 +416,13 @@ class FrozenFlowAtmosphere:
     (``screen_pixels``); spatial frequencies below 1/screen size are missing: < 0.1% of the
     tilt variance for L0 <= 100 m at the default size, but 17-25% for L0 = 10 km and 28-35%
     for Kolmogorov (80-160 px across 8.2 m; docs/physics.md).  **No repetition within
-    ``duration_s``**: each axis of a layer's screen is lengthened (a rectangle, to an even FFT
-    size) until the pupil, moving |v_axis| duration_s across it, never reaches screen it has
-    shown before, up to ``MAX_SCREEN_PIXELS`` per layer; ``repeat_time_s`` is the first time a
-    layer does show it again (for longer runs the screens wrap, as they all did before).
+    ``duration_s``**: a layer's screen is the rectangle (even FFT sizes, no side below the
+    default) of least area on which the pupil, moving v duration_s, never reaches screen it
+    has shown (``_screen_shape``): long along the wind's axis, or for a wind at an angle a
+    skewed torus, on which the path wraps many times and runs beside its earlier passes at
+    least a quarter of the default size apart; up to ``MAX_SCREEN_PIXELS`` per layer.
+    ``repeat_time_s`` is the first time a layer does show screen again (for longer runs the
+    screens wrap, as they all did before).
     The OPD at pupil pixel x is the screen at x - v t (the pattern moves with the wind): the
     screen's Fourier series, evaluated once on a grid twice as fine (``band_limited_upsample``),
     interpolated there with periodic cubic B-splines (``fine_spline_coefficients``, in the
@@ -425,8 +431,9 @@ class FrozenFlowAtmosphere:
     interpolation on the screen's own grid low-passed it by cos(pi f), 14 % at half a pixel,
     so the statistics varied with the wind's sub-pixel phase; quintic splines there 1.5-2 %:
     docs/physics.md).  Memory: 24 bytes per screen pixel and layer (the screen, float64, and
-    the coefficients on the finer grid, float32: 25 MB at 1024^2, 400 MB at 4096^2, 800 MB at
-    ``MAX_SCREEN_PIXELS``); set-up ~0.2 s per layer at 1024^2.
+    the coefficients on the finer grid, float32: 25 MB at 1024^2, 400 MB at 4096^2, 3.2 GB at
+    ``MAX_SCREEN_PIXELS``; set-up holds about twice the largest layer's); set-up ~0.2 s per
+    layer at 1024^2.
     """
 
     def __init__(
@@ -468,8 +475,7 @@ class FrozenFlowAtmosphere:
             screen = _NM_PER_RAD * periodic_phase_screen(shape, self.pixel_scale_m, r0_i, config.L0_m, rng)
             screen.setflags(write=False)
             screens.append(screen)
-            spline = np.asarray(fine_spline_coefficients(screen), dtype=np.float32)
-            coefficients.append(np.pad(spline, (0, self._window), mode="wrap"))  # every window a contiguous slice
+            coefficients.append(fine_spline_coefficients(screen, pad=self._window))  # every window a contiguous slice
             vel.append(velocity)
             shapes.append(shape)
         self._screens = tuple(screens)
@@ -477,6 +483,7 @@ class FrozenFlowAtmosphere:
         self._velocity_px_s = tuple(vel)
         self.screen_shapes: tuple[tuple[int, int], ...] = tuple(shapes)
         self.layer_r0_m = tuple(r0s)
+        self._repeat_time_s = self._first_repeat()
 
     @property
     def layer_screens_nm(self) -> tuple[np.ndarray, ...]:
@@ -486,13 +493,15 @@ class FrozenFlowAtmosphere:
     @property
     def repeat_time_s(self) -> float:
         """The first time a layer's pupil footprint reaches screen it has shown before (inf if
-        none moves): min over layers and axes of (screen - pupil) / |v_axis|."""
-        times = [
-            (n - self.n_pixels) / abs(v)
+        none moves, or none within ``REPEAT_HORIZON_S``): ``_first_repeat_s`` of the layers,
+        (screen - pupil) / |v| for a wind along an axis."""
+        return self._repeat_time_s
+
+    def _first_repeat(self) -> float:
+        times = (
+            _first_repeat_s(velocity, shape, self.n_pixels, REPEAT_HORIZON_S)
             for shape, velocity in zip(self.screen_shapes, self._velocity_px_s)
-            for n, v in zip(shape, (velocity[1], velocity[0]))
-            if v != 0
-        ]
+        )
         return min(times, default=math.inf)
 
     def opd_nm(self, t_s: float) -> np.ndarray:
@@ -518,8 +527,10 @@ class FrozenFlowAtmosphere:
         return out
 
 
-MAX_SCREEN_PIXELS = 1 << 25  # per layer (800 MB with its coefficients): longer runs wrap
+MAX_SCREEN_PIXELS = 1 << 27  # per layer (3.2 GB with its coefficients): longer runs wrap
 SPLINE_MARGIN_PX = 2  # coarse pixels the spline taps read beyond the pupil
+REPEAT_HORIZON_S = 86400.0  # ``repeat_time_s`` looks this far ahead (inf beyond)
+_MAX_WRAPS = 10**6  # and at most this many wraps of the screen
 
 
 def _velocity_px_s(layer: Layer, pixel_scale_m: float) -> tuple[float, float]:
@@ -537,24 +548,107 @@ def _even_fft_size(n: int) -> int:
     return m
 
 
+def _first_repeat_s(velocity: tuple[float, float], shape: tuple[int, int], width: int, horizon_s: float) -> float:
+    """The first time in (0, horizon_s] at which a square footprint of ``width`` px, moving at
+    (vx, vy) px/s on the periodic ny x nx screen, overlaps screen it has already covered (inf
+    if none): a repeat is a lattice point (a nx, b ny) != 0 within ``width`` of the path v dt
+    along both axes.  A path at an angle to the axes wraps many times before it comes back
+    beside itself (a "skewed torus"); along an axis it returns after (n - width) / |v|."""
+    (ny, nx), (vx, vy) = shape, (abs(velocity[0]), abs(velocity[1]))
+    if vy > vx:  # enumerate the wraps of the faster axis: at most 3 of the other per wrap
+        (ny, nx), (vx, vy) = (nx, ny), (vy, vx)
+    if vx == 0:
+        return math.inf
+    if min(nx, ny) < width:
+        return 0.0  # the footprint is wider than the screen: it overlaps its own wrap
+    a = np.arange(0, min(math.floor((vx * horizon_s + width) / nx), _MAX_WRAPS) + 1, dtype=float)
+    lo_x, hi_x = np.maximum((a * nx - width) / vx, 0.0), (a * nx + width) / vx  # |vx dt - a nx| < width
+    best = math.inf
+    b0 = np.floor(vy * lo_x / ny)
+    for db in (-1.0, 0.0, 1.0, 2.0, 3.0):  # every b with |b ny - vy dt| < width in the window (ny >= width)
+        b = b0 + db
+        if vy > 0:
+            lo, hi = np.maximum(lo_x, (b * ny - width) / vy), np.minimum(hi_x, (b * ny + width) / vy)
+        else:
+            lo, hi = lo_x, np.where(np.abs(b * ny) < width, hi_x, -np.inf)
+        ok = (lo < hi) & (b >= 0) & ((a > 0) | (b > 0)) & (lo <= horizon_s)
+        if ok.any():
+            best = min(best, float(lo[ok].min()))
+    return best
+
+
+def _even_fast_sizes(lo: int, hi: int) -> list[int]:
+    """The even FFT sizes (2^a 3^b 5^c, a >= 1) in [lo, hi], ascending."""
+    sizes = set()
+    p2 = 2
+    while p2 <= hi:
+        p3 = p2
+        while p3 <= hi:
+            p5 = p3
+            while p5 <= hi:
+                if p5 >= lo:
+                    sizes.add(p5)
+                p5 *= 5
+            p3 *= 3
+        p2 *= 2
+    return sorted(sizes)
+
+
+def _box_shape(velocity: tuple[float, float], seconds: float, n_pixels: int, minimum: int) -> tuple[int, int]:
+    """(ny, nx) long enough along each axis for the pupil to cross |v_axis| seconds of screen."""
+
+    def axis(v: float) -> int:
+        span = math.ceil(abs(v) * seconds) + n_pixels + SPLINE_MARGIN_PX
+        return minimum if span <= minimum else _even_fft_size(span)
+
+    return axis(velocity[1]), axis(velocity[0])
+
+
+def _smallest_shape(
+    velocity: tuple[float, float], seconds: float, n_pixels: int, minimum: int, max_area: float = math.inf
+) -> tuple[int, int]:
+    """The screen of least area, both sides >= ``minimum``, on which the pupil (with the
+    spline's margin) sees no screen twice within ``seconds``: the box (``_box_shape``: no wrap
+    at all) when it is ``minimum`` square, else the best of the box and the skewed tori no
+    larger than it (or than ``max_area``: none above it is looked at).  On a skewed torus the
+    path runs beside its earlier passes: they are kept ``minimum`` / 4 apart (L0 at the
+    default size, 25 m: two pupils 25 m apart have a Tip/Tilt correlation of ~0.01, 0.2-0.3
+    at 8.4 m), not just a pupil."""
+    width = max(n_pixels + SPLINE_MARGIN_PX, minimum // 4)
+    box = _box_shape(velocity, seconds, n_pixels, minimum)
+    if box == (minimum, minimum) or velocity[0] == 0 or velocity[1] == 0:
+        return box
+    best, area = box, min(box[0] * box[1], max_area)
+    ys, xs = _even_fast_sizes(minimum, box[0]), _even_fast_sizes(minimum, box[1])
+    # passes >= width apart in both axes are >= width / sqrt(2) apart across the path: a torus
+    # holds |v| seconds of path only if its area is at least that times width / sqrt(2)
+    least = width / math.sqrt(2) * math.hypot(*velocity) * seconds
+    for nx in xs:
+        if nx * minimum >= area:
+            break
+        for ny in ys[bisect.bisect_left(ys, least / nx) :]:
+            if nx * ny >= area:
+                break
+            if _first_repeat_s(velocity, (ny, nx), width, seconds) > seconds:
+                best, area = (ny, nx), nx * ny
+                break
+    return best
+
+
 def _screen_shape(velocity: tuple[float, float], duration_s: float, n_pixels: int, minimum: int) -> tuple[int, int]:
-    """(ny, nx) of a layer's screen: along each axis ``minimum``, or longer where the pupil,
-    moving |v_axis| per second, would otherwise come back within ``duration_s`` to screen it
-    has shown.  Where ny nx would pass MAX_SCREEN_PIXELS, the longest time the cap allows,
-    the same along both axes (bisection)."""
+    """(ny, nx) of a layer's screen: ``minimum`` square, or the smallest rectangle on which the
+    pupil does not come back to screen it has shown within ``duration_s`` (``_smallest_shape``:
+    long along the wind's axis, or a skewed torus for a wind at an angle).  Where that would
+    pass MAX_SCREEN_PIXELS, the longest time the cap allows (bisection)."""
+    cap = MAX_SCREEN_PIXELS
 
-    def shape(seconds: float) -> tuple[int, int]:
-        def axis(v: float) -> int:
-            span = math.ceil(abs(v) * seconds) + n_pixels + SPLINE_MARGIN_PX
-            return minimum if span <= minimum else _even_fft_size(span)
+    def fits(seconds: float) -> bool:
+        return math.prod(_smallest_shape(velocity, seconds, n_pixels, minimum, cap)) <= cap
 
-        return axis(velocity[1]), axis(velocity[0])
-
-    ny, nx = shape(duration_s)
-    if ny * nx <= MAX_SCREEN_PIXELS:
-        return ny, nx
+    if fits(duration_s):
+        return _smallest_shape(velocity, duration_s, n_pixels, minimum)
     lo, hi = 0.0, duration_s
-    for _ in range(40):
+    while hi - lo > 1e-3 * hi:
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if math.prod(shape(mid)) <= MAX_SCREEN_PIXELS else (lo, mid)
-    return shape(lo)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return _smallest_shape(velocity, lo, n_pixels, minimum)
