@@ -418,9 +418,9 @@ class FrozenFlowAtmosphere:
     for Kolmogorov (80-160 px across 8.2 m; docs/physics.md).  **No repetition within
     ``duration_s``**: a layer's screen is the rectangle (even FFT sizes, no side below the
     default) of least area on which the pupil, moving v duration_s, never reaches screen it
-    has shown (``_screen_shape``): long along the wind's axis, or for a wind at an angle a
+    has shown (``_screen_shapes``): long along the wind's axis, or for a wind at an angle a
     skewed torus, on which the path wraps many times and runs beside its earlier passes at
-    least a quarter of the default size apart; up to ``MAX_SCREEN_PIXELS`` per layer.
+    least a quarter of the default size apart; up to ``MAX_SCREEN_PIXELS`` for all layers.
     ``repeat_time_s`` is the first time a layer does show screen again (for longer runs the
     screens wrap, as they all did before).
     The OPD at pupil pixel x is the screen at x - v t (the pattern moves with the wind): the
@@ -431,9 +431,9 @@ class FrozenFlowAtmosphere:
     interpolation on the screen's own grid low-passed it by cos(pi f), 14 % at half a pixel,
     so the statistics varied with the wind's sub-pixel phase; quintic splines there 1.5-2 %:
     docs/physics.md).  Memory: 24 bytes per screen pixel and layer (the screen, float64, and
-    the coefficients on the finer grid, float32: 25 MB at 1024^2, 400 MB at 4096^2, 3.2 GB at
-    ``MAX_SCREEN_PIXELS``; set-up holds about twice the largest layer's); set-up ~0.2 s per
-    layer at 1024^2.
+    the coefficients on the finer grid, float32: 25 MB at 1024^2, 400 MB at 4096^2, 4.8 GB at
+    ``MAX_SCREEN_PIXELS``; set-up holds about twice the largest layer's more); set-up ~0.2 s
+    per layer at 1024^2.
     """
 
     def __init__(
@@ -462,28 +462,29 @@ class FrozenFlowAtmosphere:
 
         weights = config.weights
         rngs = np.random.default_rng(seed).spawn(len(config.layers))
-        screens, coefficients, r0s, vel, shapes = [], [], [], [], []
         self._window = UPSAMPLING * (self.n_pixels - 1) + SPLINE_ORDER + 1  # fine samples a pupil row reads
-        for layer, w, rng in zip(config.layers, weights, rngs):
-            if w == 0:
-                r0s.append(np.inf)
-                continue
-            r0_i = config.r0_m * w ** (-3 / 5)
-            r0s.append(r0_i)
-            velocity = _velocity_px_s(layer, self.pixel_scale_m)
-            shape = _screen_shape(velocity, duration_s or 0.0, self.n_pixels, self.screen_pixels)
-            screen = _NM_PER_RAD * periodic_phase_screen(shape, self.pixel_scale_m, r0_i, config.L0_m, rng)
-            screen.setflags(write=False)
-            screens.append(screen)
-            coefficients.append(fine_spline_coefficients(screen, pad=self._window))  # every window a contiguous slice
-            vel.append(velocity)
-            shapes.append(shape)
+        self.layer_r0_m = tuple(config.r0_m * w ** (-3 / 5) if w > 0 else np.inf for w in weights)
+        active = [i for i, w in enumerate(weights) if w > 0]
+        vel = [_velocity_px_s(config.layers[i], self.pixel_scale_m) for i in active]
+        shapes = _screen_shapes(vel, duration_s or 0.0, self.n_pixels, self.screen_pixels)
+        built: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for j in sorted(range(len(active)), key=lambda j: -math.prod(shapes[j])):  # largest first: the lowest peak memory
+            i = active[j]
+            built[j] = self._layer(shapes[j], self.layer_r0_m[i], config.L0_m, rngs[i])
+        screens = [built[j][0] for j in range(len(active))]
+        coefficients = [built[j][1] for j in range(len(active))]
         self._screens = tuple(screens)
         self._coefficients = tuple(coefficients)
         self._velocity_px_s = tuple(vel)
         self.screen_shapes: tuple[tuple[int, int], ...] = tuple(shapes)
-        self.layer_r0_m = tuple(r0s)
         self._repeat_time_s = self._first_repeat()
+
+    def _layer(self, shape: tuple[int, int], r0_m: float, L0_m: float, rng) -> tuple[np.ndarray, np.ndarray]:
+        """A layer's periodic screen (nm, read-only) and its padded spline coefficients (every
+        window a contiguous slice)."""
+        screen = _NM_PER_RAD * periodic_phase_screen(shape, self.pixel_scale_m, r0_m, L0_m, rng)
+        screen.setflags(write=False)
+        return screen, fine_spline_coefficients(screen, pad=self._window)
 
     @property
     def layer_screens_nm(self) -> tuple[np.ndarray, ...]:
@@ -527,7 +528,7 @@ class FrozenFlowAtmosphere:
         return out
 
 
-MAX_SCREEN_PIXELS = 1 << 27  # per layer (3.2 GB with its coefficients): longer runs wrap
+MAX_SCREEN_PIXELS = 200 << 20  # all layers together (4.8 GB with their coefficients): longer runs wrap
 SPLINE_MARGIN_PX = 2  # coarse pixels the spline taps read beyond the pupil
 REPEAT_HORIZON_S = 86400.0  # ``repeat_time_s`` looks this far ahead (inf beyond)
 _MAX_WRAPS = 10**6  # and at most this many wraps of the screen
@@ -635,20 +636,25 @@ def _smallest_shape(
     return best
 
 
-def _screen_shape(velocity: tuple[float, float], duration_s: float, n_pixels: int, minimum: int) -> tuple[int, int]:
-    """(ny, nx) of a layer's screen: ``minimum`` square, or the smallest rectangle on which the
-    pupil does not come back to screen it has shown within ``duration_s`` (``_smallest_shape``:
-    long along the wind's axis, or a skewed torus for a wind at an angle).  Where that would
-    pass MAX_SCREEN_PIXELS, the longest time the cap allows (bisection)."""
-    cap = MAX_SCREEN_PIXELS
+def _screen_shapes(velocities: list[tuple[float, float]], duration_s: float, n_pixels: int, minimum: int) -> list[tuple[int, int]]:
+    """(ny, nx) of each layer's screen: ``minimum`` square, or the smallest rectangle on which
+    the pupil does not come back to screen it has shown within ``duration_s``
+    (``_smallest_shape``: long along the wind's axis, or a skewed torus for a wind at an
+    angle).  Where the layers together would pass MAX_SCREEN_PIXELS (never below their
+    ``minimum`` squares), the longest time the budget allows for all of them (bisection): the
+    atmosphere repeats no earlier than it must."""
+    budget = max(MAX_SCREEN_PIXELS, len(velocities) * minimum**2)
+
+    def shapes(seconds: float, limit: float = math.inf) -> list[tuple[int, int]]:
+        return [_smallest_shape(v, seconds, n_pixels, minimum, limit) for v in velocities]
 
     def fits(seconds: float) -> bool:
-        return math.prod(_smallest_shape(velocity, seconds, n_pixels, minimum, cap)) <= cap
+        return sum(math.prod(shape) for shape in shapes(seconds, budget)) <= budget
 
     if fits(duration_s):
-        return _smallest_shape(velocity, duration_s, n_pixels, minimum)
+        return shapes(duration_s)
     lo, hi = 0.0, duration_s
     while hi - lo > 1e-3 * hi:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if fits(mid) else (lo, mid)
-    return _smallest_shape(velocity, lo, n_pixels, minimum)
+    return shapes(lo)

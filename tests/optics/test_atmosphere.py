@@ -19,7 +19,7 @@ from soulctl.optics.atmosphere import (
     _default_screen_pixels,
     _even_fast_sizes,
     _first_repeat_s,
-    _screen_shape,
+    _screen_shapes,
     _velocity_px_s,
     fft_phase_screen,
     phase_covariance,
@@ -586,7 +586,7 @@ def test_a_wind_at_an_angle_gets_a_skewed_torus_of_least_area():
     """A diagonal path wraps many times before it passes beside itself: the screen chosen for
     60 s is the least area that does so among the even FFT sizes, well below the box."""
     velocity, n, minimum = (20.0, 20.0), 16, 64
-    ny, nx = _screen_shape(velocity, 60.0, n, minimum)
+    ((ny, nx),) = _screen_shapes([velocity], 60.0, n, minimum)
     width = n + SPLINE_MARGIN_PX
     assert _first_repeat_s(velocity, (ny, nx), width, 60.0) > 60.0
     assert ny * nx < 0.1 * (20 * 60 + width) ** 2
