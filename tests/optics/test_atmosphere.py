@@ -582,6 +582,25 @@ def test_first_repeat_is_where_the_sampled_path_first_overlaps_itself(velocity, 
     assert exact <= sampled <= exact + 0.3 / math.hypot(*velocity)
 
 
+def test_first_repeat_agrees_with_the_sampled_path_on_random_cases():
+    """40 random winds (any sign, some along an axis), screens and footprints (screens wider
+    than 2.5 footprints, where the sampled check sees every wrap): the same first repeat, or
+    none within 20 s, for both."""
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        velocity = tuple(rng.uniform(-30, 30) * (rng.random() > 0.15) for _ in range(2))
+        if velocity == (0.0, 0.0):
+            continue
+        shape = (int(rng.integers(20, 200)), int(rng.integers(20, 200)))
+        width = int(rng.integers(4, max(5, int(min(shape) / 2.5))))
+        exact, sampled = _first_repeat_s(velocity, shape, width, 20.0), brute_force_repeat_s(velocity, shape, width, 20.0)
+        speed = math.hypot(*velocity)
+        if math.isinf(sampled):
+            assert exact > 20.0 - 0.3 / speed, (velocity, shape, width, exact)
+        else:
+            assert exact <= sampled <= exact + 0.3 / speed, (velocity, shape, width, exact, sampled)
+
+
 def test_a_wind_at_an_angle_gets_a_skewed_torus_of_least_area():
     """A diagonal path wraps many times before it passes beside itself: the screen chosen for
     60 s is the least area that does so among the even FFT sizes, well below the box."""
