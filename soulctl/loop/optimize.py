@@ -558,10 +558,13 @@ def _new_loop(request: OptimizeRequest, cal: Calibration, gains: LoopGains, stru
 
 def session_seconds(request: OptimizeRequest) -> float:
     """An upper bound of the simulated time of an optimisation (closing and one period,
-    OGTL's settling at most, *before* and *after*, the optimisation: MGM's duration, or twice
-    every trial sequence of the three groups and one more, the most ``_run_optimiser`` runs)."""
+    OGTL's settling at most, *before* and *after*, the optimisation: the longer of MGM's
+    duration and twice every trial sequence of the three groups and one more, the most
+    ``_run_optimiser`` runs).  The same for either method, so that the screens, sized for the
+    session (``FrozenFlowAtmosphere``), are the same: MGM and trial-and-error on one seed see
+    the same turbulence, and their results compare paired."""
     rate = request.run.observation.frame_rate_hz
-    optimise = request.duration if request.method == "mgm" else 2 * request.sequence * (3 * (TRIAL_VALUES + 1) + 1)
+    optimise = max(request.duration, 2 * request.sequence * (3 * (TRIAL_VALUES + 1) + 1))
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     return closing_frames(rate) / rate + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
 
