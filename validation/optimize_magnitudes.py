@@ -44,7 +44,7 @@ from soulctl.loop import optimize as opt
 from soulctl.loop.auxloops import summary
 from soulctl.loop.metrics import band_wavelength
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize
-from soulctl.loop.run import calibration_for, closing_frames
+from soulctl.loop.run import calibration_for
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
@@ -67,20 +67,11 @@ def _run(obs, seeing: float, seed: int):
 
 
 def window_strehls(request: OptimizeRequest, cal, gains, k: float, offsets: bool, n: int, window_s: float) -> list[float]:
-    """``optimize``'s paired evaluation (``opt.evaluate``: a loop closed afresh on the run's
-    turbulence and noise, k and the offsets set, EVALUATION_SETTLE_S of settling) measured over
-    ``n`` consecutive windows of ``window_s``: one Strehl ratio per window."""
+    """``optimize``'s paired evaluation (``opt.settled_evaluation_loop``, as ``opt.evaluate``)
+    measured over ``n`` consecutive windows of ``window_s``: one Strehl ratio per window."""
     r = request.run
-    rate = r.observation.frame_rate_hz
-    structure = sampled_structure(r.structure, rate)
-    loop = opt._new_loop(request, cal, r.gains or default_gains(r.observation, structure), structure)
-    loop.set_gains(gains)
-    loop.rtc_parameters.hold_slope_offset()
-    loop.run(closing_frames(rate))
-    loop.rtc_parameters.set_sensitivity(k)
-    if offsets:
-        loop.rtc_parameters.apply_slope_offset()
-    loop.run(request.frames(opt.EVALUATION_SETTLE_S))
+    design = r.gains or default_gains(r.observation, sampled_structure(r.structure, r.observation.frame_rate_hz))
+    loop = opt.settled_evaluation_loop(request, cal, design, gains, k, offsets)
     out = []
     for _ in range(n):
         psf = loop.psf_accumulator(band_wavelength(r.band))
