@@ -363,11 +363,13 @@ def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
     """Gains at a tenth of their usual values (0.05 on every mode): MGM raises them and the
     residual falls.  *before* and *after* are paired (the same turbulence and noise; only the
     gains differ), so any fall is MGM's.  In this barely closed loop (R16.5, 10x10, H Strehl
-    ~0.015) it is modest and depends on the realisation: after / before 0.909 and 0.988 for
-    seeds 1-2 (1510 -> 1373, 1680 -> 1660 nm), 0.953, 0.995, 0.958 for seeds 3-5; the mean
-    gain rises to 0.10-0.15.  So: a fall for each seed, 3 % on the mean of seeds 1-2."""
+    ~0.015) it is modest and depends on the realisation: after / before 0.988, 0.953, 0.906
+    for seeds 1-3, 0.751 and 1.164 for seeds 4-5; the mean gain rises to 0.10-0.23.  The
+    period here, 1.1 s for speed, gives MGM 64-frame Welch segments (3.9 Hz bins); with the
+    default period (2.6 s, 256 frames) seed 5 falls too (0.951, mean gain 0.125).  So: a fall
+    for each of seeds 1-3, 3 % on their mean."""
     ratios = []
-    for seed in (1, 2):
+    for seed in (1, 2, 3):
         args = ["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--seed", str(seed), "--gains", "0.05,0.05,0.05"]
         args += ["--method", "mgm", "--no-ogtl", "--period", "1.1", "--duration", "3.3", "--measure", "0.3"]
         status = main([*args, "--json", "--cache-dir", str(cache_dir)])
@@ -376,7 +378,7 @@ def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
         d = json.loads(out)
         ratios.append(d["after"]["residual_nm"] / d["before"]["residual_nm"])
         assert ratios[-1] < 1.0, (seed, d["before"], d["after"])
-        assert sum(d["gains"][2:]) / len(d["gains"][2:]) > 0.075  # raised from the mistuned 0.05 on average (0.138, 0.100)
+        assert sum(d["gains"][2:]) / len(d["gains"][2:]) > 0.075  # raised from the mistuned 0.05 on average (0.10-0.15)
     assert np.mean(ratios) < 0.97, ratios
 
 
