@@ -157,7 +157,10 @@ class TrialAndErrorTask(AuxLoop):
     an update whose window is shorter than a sequence (the task started between two updates, or
     OGTL changed k during it) scores nothing and the sequence runs again.  A group's
     ``incumbents`` gain (one of its scan) is kept unless another is significantly better
-    (``trial.chosen_gain``).  A scanned gain g sets the group's modes to g x its ``shapes``
+    (``trial.chosen_gain``).  The merit is of R s over k (gamma x the residual): OGTL may
+    change k between two sequences, and R s scales with it (at R14.5, 1.0" a fall of k by 6 %
+    before the last sequence of modes 121-250 made their highest gain look best, and the
+    Strehl ratio fell from 0.356 to 0.312).  A scanned gain g sets the group's modes to g x its ``shapes``
     (per mode, mean 1; uniform by default, the paper's one gain per group).
     When a group is done its best gain is set and kept; after the last group the task is idle."""
 
@@ -218,7 +221,7 @@ class TrialAndErrorTask(AuxLoop):
         if not self._failed and window.frames < self.period_frames:
             return {}  # the window began after the sequence (the task started off its period, or k changed): run it again
         name, modes = self.groups[self._group]
-        measured = window.measured_modes[-self.measure :, modes]
+        measured = window.measured_modes[-self.measure :, modes] / window.sensitivity  # gamma x residual, whatever k
         scan = self.scans[self._group]
         gain = float(scan[self._index])
         if self._failed:  # this gain and the higher ones of the scan score as the worst: the group ends
@@ -248,8 +251,10 @@ class TrialAndErrorTask(AuxLoop):
 class LiveMetricsTask(AuxLoop):
     """Live metrics from the window, as the paper's monitoring auxloops:
 
-    * modal residual RMS (nm): sqrt(sum_i <m_i^2>) of the measured modes over chi (the
-      controlled modes only: the fitting error is invisible to the WFS);
+    * modal residual RMS (nm): sqrt(sum_i <m_i^2>) of the measured modes over gamma_i k, the
+      optical-gain table's gamma_i and the window's k (the controlled modes only: the
+      fitting error is invisible to the WFS; k as OGTL has it, so that the estimate does not
+      move with k while OGTL settles);
     * Strehl estimate at ``wavelength_m``: exp(-(2 pi sigma / lambda)^2) with that RMS (an
       upper bound: no fitting error, no aliasing);
     * guide-star magnitude from the flux: m_ref - 2.5 log10(flux / flux_ref), with the
@@ -257,15 +262,15 @@ class LiveMetricsTask(AuxLoop):
 
     name = "metrics"
 
-    def __init__(self, period_frames: int, chi: np.ndarray, wavelength_m: float, reference_magnitude: float, reference_flux: float):
+    def __init__(self, period_frames: int, gamma: np.ndarray, wavelength_m: float, reference_magnitude: float, reference_flux: float):
         super().__init__(period_frames)
-        self.chi = np.asarray(chi, dtype=float)
+        self.gamma = np.asarray(gamma, dtype=float)
         self.wavelength_nm = wavelength_m * 1e9
         self.reference_magnitude = reference_magnitude
         self.reference_flux = reference_flux
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
-        residual = window.measured_modes / self.chi
+        residual = window.measured_modes / (self.gamma * window.sensitivity)
         rms = float(np.sqrt(np.sum(np.mean(residual**2, axis=0))))
         flux = float(np.mean(window.flux))
         magnitude = self.reference_magnitude - 2.5 * math.log10(flux / self.reference_flux) if flux > 0 else math.nan

@@ -411,7 +411,8 @@ class LiveOptimisers:
         if self.mgm:
             machine = mgm_machine(obs, request.structure, chi, period_settings(period, obs), gains.forgetting)
             tasks.append(MgmTask(period, machine, ogtl, probe_gain(calibration, cache, self.ogtl_settings.mode, seeing)))
-        tasks.append(LiveMetricsTask(period, chi, band_wavelength(request.band), obs.magnitude_r, loop.sensor.photons_per_frame))
+        gamma = optical_gain_table(calibration, cache, seeing)
+        tasks.append(LiveMetricsTask(period, gamma, band_wavelength(request.band), obs.magnitude_r, loop.sensor.photons_per_frame))
         tasks.append(safety_net(obs.frame_rate_hz, tasks))
         return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
 
@@ -691,7 +692,8 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing) if request.ogtl else None
     optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
-    aux.append(LiveMetricsTask(period, chi, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
+    gamma = optical_gain_table(cal, cache, request.chi_seeing)
+    aux.append(LiveMetricsTask(period, gamma, band_wavelength(r.band), obs.magnitude_r, loop.sensor.photons_per_frame))
     n_measure = request.frames(request.measure_s)
     n_settle = OGTL_MAX_SETTLING_PERIODS * period if request.ogtl else 0  # at most
     n_close = closing_frames(obs.frame_rate_hz)

@@ -9,8 +9,8 @@ import pytest
 
 from soulctl.control.gains import LoopGains
 from soulctl.control.trial import scan_gains
-from soulctl.loop.auxloop import AuxLoop
-from soulctl.loop.auxloops import OgtlTask, SafetyNet, TrialAndErrorTask
+from soulctl.loop.auxloop import AuxLoop, RtcParameters, TelemetryWindow
+from soulctl.loop.auxloops import LiveMetricsTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from soulctl.loop.simulation import ClosedLoop as _ClosedLoop
 from soulctl.loop.simulation import LoopDiverged
 from soulctl.observation import observation_for_magnitude
@@ -142,6 +142,31 @@ def test_trial_and_error_scores_only_whole_sequences(small_calibration):
     loop.run(800)
     frames = loop.telemetry.aux_arrays("trial")["frame"]
     assert frames[0] == 200 and np.all(np.diff(frames) == 100), frames
+
+
+def _window(residual, gamma, k, gains):
+    """A window whose loop has ``residual`` (frames, modes) in nm, optical gains gamma and k:
+    R s = gamma k residual (no noise), as the simulated loop reconstructs it."""
+    n, m = residual.shape
+    z = np.zeros((n, m))
+    return TelemetryWindow(0, 1000.0, 1.5, gamma * k * residual, z, z, np.zeros((n, 4)), np.full(n, 100.0), gains, k)
+
+
+@pytest.mark.parametrize("k", [3.33, 3.13])
+def test_what_the_live_tasks_measure_of_the_residual_does_not_move_with_k(k):
+    """OGTL changes k between two windows; R s scales with k, the residual does not.  The
+    trial-and-error merit and the live residual estimate are of the residual (R s over k): at
+    R14.5, 1.0" a fall of k by 6 % before the last sequence of a scan made its highest gain of
+    modes 121-250 look best (merit 425 -> 407), and the Strehl ratio fell from 0.356 to 0.312."""
+    rng = np.random.default_rng(3)
+    residual, gamma = rng.normal(0.0, 50.0, (100, 54)), np.linspace(0.9, 0.3, 54)
+    gains = np.full(54, 0.3)
+    window = _window(residual, gamma, k, gains)
+    trial = TrialAndErrorTask(54, [scan_gains(0.6, 3)] * 2, settle=20, measure=80)
+    merit = trial.update(window, RtcParameters(54, gains, lambda g: None, k))["merit"]
+    assert merit == pytest.approx(np.sqrt(np.mean(np.sum((gamma[:2] * residual[-80:, :2]) ** 2, axis=1))), rel=1e-12)
+    metrics = LiveMetricsTask(100, gamma, 1.65e-6, 9.7, 100.0).update(window, RtcParameters(54, gains, lambda g: None, k))
+    assert metrics["modal_rms_nm"] == pytest.approx(np.sqrt(np.sum(np.mean(residual**2, axis=0))), rel=1e-12)
 
 
 class Saboteur(AuxLoop):
