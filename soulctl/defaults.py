@@ -17,3 +17,8 @@ OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
 # calibrated k (Sec. 2.4, Modal Gain Machine).
 NCPA_RMS_NM = 100.0
 MEASURE_S = 0.5  # `optimize gains`: before and after
+# `optimize gains`'s paired evaluation: before and after each measured over this many
+# consecutive windows of MEASURE_S; their mean and the standard error of the paired difference
+# are the result (one window's difference moved by 0.02-0.04 from one 1 s window to the next at
+# R17.5-18.5, 0.6": docs/physics.md)
+EVALUATION_WINDOWS = 4

@@ -132,6 +132,7 @@ TELEMETRY_EVERY = Range(1, 100_000, integer=True)  # loop run --telemetry-every:
 PERIOD_S = Range(0.0, 600.0, "s", lo_open=True)
 OPTIMISATION_S = Range(0.0, 3600.0, "s", lo_open=True)  # optimize gains --duration
 MEASURE_S = Range(0.0, 600.0, "s", lo_open=True)  # optimize gains --measure (before and after)
+EVALUATION_WINDOWS = Range(1, 100, integer=True)  # optimize gains --windows (the paired evaluation's)
 MIN_MEASURE_FRAMES = 20  # a measurement shorter than this has no meaningful jitter
 SEQUENCE_S = Range(0.0, 60.0, "s", lo_open=True)  # one trial-and-error sequence
 PROBE_MODE = Range(1, MODES.hi, integer=True)  # 1-based; at most the controlled modes (checked with the observation)

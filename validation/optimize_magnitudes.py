@@ -5,12 +5,12 @@ For every R magnitude x seeing x seed x variant, `optimize gains` with default o
 the short run lengths (``--duration`` 5 update periods, ``--measure`` 0.5 s): the configuration
 of the look-up table, its default period, initial gains, probe and safety net.  Variants:
 mgm+ogtl (the default), trial+ogtl, mgm, trial.  "before" and "after" are `optimize`'s
-paired evaluation (the initial and the optimised gains on the run's own turbulence and noise,
-one 0.5 s window); the run's own phases are recorded beside them (``during_run``).  The
-difference one window shows depends on what the turbulence does in it (R17.5, 0.6": -0.040
-in `optimize`'s window, -0.0025 +- 0.004 over six windows of 1 s), so each point is also
-evaluated over ``--windows`` consecutive windows of ``--window`` s (``window_strehls``: the
-same paired loops, measured on), and the checks use their mean where a row has them:
+paired evaluation (the initial and the optimised gains on the run's own turbulence and noise)
+over ``--windows`` consecutive windows of ``--window`` s (6 x 1 s: the difference one window
+shows depends on what the turbulence does in it; R17.5, 0.6": -0.040 in one 0.5 s window,
+-0.0025 +- 0.004 over six of 1 s); the run's own phases are recorded beside them
+(``during_run``).  The checks use the windows' means (rows recorded before `optimize` had
+windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 
 * no divergence (exit 3);
 * Strehl after >= Strehl before - 0.01;
@@ -38,13 +38,8 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
-from soulctl.loop import optimize as opt
 from soulctl.loop.auxloops import summary
-from soulctl.loop.metrics import band_wavelength
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize
-from soulctl.loop.run import calibration_for
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
@@ -66,35 +61,19 @@ def _run(obs, seeing: float, seed: int):
     ).request()  # no NCPA, as the grid's first rows
 
 
-def window_strehls(request: OptimizeRequest, cal, gains, k: float, offsets: bool, n: int, window_s: float) -> list[float]:
-    """``optimize``'s paired evaluation (``opt.settled_evaluation_loop``, as ``opt.evaluate``)
-    measured over ``n`` consecutive windows of ``window_s``: one Strehl ratio per window."""
-    r = request.run
-    design = r.gains or default_gains(r.observation, sampled_structure(r.structure, r.observation.frame_rate_hz))
-    loop = opt.settled_evaluation_loop(request, cal, design, gains, k, offsets)
-    out = []
-    for _ in range(n):
-        psf = loop.psf_accumulator(band_wavelength(r.band))
-        loop.run(request.frames(window_s), psf=psf)
-        out.append(float(psf.strehl))
-    return out
-
-
-def paired_windows(request: OptimizeRequest, r, cache: ArrayCache, n: int, window_s: float) -> dict | None:
-    """The initial and the optimised gains of result ``r`` over ``n`` windows (None if diverged)."""
-    if r.diverged_at is not None or n < 1:
+def paired_windows(r) -> dict | None:
+    """The windows of result ``r``'s paired evaluation (None if diverged)."""
+    if r.before is None or r.after is None:
         return None
-    cal = calibration_for(request.run, cache)
-    before = window_strehls(request, cal, r.initial_gains, r.sensitivities[0], r.offsets[0], n, window_s)
-    after = window_strehls(request, cal, r.gains, r.sensitivities[1], r.offsets[1], n, window_s)
-    d = np.subtract(after, before)
+    _, error = r.strehl_difference()
+    before, after = r.before.window_strehls, r.after.window_strehls
     return {
-        "window_s": window_s,
+        "window_s": r.request.window,
         "before": before,
         "after": after,
         "mean_before": float(np.mean(before)),
         "mean_after": float(np.mean(after)),
-        "standard_error": float(d.std(ddof=1) / np.sqrt(n)) if n > 1 else None,
+        "standard_error": error,
     }
 
 
@@ -106,7 +85,9 @@ def run_case(
     t0 = time.perf_counter()
     obs = observation_for_magnitude(mag)
     duration = DURATION_PERIODS * default_period_s(obs)
-    request = OptimizeRequest(_run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S)
+    request = OptimizeRequest(
+        _run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
+    )
     cache = ArrayCache(cache_dir)
     r = optimize(request, cache)
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
@@ -125,7 +106,7 @@ def run_case(
         "sensitivities": list(r.sensitivities),
         "k": r.loop.rtc_parameters.sensitivity,
         "aux": summary(records),
-        "windows": paired_windows(request, r, cache, windows, window_s),
+        "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
     }
 

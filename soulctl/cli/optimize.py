@@ -22,7 +22,7 @@ from ..loop.offline import PlantInputs, offline_mgm
 from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
-from ..ranges import DELAY_FRAMES, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
+from ..ranges import DELAY_FRAMES, EVALUATION_WINDOWS, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
 from ..telemetry.formats import open_telemetry, telemetry_input
 from . import common
 from .common import (
@@ -82,6 +82,7 @@ def _result_dict(result: OptimizeResult) -> dict:
         "phases": {k: {"first_frame": a, "end_frame": b} for k, (a, b) in result.phases.items()},
         "before": result.before.to_dict() if result.before else None,
         "after": result.after.to_dict() if result.after else None,
+        "strehl_difference": _difference_dict(result),
         "sensitivity_before_after": list(result.sensitivities),
         "during_run": {k: v.to_dict() for k, v in result.during_run.items()},
         "groups": group_summary(result.gains),
@@ -95,6 +96,19 @@ def _result_dict(result: OptimizeResult) -> dict:
         "safety_restores": result.safety_events,
         "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
     }
+
+
+def _difference_dict(result: OptimizeResult) -> dict | None:
+    """after - before of the paired evaluation: mean over its windows, standard error (null with one window)."""
+    if result.before is None or result.after is None:
+        return None
+    mean, error = result.strehl_difference()
+    return {"mean": mean, "standard_error": error, "windows": result.request.windows, "window_s": result.request.window}
+
+
+def _difference_text(result: OptimizeResult) -> str:
+    mean, error = result.strehl_difference()
+    return f"{mean:+.3f}" + (f" ± {error:.3f}" if error is not None else "")
 
 
 def _render(results: dict[str, OptimizeResult], console: Console) -> None:
@@ -111,6 +125,7 @@ def _render(results: dict[str, OptimizeResult], console: Console) -> None:
         t.add_column("trial-and-error" if method == "trial" else "MGM", justify="right")
     rows = [
         ("Strehl ratio (" + rr.band + ") before → after", lambda x: f"{x.before.strehl:.3f} → {x.after.strehl:.3f}"),
+        (f"  after - before ({first.request.windows} windows)", _difference_text),
         ("  during the run (other turbulence)", lambda x: f"{x.during_run['before'].strehl:.3f} → {x.during_run['after'].strehl:.3f}"),
         ("residual before → after [nm]", lambda x: f"{x.before.residual_nm:.0f} → {x.after.residual_nm:.0f}"),
         ("Tip/Tilt jitter before → after [mas]", lambda x: f"{x.before.tt_jitter_mas:.2f} → {x.after.tt_jitter_mas:.2f}"),
@@ -259,7 +274,15 @@ class GainsOptions:
         "--measure",
         metavar="S",
         parser=number(MEASURE_S),
-        help="Simulated time measured before and after the optimisation (in the run and in the paired evaluation).",
+        help="Simulated time measured before and after the optimisation (in the run, and each window of the paired evaluation).",
+    )
+    windows: int = typer.Option(
+        defaults.EVALUATION_WINDOWS,
+        "--windows",
+        metavar="N",
+        parser=number(EVALUATION_WINDOWS),
+        help=f"Consecutive windows of --measure in the paired evaluation ({EVALUATION_WINDOWS.text()}): the Strehl ratios are "
+        "their mean, after - before is given with its standard error.",
     )
     sequence: float | None = typer.Option(
         None,
@@ -323,7 +346,9 @@ def gains_cmd(o: GainsOptions) -> int:
     # its duration is not used (--duration and --measure set the phases); automatic NCPA offsets come with this command's OGTL
     run = description.request(ogtl=o.ogtl)
     probe_of_run = description.auxiliary.probe()
-    requests = {m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence) for m in methods}
+    requests = {
+        m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence, windows=o.windows) for m in methods
+    }
     results = _optimize_each(requests, cache, show=not o.json_output and sys.stderr.isatty())
     return _report(o, results)
 

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import defaults
 from ..control import mgm
 from ..control import ogtl as ogtl_model
 from ..control.delay import fractional_taps
@@ -67,9 +68,9 @@ from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
 from ..optics.pupil import LBT_DIAMETER_M
-from ..ranges import DURATION_S, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
+from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
-from .metrics import PsfAccumulator, band_wavelength
+from .metrics import band_wavelength
 from .run import RunRequest, calibration_for, closed_loop_for, closing_frames
 from .simulation import ClosedLoop, LoopDiverged
 
@@ -110,10 +111,12 @@ class OptimizeRequest:
     period_s: float | None = None  # MGM's and OGTL's update period; None: ``default_period_s``
     ogtl: bool = OPTIMISER_OGTL
     ogtl_settings: OgtlSettings = field(default_factory=OgtlSettings)
-    measure_s: float = 0.5  # before and after
+    measure_s: float = defaults.MEASURE_S  # before and after, in the run and each window of the paired evaluation
     trial_sequence_s: float | None = None  # one trial-and-error sequence (20 % settling); None: ``default_sequence_s``
     chi_seeing_arcsec: float | None = None  # the optical-gain table's seeing; None: the run's (``chi_seeing``)
     mgm_settings: mgm.MgmSettings | None = None  # None: segment from the period
+    windows: int = defaults.EVALUATION_WINDOWS  # consecutive windows of the paired evaluation (``evaluate``)
+    window_s: float | None = None  # one evaluation window; None: measure_s
 
     def __post_init__(self):
         if self.period_s is None:
@@ -131,13 +134,17 @@ class OptimizeRequest:
             ("period_s", "--period", PERIOD_S),
             ("measure_s", "--measure", MEASURE_S),
             ("trial_sequence_s", "--sequence", SEQUENCE_S),
+            ("windows", "--windows", EVALUATION_WINDOWS),
         ):
             accepted.check(getattr(self, name), option)
+        if self.window_s is None:
+            object.__setattr__(self, "window_s", self.measure_s)
+        MEASURE_S.check(self.window_s, "the evaluation window")
         obs = self.run.observation
-        if self.frames(self.measure_s) < MIN_MEASURE_FRAMES:
+        if self.frames(min(self.measure_s, self.window)) < MIN_MEASURE_FRAMES:
             raise InputError(
                 f"--measure must be at least {MIN_MEASURE_FRAMES / obs.frame_rate_hz:.3g} s at {obs.frame_rate_hz:g} Hz "
-                f"({MIN_MEASURE_FRAMES} frames), got {self.measure_s:.10g} s"
+                f"({MIN_MEASURE_FRAMES} frames), got {min(self.measure_s, self.window):.10g} s"
             )
         if self.method == "mgm":
             self.settings_for_rate(obs.frame_rate_hz)  # refuses a period too short for the PSDs
@@ -166,6 +173,10 @@ class OptimizeRequest:
     @property
     def sequence(self) -> float:
         return _resolved(self.trial_sequence_s)
+
+    @property
+    def window(self) -> float:
+        return _resolved(self.window_s)
 
     @property
     def chi_seeing(self) -> float:
@@ -261,9 +272,10 @@ def welch_settings(frames: int, rate_hz: float, what: str, dropped: int = 0) -> 
 
 @dataclass
 class PhaseMetrics:
-    strehl: float
+    strehl: float  # the paired evaluation's: the mean of its windows'
     residual_nm: float
     tt_jitter_mas: float
+    window_strehls: list[float] = field(default_factory=list)  # the paired evaluation's windows, in order
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -286,6 +298,14 @@ class OptimizeResult:
     during_run: dict = field(default_factory=dict)  # "before"/"after" -> PhaseMetrics of the run's own phases
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
     offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
+
+    def strehl_difference(self) -> tuple[float, float | None]:
+        """after - before of the paired evaluation: the mean over its windows and the standard
+        error of that mean (None with one window)."""
+        if self.before is None or self.after is None:
+            return math.nan, None
+        d = np.subtract(self.after.window_strehls, self.before.window_strehls)
+        return float(d.mean()), (float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else None)
 
 
 def optical_gain_table(
@@ -567,7 +587,9 @@ def session_seconds(request: OptimizeRequest) -> float:
     rate = request.run.observation.frame_rate_hz
     optimise = max(request.duration, 2 * request.sequence * (3 * (TRIAL_VALUES + 1) + 1))
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
-    return closing_frames(rate) / rate + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
+    closing = closing_frames(rate) / rate
+    live = closing + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
+    return max(live, closing + EVALUATION_SETTLE_S + request.windows * request.window)
 
 
 def evaluate(
@@ -576,19 +598,27 @@ def evaluate(
     """Metrics of ``gains`` at slope sensitivity ``k`` on the run's own turbulence and noise: a
     loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k set and the NCPA
     offsets applied if ``offsets`` (as they were in the run at that point), settled for
-    EVALUATION_SETTLE_S, measured for ``measure_s``; no auxiliary loop.  *before* and *after*
-    so measured differ by the gains and k alone - a paired comparison: measured in the run's
-    own phases, 0.5 s apart in time, they differ by the turbulence too, by up to +-0.05 in
-    Strehl at 1.0" (docs/physics.md).  Paired, one window still depends on what the turbulence
-    does in it: at R17.5-18.5, 0.6" the difference of two gain sets moves by 0.02-0.04 from one
-    1 s window to the next (the magnitude grid judges over six).  Raises LoopDiverged."""
+    EVALUATION_SETTLE_S, measured over ``windows`` consecutive windows of ``window_s``; no
+    auxiliary loop.  The Strehl ratio is the mean of the windows' (each a long exposure);
+    residual and jitter are over all of them.  *before* and *after* so measured differ by the
+    gains and k alone - a paired comparison: measured in the run's own phases, 0.5 s apart in
+    time, they differ by the turbulence too, by up to +-0.05 in Strehl at 1.0"
+    (docs/physics.md).  Paired, one window still depends on what the turbulence does in it: at
+    R17.5-18.5, 0.6" the difference of two gain sets moves by 0.02-0.04 from one 1 s window to
+    the next, hence several windows and the standard error of their paired differences
+    (``OptimizeResult.strehl_difference``).  Raises LoopDiverged."""
     loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress)
-    n_measure = request.frames(request.measure_s)
-    skip = min(n_measure // 2, request.frames(0.05))
-    psf = loop.psf_accumulator(band_wavelength(request.run.band))
-    start = loop.frame
-    loop.run(n_measure, psf=psf, skip=skip, progress=progress)
-    return _phase_metrics(loop, psf, start + skip, loop.frame)
+    n_window = request.frames(request.window)
+    skip = min(n_window // 2, request.frames(0.05))
+    wavelength = band_wavelength(request.run.band)
+    start, strehls = loop.frame, []
+    for i in range(request.windows):
+        psf = loop.psf_accumulator(wavelength)
+        loop.run(n_window, psf=psf, skip=skip if i == 0 else 0, progress=progress)
+        strehls.append(psf.strehl)
+    metrics = _phase_metrics(loop, float(np.mean(strehls)), start + skip, loop.frame)
+    metrics.window_strehls = strehls
+    return metrics
 
 
 def settled_evaluation_loop(
@@ -609,11 +639,11 @@ def settled_evaluation_loop(
     return loop
 
 
-def _phase_metrics(loop: ClosedLoop, psf: PsfAccumulator, start: int, stop: int) -> PhaseMetrics:
+def _phase_metrics(loop: ClosedLoop, strehl: float, start: int, stop: int) -> PhaseMetrics:
     tm = loop.telemetry
     rms = np.asarray(tm.residual_rms_nm[start:stop])
     tt = tm.series("residual_tt")[start:stop] * loop.mas_per_nm_tt
-    return PhaseMetrics(psf.strehl, float(np.sqrt(np.mean(rms**2))), float(np.sqrt(np.mean(tt.var(axis=0)))))
+    return PhaseMetrics(strehl, float(np.sqrt(np.mean(rms**2))), float(np.sqrt(np.mean(tt.var(axis=0)))))
 
 
 def _settled(records: list[dict]) -> bool:
@@ -708,7 +738,7 @@ def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[Ph
     psf = loop.psf_accumulator(wavelength)
     start, skip = loop.frame, s.frames["skip"]
     loop.run(s.frames["measure"], psf=psf, skip=skip, progress=tick)
-    return _phase_metrics(loop, psf, start + skip, loop.frame), (start, loop.frame)
+    return _phase_metrics(loop, psf.strehl, start + skip, loop.frame), (start, loop.frame)
 
 
 def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -> None:
@@ -755,7 +785,8 @@ def optimize(
     chi = plant_model(cal, cache, request.ogtl, request.ogtl_settings.mode, request.chi_seeing)
     s = _session(request, cal, cache, gains, chi)
     f = s.frames
-    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + f["measure"])
+    n_window = request.frames(request.window)
+    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + request.windows * n_window)
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     done = 0
 

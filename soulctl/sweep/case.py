@@ -121,7 +121,10 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
             period = optimisation_period_s(p["duration"], request.observation)
             run_request = description.request(ogtl=OPTIMISER_OGTL)  # automatic NCPA offsets come with the optimiser's OGTL
             optimised = optimize(
-                OptimizeRequest(run_request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"]),
+                # measured over the case's duration, one window, as a `loop run` case
+                OptimizeRequest(
+                    run_request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"], windows=1
+                ),
                 cache,
                 calibration=calibration,
             )

@@ -89,6 +89,15 @@ def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, 
         assert g.shape == (54,) and np.all(np.isfinite(g)) and np.all(g >= 0)
         assert 0 < r["before"]["strehl"] < 1 and 0 < r["after"]["strehl"] < 1 and r["after"]["residual_nm"] > 0
         assert r["sensitivity"] > 1  # OGTL: k = 1 / optical gain of mode 30 of a partly corrected loop
+        # the paired evaluation's windows (4 x --measure by default): Strehl ratios their means,
+        # after - before the mean of the paired differences with its standard error
+        before, after = np.array(r["before"]["window_strehls"]), np.array(r["after"]["window_strehls"])
+        assert before.shape == after.shape == (4,) and r["strehl_difference"]["windows"] == 4
+        assert r["before"]["strehl"] == pytest.approx(before.mean()) and r["after"]["strehl"] == pytest.approx(after.mean())
+        diff = after - before
+        assert r["strehl_difference"]["mean"] == pytest.approx(diff.mean())
+        assert r["strehl_difference"]["standard_error"] == pytest.approx(diff.std(ddof=1) / 2)
+        assert len(set(before.tolist())) == 4  # consecutive windows, not one measured four times
     trial, initial = np.array(d["trial"]["gains"]), np.array(d["trial"]["initial_gains"])
     assert len(d["trial"]["trial_best"]) == 2  # 54 modes: two groups, one mean gain each on the initial gains' shape
     for modes, best in zip((slice(0, 2), slice(2, 54)), d["trial"]["trial_best"]):
@@ -105,7 +114,7 @@ def test_table_output_and_same_seed_same_gains(capsys, cache_dir):
     args = ["optimize", "gains", *SMALL, "--period", "1", "--duration", "1", "--measure", "0.2", "--seed", "5"]
     status, out, err = cli(args, capsys, cache_dir)
     assert status == 0, err
-    for text in ("Strehl ratio", "before → after", "gains Tip / Tilt", "slope sensitivity k"):
+    for text in ("Strehl ratio", "before → after", "after - before (4 windows)", " ± ", "gains Tip / Tilt", "slope sensitivity k"):
         assert text in out
     a = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
     b = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
@@ -295,6 +304,8 @@ def test_offline_without_a_recorded_delay_takes_the_configurations(recorded, tmp
         (["--duration", "0"], "--duration must be in 0..3600 s"),
         (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
         (["--seeing", "0"], "--seeing must be in"),
+        (["--windows", "0"], "--windows must be in 1..100"),
+        (["--windows", "1.5"], "--windows must be"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args, message, capsys, cache_dir):
