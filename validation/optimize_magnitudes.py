@@ -33,7 +33,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -71,8 +70,8 @@ def paired_windows(r) -> dict | None:
         "window_s": r.request.window,
         "before": before,
         "after": after,
-        "mean_before": float(np.mean(before)),
-        "mean_after": float(np.mean(after)),
+        "mean_before": r.before.strehl,
+        "mean_after": r.after.strehl,
         "standard_error": error,
     }
 

@@ -424,14 +424,14 @@ class LiveOptimisers:
         obs = request.observation
         period = self._frames(obs)
         seeing = self.chi_seeing_arcsec or request.seeing_arcsec
-        chi = plant_model(calibration, cache, self.ogtl, self.ogtl_settings.mode, seeing)
+        gamma = optical_gain_table(calibration, cache, seeing)
+        chi = mgm_chi(gamma, self.ogtl, self.ogtl_settings.mode)  # ``plant_model`` of that table
         noise = loop.sensor.modal_noise_nm(calibration.reconstructor)
         ogtl = ogtl_task(self.ogtl_settings, period, calibration, cache, noise, seeing) if self.ogtl else None
         tasks: list = [ogtl] if ogtl is not None else []
         if self.mgm:
             machine = mgm_machine(obs, request.structure, chi, period_settings(period, obs), gains.forgetting)
             tasks.append(MgmTask(period, machine, ogtl, probe_gain(calibration, cache, self.ogtl_settings.mode, seeing)))
-        gamma = optical_gain_table(calibration, cache, seeing)
         tasks.append(LiveMetricsTask(period, gamma, band_wavelength(request.band), obs.magnitude_r, loop.sensor.photons_per_frame))
         tasks.append(safety_net(obs.frame_rate_hz, tasks))
         return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
