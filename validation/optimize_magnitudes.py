@@ -17,8 +17,10 @@ windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 * MGM's Strehl after >= trial-and-error's - 0.01 (same magnitude, seeing, seed and OGTL: the
   same screens, ``session_seconds``).
 
-Rows are appended to a JSON-lines file as cases finish (a stopped run keeps what it did and is
-resumed by running again with the same --out); the summary table is printed at the end.
+The variants of one magnitude, seeing and seed run one after the other in one worker, those
+with the same OGTL setting sharing their *before* evaluation (``SharedEvaluations``).  Rows are
+appended to a JSON-lines file as points finish (a stopped run keeps what it did and is resumed
+by running again with the same --out); the summary table is printed at the end.
 
 Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
       [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--windows 6] [--window 1.0]
@@ -28,17 +30,20 @@ Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from soulctl.cli.common import default_cache_dir
+from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import summary
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize
+from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
@@ -108,6 +113,54 @@ def run_case(
         "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
     }
+
+
+class SharedEvaluations:
+    """The paired evaluation of a gain set, measured once for the variants of one point.
+
+    MGM and trial-and-error on one magnitude, seeing, seed and OGTL setting share everything
+    up to the optimisation (the screens are sized alike, ``session_seconds``), so their
+    *before* evaluation - the initial gains at the k of the end of *before* - is the same
+    loop, frame for frame.  Measuring it once saves a fifth of a point's time.  Wraps
+    ``soulctl.loop.optimize.evaluate`` for the duration of a ``with`` block; a key holds
+    everything the evaluation depends on besides the run itself (the block runs one point)."""
+
+    def __init__(self):
+        self.memo: dict = {}
+        self.hits = 0
+
+    def __enter__(self):
+        self._evaluate = optimize_module.evaluate
+
+        def shared(request, cal, design, gains, k, offsets=False, progress=None):
+            key = (session_seconds(request), request.windows, request.window, np.asarray(gains).tobytes(), float(k), bool(offsets))
+            if key in self.memo:
+                self.hits += 1
+                return copy.deepcopy(self.memo[key])
+            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress)
+            self.memo[key] = copy.deepcopy(metrics)
+            return metrics
+
+        optimize_module.evaluate = shared
+        return self
+
+    def __exit__(self, *exc):
+        optimize_module.evaluate = self._evaluate
+
+
+def run_point(
+    mag: float, seeing: float, seed: int, variants: list[str], cache_dir: str, windows: int = WINDOWS, window_s: float = WINDOW_S
+) -> list[dict]:
+    """The variants of one magnitude, seeing and seed, run one after the other in one process
+    so that those with the same OGTL setting share their *before* evaluation."""
+    rows = []
+    for ogtl in (True, False):
+        with SharedEvaluations() as shared:
+            for v in (v for v in variants if v.endswith("+ogtl") == ogtl):
+                row = run_case(mag, seeing, seed, v, cache_dir, windows, window_s)
+                row["shared_evaluations"] = shared.hits
+                rows.append(row)
+    return rows
 
 
 def _key(row: dict) -> tuple:
@@ -181,21 +234,24 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     done = [json.loads(line) for line in a.out.read_text().splitlines()] if a.out.exists() else []
     have = {_key(r) for r in done}
-    todo = [c for c in todo if c not in have]
-    todo.sort(key=lambda c: -c[0])  # the faint (fast) cases first
+    points: dict[tuple, list[str]] = {}  # (mag, seeing, seed) -> its variants to run
+    for c in todo:
+        if c not in have:
+            points.setdefault(c[:3], []).append(c[3])
+    order = sorted(points, key=lambda p: -p[0])  # the faint (fast) points first
     cache = str(default_cache_dir())
     with ProcessPoolExecutor(a.workers) as pool, a.out.open("a") as f:
-        futures = [pool.submit(run_case, *c, cache, a.windows, a.window) for c in todo]
+        futures = [pool.submit(run_point, *p, points[p], cache, a.windows, a.window) for p in order]
         for fut in as_completed(futures):
-            row = fut.result()
-            f.write(json.dumps(row) + "\n")
-            f.flush()
-            print(
-                f'R{row["mag"]:g} {row["seeing"]:g}" seed {row["seed"]} {row["variant"]}: '
-                f"{row['before']} -> {row['after']} (windows: {judged(row, 'before'):.4f} -> {judged(row, 'after'):.4f}; "
-                f"diverged at {row['diverged_at']}), {row['seconds']:.0f} s",
-                flush=True,
-            )
+            for row in fut.result():
+                f.write(json.dumps(row) + "\n")
+                f.flush()
+                print(
+                    f'R{row["mag"]:g} {row["seeing"]:g}" seed {row["seed"]} {row["variant"]}: '
+                    f"{row['before']} -> {row['after']} (windows: {judged(row, 'before'):.4f} -> {judged(row, 'after'):.4f}; "
+                    f"diverged at {row['diverged_at']}), {row['seconds']:.0f} s",
+                    flush=True,
+                )
     wanted = {
         (float(m), float(s), int(seed), v)
         for m in a.mags.split(",")
