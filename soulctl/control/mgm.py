@@ -51,7 +51,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import welch
+from scipy.signal import csd, welch
 
 from ..errors import InputError
 from .filters import Filter
@@ -62,6 +62,7 @@ REL_TOL = 1e-4  # tolerance of the refined gain, relative to the upper limit
 MIN_SEGMENTS = 4  # Welch segments a window must hold (50 % overlap)
 FLOOR_BAND = 0.75  # the noise floor: the PSD's median above this fraction of Nyquist
 NOISE_LOOP_GAIN = 0.05  # g chi at least, for a noise-dominated mode
+PSD_UPDATES = 5  # windows whose POL PSDs a live MGM averages (``loop.auxloops.MgmTask``)
 _CHUNK_ELEMENTS = 131_072  # float64 elements per (modes, gains, frequencies) temporary: 1 MB, cache-sized
 _INVPHI = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618..., the golden-section ratio
 
@@ -182,6 +183,25 @@ def gain_limits(filters, chi, delay_frames: float, rate_hz: float, margin: float
     unit = np.array([max_stable_gain(Loop(Filter(z, p, 1.0), _plant(delay_frames, structure, s), rate_hz)) for z, p, s in keys])
     limit = np.where(np.isfinite(unit), (1.0 - margin) * unit, UNBOUNDED_LOOP_GAIN)
     return limit[idx] / chi
+
+
+def pol_spectra(measured, shifted, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The POL PSD in parts, for a POL a m + c whose scale a is chosen later: the Welch
+    densities of m and of c and the real part of their cross density (each (n_modes, F), f as
+    ``pol_psd``).  Welch is a quadratic form of the detrended, windowed segments, so
+    ``psd_of_spectra(spectra, a)`` is exactly ``pol_psd(a m + c)``."""
+    m, c = np.asarray(measured, dtype=float), np.asarray(shifted, dtype=float)
+    pol_psd(m + c, rate_hz, settings)  # the window's checks
+    s = settings.segment
+    kw = dict(fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0)
+    parts = (welch(m, **kw)[1], welch(c, **kw)[1], csd(m, c, **kw)[1].real)
+    return tuple(np.ascontiguousarray(p[1:].T) for p in parts)  # type: ignore[return-value]
+
+
+def psd_of_spectra(spectra: tuple[np.ndarray, np.ndarray, np.ndarray], a: float) -> np.ndarray:
+    """The PSD of a m + c from ``pol_spectra``: a^2 S_mm + S_cc + 2 a Re S_mc."""
+    s_mm, s_cc, s_mc = spectra
+    return a * a * s_mm + s_cc + 2.0 * a * s_mc
 
 
 def _parts(psd, L1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -324,7 +344,16 @@ class ModalGainMachine:
         pol = np.asarray(pol, dtype=float)
         if pol.ndim != 2 or pol.shape[1] != self.n_modes:
             raise InputError(f"POL telemetry must be (frames, {self.n_modes}) for {self.n_modes} modes, got shape {pol.shape}")
-        f, psd = pol_psd(pol, self.rate_hz, self.settings)
+        _, psd = pol_psd(pol, self.rate_hz, self.settings)
+        return self.optimum_of_psd(psd)
+
+    def optimum_of_psd(self, psd) -> tuple[np.ndarray, dict]:
+        """``optimum`` from a POL PSD already estimated (n_modes, F) on ``frequencies``: one
+        window's (``pol_psd``) or the mean of several windows' (``loop.auxloops.MgmTask``)."""
+        psd = np.asarray(psd, dtype=float)
+        if psd.shape != (self.n_modes, self.frequencies.size):
+            raise InputError(f"POL PSD must be ({self.n_modes}, {self.frequencies.size}), got shape {psd.shape}")
+        f = self.frequencies
         gains = optimal_gains(psd, self.open_loops, self.upper, self.settings.grid)
         floor = noise_floor(psd, f, self.rate_hz)
         noisy = noise_dominated(psd, floor)

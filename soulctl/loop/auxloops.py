@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Sequence
 from typing import Protocol
 
@@ -109,46 +110,76 @@ class MgmTask(AuxLoop):
     mode (OGTL keeps that one at 1), otherwise the table times the fixed k.
 
     With ``ogtl`` (the run's OGTL task), the model is scaled by what OGTL knows of the probed
-    mode: its latest reliable chi at the current k, or, before it has one (a noise-dominated
-    loop where OGTL holds k), ``probe_gain`` x k, the table's gamma of the probed mode:
-    chi_i = chi_model,i x scale.  The safety net's ``damp`` halves rho."""
+    mode's optical gain gamma: chi_i = chi_model,i x gamma x k, gamma OGTL's latest reliable
+    chi over its k, or, before it has one (a noise-dominated loop where OGTL holds k),
+    ``probe_gain``, the table's gamma of the probed mode.  The safety net's ``damp`` halves rho.
+
+    Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
+    of an update is of the mean POL PSD of these windows, each rebuilt at the geometric mean
+    of the gammas of the same updates (``mgm.pol_spectra``: the POL's parts, so that a window's
+    PSD follows a later gamma exactly).  The pseudo-open loop does not depend on the gains,
+    so every window estimates the same PSD, and the mean of five has about 1/sqrt(5) of one's
+    scatter; gamma changes with the turbulence over minutes, not from one 2-3 s update to the
+    next, while OGTL's estimate of it scatters by 15-20 % at the faint end.  With one window
+    and the latest gamma, MGM with OGTL ended 0.004-0.010 below the initial gains at R17.5 and
+    R18.5, 0.6" (docs/physics.md)."""
 
     name = "mgm"
 
-    def __init__(self, period_frames: int, machine: mgm.ModalGainMachine, ogtl: OgtlTask | None = None, probe_gain: float = 1.0):
+    def __init__(
+        self,
+        period_frames: int,
+        machine: mgm.ModalGainMachine,
+        ogtl: OgtlTask | None = None,
+        probe_gain: float = 1.0,
+        psd_updates: int = mgm.PSD_UPDATES,
+    ):
         super().__init__(period_frames)
         self.machine = machine
         self.ogtl = ogtl
         self.probe_gain = float(probe_gain)
         self.rho_scale = 1.0
+        self.windows: deque[tuple[tuple, float]] = deque(maxlen=psd_updates)  # (POL spectra, k of the window)
+        self.gammas: deque[float] = deque(maxlen=psd_updates)
 
     def damp(self) -> None:
         self.rho_scale *= 0.5
 
-    def chi_scale(self, window_k: float, k_now: float) -> float:
-        """chi of the probed mode during a window at ``window_k``, relative to the model's (1
-        without OGTL); OGTL's ``chi_now`` is at ``k_now`` (it has run for this update)."""
-        if self.ogtl is None:
-            return 1.0
-        if self.ogtl.chi_now is not None:
-            return self.ogtl.chi_now * window_k / k_now
-        return self.probe_gain * window_k
+    def gamma(self, k_now: float) -> float:
+        """The probed mode's optical gain as OGTL knows it now (it has run for this update)."""
+        if self.ogtl is not None and self.ogtl.chi_now is not None:
+            return self.ogtl.chi_now / k_now
+        return self.probe_gain
+
+    def chi_scale(self, k: float) -> float:
+        """chi of the probed mode at ``k`` relative to the model's: the memory's gamma x k with
+        OGTL (geometric mean), 1 without."""
+        return float(np.exp(np.mean(np.log(self.gammas)))) * k if self.ogtl is not None else 1.0
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         n, _ = fractional_taps(window.delay_frames)
         usable = window.frames - n - 1  # the first n + 1 frames lack their commands
         if usable < mgm.min_frames(self.machine.settings):
             return {}
-        scale = self.chi_scale(window.sensitivity, rtc.sensitivity)
-        pol = pseudo_open_loop(
-            window.measured_modes / (self.machine.chi * scale), window.command_modes, window.delay_frames, self.machine.structure
-        )
-        optimum, info = self.machine.optimum(pol[n + 1 :])
+        mirror = pseudo_open_loop(np.zeros_like(window.command_modes), window.command_modes, window.delay_frames, self.machine.structure)
+        measured = window.measured_modes / self.machine.chi
+        spectra = mgm.pol_spectra(measured[n + 1 :], mirror[n + 1 :], self.machine.rate_hz, self.machine.settings)
+        self.windows.append((spectra, window.sensitivity))
+        self.gammas.append(self.gamma(rtc.sensitivity))
+        psd = np.mean([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k in self.windows], axis=0)
+        optimum, info = self.machine.optimum_of_psd(psd)
+        scale = self.chi_scale(window.sensitivity)
         optimum = optimum / scale
         settings = dataclasses.replace(self.machine.settings, rho=self.machine.settings.rho * self.rho_scale)
         gains = mgm.update_gains(window.gains, optimum, settings) * (window.sensitivity / rtc.sensitivity)
         rtc.set_gains(gains)
-        return {"gains": gains, "optimum": optimum, "chi_scale": scale, "noise_dominated": int(np.sum(info["noise_dominated"]))}
+        return {
+            "gains": gains,
+            "optimum": optimum,
+            "chi_scale": scale,
+            "noise_dominated": int(np.sum(info["noise_dominated"])),
+            "psd_windows": len(self.windows),
+        }
 
 
 class TrialAndErrorTask(AuxLoop):

@@ -3,6 +3,7 @@ frames, records), OGTL converging to the model's optical gain of its mode, the t
 scan, and the probe on the mirror."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from soulctl.control.gains import LoopGains
 from soulctl.control.trial import scan_gains
 from soulctl.loop.auxloop import AuxLoop, RtcParameters, TelemetryWindow
-from soulctl.loop.auxloops import LiveMetricsTask, OgtlTask, SafetyNet, TrialAndErrorTask
+from soulctl.loop.auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask
 from soulctl.loop.simulation import ClosedLoop as _ClosedLoop
 from soulctl.loop.simulation import LoopDiverged
 from soulctl.observation import observation_for_magnitude
@@ -167,6 +168,42 @@ def test_what_the_live_tasks_measure_of_the_residual_does_not_move_with_k(k):
     assert merit == pytest.approx(np.sqrt(np.mean(np.sum((gamma[:2] * residual[-80:, :2]) ** 2, axis=1))), rel=1e-12)
     metrics = LiveMetricsTask(100, gamma, 1.65e-6, 9.7, 100.0).update(window, RtcParameters(54, gains, lambda g: None, k))
     assert metrics["modal_rms_nm"] == pytest.approx(np.sqrt(np.sum(np.mean(residual**2, axis=0))), rel=1e-12)
+
+
+class _OgtlEstimate:
+    """What MGM reads of OGTL: its latest reliable chi of the probed mode at the current k."""
+
+    chi_now: float | None = None
+
+
+def test_live_mgm_scales_its_plant_by_the_mean_optical_gain_of_its_memory():
+    """OGTL's estimate of the probed mode's optical gain scatters from one update to the next
+    (15-20 % at R17.5); MGM scales its plant, and rebuilds its remembered windows' POL, with the
+    geometric mean over its memory: the same window seen at estimates 1.3 and then 0.7 gives
+    at the second update the optimum of gamma = sqrt(1.3 x 0.7), not of the latest 0.7.  With
+    no commands the POL is R s / (chi gamma k), J's minimum does not move with gamma in model
+    units, and the gains are that minimum over gamma k."""
+    from soulctl.control.filters import Filter
+    from soulctl.control.mgm import MgmSettings, ModalGainMachine
+
+    rng = np.random.default_rng(5)
+    frames, k = 640, 2.0
+    red = np.cumsum(rng.normal(0.0, 1.0, (frames, 3)), axis=0)
+    measured = red - red.mean(axis=0) + rng.normal(0.0, 2.0, (frames, 3))
+    machine = ModalGainMachine([Filter.integrator(1.0)] * 3, np.array([1.0, 0.8, 1.2]), 1.5, 1000.0, MgmSettings(segment=64))
+    ogtl = _OgtlEstimate()
+    task = MgmTask(frames, machine, ogtl, probe_gain=0.4)
+    z = np.zeros((frames, 3))
+    window = TelemetryWindow(0, 1000.0, 1.5, measured, z, z, np.zeros((frames, 4)), np.ones(frames), np.full(3, 0.2), k)
+    reference = machine.optimum((measured / machine.chi)[2:])[0]  # the first n + 1 = 2 frames are left out
+    records = []
+    for chi_now in (1.3 * k, 0.7 * k):
+        ogtl.chi_now = chi_now
+        records.append(task.update(window, RtcParameters(3, np.full(3, 0.2), lambda g: None, k)))
+    gamma = math.sqrt(1.3 * 0.7)
+    assert records[0]["chi_scale"] == pytest.approx(1.3 * k, rel=1e-12)
+    assert records[1]["chi_scale"] == pytest.approx(gamma * k, rel=1e-12) and records[1]["psd_windows"] == 2
+    np.testing.assert_allclose(records[1]["optimum"], reference / (gamma * k), rtol=1e-6)
 
 
 class Saboteur(AuxLoop):
