@@ -8,7 +8,8 @@ mgm+ogtl (the default), trial+ogtl, mgm, trial.  "before" and "after" are `optim
 paired evaluation (the initial and the optimised gains on the run's own turbulence and noise)
 over ``--windows`` consecutive windows of ``--window`` s (6 x 1 s: the difference one window
 shows depends on what the turbulence does in it; R17.5, 0.6": -0.040 in one 0.5 s window,
--0.0025 +- 0.004 over six of 1 s); the run's own phases are recorded beside them
+-0.0025 +- 0.004 over six of 1 s), more below 750 Hz so that every rate has as many frames
+(``windows_for``: 45 at 100 Hz); the run's own phases are recorded beside them
 (``during_run``).  The checks use the windows' means (rows recorded before `optimize` had
 windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -54,7 +56,8 @@ SEEINGS = (0.6, 1.0, 1.5)
 VARIANTS = ("mgm+ogtl", "trial+ogtl", "mgm", "trial")
 DURATION_PERIODS, MEASURE_S = 5, 0.5  # short runs: MGM makes 5 updates; trial-and-error its default sequences
 TOLERANCE = 0.01
-WINDOWS, WINDOW_S = 6, 1.0  # the checks' paired evaluation: six consecutive windows of 1 s
+WINDOWS, WINDOW_S = 6, 1.0  # the checks' paired evaluation: six consecutive windows of 1 s at least ...
+REFERENCE_RATE_HZ = 750.0  # ... and as many frames as six of 1 s at R14.5's 750 Hz (``windows_for``)
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
 
 
@@ -81,6 +84,18 @@ def paired_windows(r) -> dict | None:
     }
 
 
+def windows_for(rate_hz: float, windows: int = WINDOWS, window_s: float = WINDOW_S) -> int:
+    """Windows of the paired evaluation at ``rate_hz``: at least ``windows``, and as many
+    frames as ``windows`` of ``window_s`` at REFERENCE_RATE_HZ (45 windows of 1 s at 100 Hz).
+    Why: at the faint end the two loops of the pairing do not stay paired - the noise is
+    drawn from the intensities (one EMCCD draw per lit pixel), so the least difference of
+    state shifts every later draw
+    (R18.5, 0.6": the initial gains x (1 + 1e-4) move the six windows' mean by +0.002 and one
+    window by up to 0.013; x 1.01 by -0.010) - and the verdict's noise is that of the frames
+    (the same point: -0.011 on six windows, -0.003 +- 0.003 on 48)."""
+    return max(windows, math.ceil(windows * REFERENCE_RATE_HZ / rate_hz - 1e-9))
+
+
 def run_case(
     mag: float, seeing: float, seed: int, variant: str, cache_dir: str, windows: int = WINDOWS, window_s: float = WINDOW_S
 ) -> dict:
@@ -89,6 +104,7 @@ def run_case(
     t0 = time.perf_counter()
     obs = observation_for_magnitude(mag)
     duration = DURATION_PERIODS * default_period_s(obs)
+    windows = windows_for(obs.frame_rate_hz, windows, window_s)
     request = OptimizeRequest(
         _run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
     )
@@ -190,7 +206,7 @@ def checks(rows: list[dict]) -> list[dict]:
 
 
 def render(rows: list[dict], console: Console) -> None:
-    t = Table(title="optimize gains over the look-up table (Strehl in H: before -> after, the windows' mean; !: a check failed)")
+    t = Table(title="optimize gains over the look-up table (H Strehl before -> after, the windows' mean, seeds in order; !: a miss)")
     for c in ("R", "variant", *[f'{s:g}"' for s in SEEINGS], "restores", "checks"):
         t.add_column(c, justify="right")
     cases = sorted({(r["mag"], r["variant"]) for r in rows}, key=lambda x: (x[0], VARIANTS.index(x[1])))
@@ -198,7 +214,7 @@ def render(rows: list[dict], console: Console) -> None:
         cells = []
         sel = [r for r in rows if r["mag"] == mag and r["variant"] == variant]
         for s in SEEINGS:
-            pts = [r for r in sel if r["seeing"] == s]
+            pts = sorted((r for r in sel if r["seeing"] == s), key=lambda r: r["seed"])
             cells.append(
                 "  ".join(
                     "div"
