@@ -106,6 +106,18 @@ def psd_frequencies(rate_hz: float, settings: MgmSettings) -> np.ndarray:
 def pol_psd(pol, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.ndarray]:
     """(f, Phi_pol) of the POL modal series pol (frames, n_modes): Welch, Hann window, 50 %
     overlap, constant detrend, one-sided density; f without DC (F,), Phi (n_modes, F)."""
+    f, psd = welch(_checked_pol(pol, rate_hz, settings), **_welch_settings(rate_hz, settings))
+    return f[1:], np.ascontiguousarray(psd[1:].T)
+
+
+def _welch_settings(rate_hz: float, settings: MgmSettings) -> dict:
+    s = settings.segment
+    return dict(fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0)
+
+
+def _checked_pol(pol, rate_hz: float, settings: MgmSettings) -> np.ndarray:
+    """pol as a float array, or InputError: not (frames, modes), shorter than MIN_SEGMENTS
+    segments, not finite."""
     _check_rate(rate_hz)
     pol = np.asarray(pol, dtype=float)
     if pol.ndim != 2 or pol.shape[1] < 1:
@@ -119,10 +131,7 @@ def pol_psd(pol, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.
     if not np.isfinite(pol).all():
         bad = np.nonzero(~np.isfinite(pol).all(axis=0))[0]
         raise InputError(f"POL telemetry must be finite: NaN or inf in {bad.size} mode(s), first mode {int(bad[0])}")
-    f, psd = welch(
-        pol, fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0
-    )
-    return f[1:], np.ascontiguousarray(psd[1:].T)
+    return pol
 
 
 def _check_rate(rate_hz: float) -> None:
@@ -190,10 +199,8 @@ def pol_spectra(measured, shifted, rate_hz: float, settings: MgmSettings) -> tup
     densities of m and of c and the real part of their cross density (each (n_modes, F), f as
     ``pol_psd``).  Welch is a quadratic form of the detrended, windowed segments, so
     ``psd_of_spectra(spectra, a)`` is exactly ``pol_psd(a m + c)``."""
-    m, c = np.asarray(measured, dtype=float), np.asarray(shifted, dtype=float)
-    pol_psd(m + c, rate_hz, settings)  # the window's checks
-    s = settings.segment
-    kw = dict(fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0)
+    m, c = _checked_pol(measured, rate_hz, settings), _checked_pol(shifted, rate_hz, settings)
+    kw = _welch_settings(rate_hz, settings)
     parts = (welch(m, **kw)[1], welch(c, **kw)[1], csd(m, c, **kw)[1].real)
     return tuple(np.ascontiguousarray(p[1:].T) for p in parts)  # type: ignore[return-value]
 
