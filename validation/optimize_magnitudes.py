@@ -84,9 +84,9 @@ def paired_windows(r) -> dict | None:
     }
 
 
-def windows_for(rate_hz: float, windows: int = WINDOWS, window_s: float = WINDOW_S) -> int:
+def windows_for(rate_hz: float, windows: int = WINDOWS) -> int:
     """Windows of the paired evaluation at ``rate_hz``: at least ``windows``, and as many
-    frames as ``windows`` of ``window_s`` at REFERENCE_RATE_HZ (45 windows of 1 s at 100 Hz).
+    frames as ``windows`` at REFERENCE_RATE_HZ, whatever their length (45 at 100 Hz).
     Why: at the faint end the two loops of the pairing do not stay paired - the noise is
     drawn from the intensities (one EMCCD draw per lit pixel), so the least difference of
     state shifts every later draw
@@ -104,7 +104,7 @@ def run_case(
     t0 = time.perf_counter()
     obs = observation_for_magnitude(mag)
     duration = DURATION_PERIODS * default_period_s(obs)
-    windows = windows_for(obs.frame_rate_hz, windows, window_s)
+    windows = windows_for(obs.frame_rate_hz, windows)
     request = OptimizeRequest(
         _run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
     )
