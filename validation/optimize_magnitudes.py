@@ -26,12 +26,16 @@ by running again with the same --out); the summary table is printed at the end.
 Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
       [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--windows 6] [--window 1.0]
       [--workers 2] [--out FILE]
+Table of several files' rows made with the current code (each row carries the fingerprint of
+the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
+      python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH|any]
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import hashlib
 import json
 import math
 import time
@@ -42,6 +46,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+import soulctl
 from soulctl.cli.common import default_cache_dir
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import summary
@@ -50,6 +55,7 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
+from soulctl.tables import tables_dir
 
 MAGS = (8.0, 9.7, 10.9, 11.9, 13.0, 14.5, 15.5, 16.5, 17.5, 18.5)
 SEEINGS = (0.6, 1.0, 1.5)
@@ -59,6 +65,20 @@ TOLERANCE = 0.01
 WINDOWS, WINDOW_S = 6, 1.0  # the checks' paired evaluation: six consecutive windows of 1 s at least ...
 REFERENCE_RATE_HZ = 750.0  # ... and as many frames as six of 1 s at R14.5's 750 Hz (``windows_for``)
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
+
+
+def code_fingerprint() -> str:
+    """12 hex digits of the SHA-256 of the soulctl sources and tables the rows were made with
+    (each .py of the package and each file of its tables, by relative path and content; the
+    compiled core is not included).  Rows of different sessions belong in one table when their
+    fingerprints agree: the grid takes longer than a session and the code moves between them."""
+    h = hashlib.sha256()
+    package = Path(soulctl.__file__).resolve().parent
+    files = [(f"soulctl/{f.relative_to(package)}", f) for f in package.rglob("*.py")]
+    files += [(f"tables/{f.name}", f) for f in tables_dir().iterdir() if f.is_file()]
+    for name, f in sorted(files):
+        h.update(name.encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:12]
 
 
 def _run(obs, seeing: float, seed: int):
@@ -128,6 +148,7 @@ def run_case(
         "aux": summary(records),
         "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
+        "code": code_fingerprint(),
     }
 
 
@@ -229,35 +250,60 @@ def render(rows: list[dict], console: Console) -> None:
     console.print(t)
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mags", default=",".join(f"{m:g}" for m in MAGS))
-    p.add_argument("--seeings", default=",".join(f"{s:g}" for s in SEEINGS))
-    p.add_argument("--seeds", default="1,2,3")
-    p.add_argument("--variants", default=",".join(VARIANTS))
-    p.add_argument("--windows", type=int, default=WINDOWS)
-    p.add_argument("--window", type=float, default=WINDOW_S)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--out", type=Path, default=OUT)
-    a = p.parse_args()
-    todo = [
+def read_rows(paths: list[Path], code: str | None, wanted: set | None = None) -> list[dict]:
+    """The rows of ``paths`` (JSON lines) made with code fingerprint ``code`` (None: any), one
+    per case (the first: a case run twice on one code gives the same row), restricted to
+    ``wanted`` cases if given."""
+    unique: dict = {}
+    for path in paths:
+        for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
+            if (code is None or r.get("code") == code) and (wanted is None or _key(r) in wanted):
+                unique.setdefault(_key(r), r)
+    return list(unique.values())
+
+
+def misses(rows: list[dict]) -> list[dict]:
+    """The checked rows that fail a check."""
+    return [r for r in rows if not (r["ok_divergence"] and r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False)]
+
+
+def report(rows: list[dict], console: Console) -> None:
+    """The table, the counts and each miss with its paired difference."""
+    rows = checks(rows)
+    render(rows, console)
+    bad = misses(rows)
+    restores = sum(r["safety_restores"] for r in rows)
+    diverged = sum(r["diverged_at"] is not None for r in rows)
+    console.print(f"{len(rows)} rows: {len(rows) - len(bad)} pass, {diverged} diverged, {restores} safety restores")
+    for r in bad:
+        b, a = judged(r, "before"), judged(r, "after")
+        error = (r.get("windows") or {}).get("standard_error", float("nan"))
+        case = f'R{r["mag"]:g} {r["seeing"]:g}" seed {r["seed"]} {r["variant"]}'
+        console.print(f"  miss: {case}: {b:.4f} -> {a:.4f} ({a - b:+.4f} +- {error:.4f})")
+
+
+def _cases(a) -> list[tuple]:
+    return [
         (float(m), float(s), int(seed), v)
         for m in a.mags.split(",")
         for s in a.seeings.split(",")
         for seed in a.seeds.split(",")
         for v in a.variants.split(",")
     ]
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    done = [json.loads(line) for line in a.out.read_text().splitlines()] if a.out.exists() else []
-    have = {_key(r) for r in done}
+
+
+def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s: float) -> None:
+    """Run the cases of ``todo`` not yet in ``out``, appending their rows as points finish."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    have = {_key(r) for r in read_rows([out], None)} if out.exists() else set()
     points: dict[tuple, list[str]] = {}  # (mag, seeing, seed) -> its variants to run
     for c in todo:
         if c not in have:
             points.setdefault(c[:3], []).append(c[3])
     order = sorted(points, key=lambda p: -p[0])  # the faint (fast) points first
     cache = str(default_cache_dir())
-    with ProcessPoolExecutor(a.workers) as pool, a.out.open("a") as f:
-        futures = [pool.submit(run_point, *p, points[p], cache, a.windows, a.window) for p in order]
+    with ProcessPoolExecutor(workers) as pool, out.open("a") as f:
+        futures = [pool.submit(run_point, *p, points[p], cache, windows, window_s) for p in order]
         for fut in as_completed(futures):
             for row in fut.result():
                 f.write(json.dumps(row) + "\n")
@@ -268,18 +314,28 @@ def main() -> None:
                     f"diverged at {row['diverged_at']}), {row['seconds']:.0f} s",
                     flush=True,
                 )
-    wanted = {
-        (float(m), float(s), int(seed), v)
-        for m in a.mags.split(",")
-        for s in a.seeings.split(",")
-        for seed in a.seeds.split(",")
-        for v in a.variants.split(",")
-    }
-    unique = {}  # a case run twice (two runs on one file) gives the same row: keep the first
-    for r in (json.loads(line) for line in a.out.read_text().splitlines()):
-        unique.setdefault(_key(r), r)
-    rows = checks([r for k, r in unique.items() if k in wanted])
-    render(rows, Console())
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mags", default=",".join(f"{m:g}" for m in MAGS))
+    p.add_argument("--seeings", default=",".join(f"{s:g}" for s in SEEINGS))
+    p.add_argument("--seeds", default="1,2,3")
+    p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--windows", type=int, default=WINDOWS)
+    p.add_argument("--window", type=float, default=WINDOW_S)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--table", type=Path, nargs="+", help="run nothing: the table of these files' rows made with this code")
+    p.add_argument("--code", default=None, help="with --table: the rows of this code fingerprint ('any': all rows)")
+    a = p.parse_args()
+    wanted = set(_cases(a))
+    if a.table:
+        code = None if a.code == "any" else (a.code or code_fingerprint())
+        report(read_rows(a.table, code, wanted), Console(width=200))
+        return
+    run_grid(_cases(a), a.out, a.workers, a.windows, a.window)
+    report(read_rows([a.out], None, wanted), Console(width=200))
 
 
 if __name__ == "__main__":

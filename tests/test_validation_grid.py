@@ -1,0 +1,72 @@
+"""The magnitude grid's judgement (validation/optimize_magnitudes.py): its checks are the
+issue's acceptance criteria, and its rows are combined across sessions by code fingerprint."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+_PATH = Path(__file__).resolve().parent.parent / "validation" / "optimize_magnitudes.py"
+
+
+@pytest.fixture(scope="module")
+def grid():
+    spec = importlib.util.spec_from_file_location("optimize_magnitudes", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(variant: str, before: float, after: float, seed: int = 1, code: str = "abc", diverged_at=None) -> dict:
+    windows = {"window_s": 1.0, "before": [before], "after": [after], "mean_before": before, "mean_after": after, "standard_error": 0.0}
+    return {
+        "mag": 18.5,
+        "seeing": 0.6,
+        "seed": seed,
+        "variant": variant,
+        "diverged_at": diverged_at,
+        "before": 0.0,  # optimize's own window: the checks must use the windows' means
+        "after": 0.0,
+        "safety_restores": 0,
+        "windows": windows,
+        "code": code,
+    }
+
+
+def test_the_checks_are_the_issues_criteria(grid):
+    rows = grid.checks(
+        [
+            _row("mgm+ogtl", 0.120, 0.111),  # after within 0.01 of before, but 0.011 below trial's
+            _row("trial+ogtl", 0.120, 0.122),
+            _row("mgm", 0.100, 0.0895),  # 0.0105 below before, within 0.01 of trial's
+            _row("trial", 0.100, 0.095),
+        ]
+    )
+    flags = {r["variant"]: (r["ok_after_before"], r["ok_mgm_vs_trial"]) for r in rows}
+    assert flags == {"mgm+ogtl": (True, False), "trial+ogtl": (True, None), "mgm": (False, True), "trial": (True, None)}
+    assert [r["variant"] for r in grid.misses(rows)] == ["mgm+ogtl", "mgm"]
+    diverged = grid.checks([{**_row("trial", 0.1, 0.1), "diverged_at": 12, "after": None}])
+    assert grid.misses(diverged) and not diverged[0]["ok_divergence"]
+
+
+def test_rows_are_combined_by_code_fingerprint(grid, tmp_path):
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text("\n".join(json.dumps(r) for r in (_row("mgm", 0.1, 0.2, code="old"), _row("trial", 0.1, 0.1))) + "\n")
+    b.write_text(json.dumps(_row("mgm", 0.1, 0.3, code="abc")) + "\n" + json.dumps(_row("mgm", 0.1, 0.4, code="abc")) + "\n")
+    rows = grid.read_rows([a, b], "abc")
+    assert sorted((r["variant"], r["windows"]["mean_after"]) for r in rows) == [("mgm", 0.3), ("trial", 0.1)]  # the first of a case
+    assert len(grid.read_rows([a, b], None)) == 2
+    assert grid.read_rows([a, b], "abc", wanted={(18.5, 0.6, 1, "trial")})[0]["variant"] == "trial"
+
+
+def test_the_fingerprint_is_of_the_code_that_runs(grid):
+    fingerprint = grid.code_fingerprint()
+    assert len(fingerprint) == 12 and int(fingerprint, 16) >= 0
+    assert grid.code_fingerprint() == fingerprint
+
+
+def test_every_rate_gets_the_frames_of_six_windows_at_750_hz(grid):
+    assert [grid.windows_for(r) for r in (1700, 750, 500, 250, 100)] == [6, 6, 9, 18, 45]
