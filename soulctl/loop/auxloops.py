@@ -343,8 +343,10 @@ class SafetyNet(AuxLoop):
     not find its way back by itself) with the last good state's gains and k - a state is good
     when its mean r is within ``GOOD`` of the lowest - halves the next steps of the ``tuned``
     tasks (their ``damp``), skips ``GRACE_CHECKS`` checks while the loop closes, and the
-    optimisation continues.  After ``give_up`` checks in a row in trouble it stops acting: the
-    loop could not recover (the simulation's divergence test then decides)."""
+    optimisation continues.  After ``give_up`` checks in a row in trouble, restores
+    notwithstanding (a restore and its grace checks do not end a streak; a check out of trouble
+    does), it stops acting: the loop could not recover even at its last good state (the
+    simulation's divergence test then decides)."""
 
     name = "safety"
     GOOD = 1.25
@@ -372,7 +374,9 @@ class SafetyNet(AuxLoop):
         self._previous = np.full(3, math.inf)  # the previous state's means
         self._runs = np.zeros(6)  # sums of squares and their counts (r, s, c) over the current check
         self._n_runs = 0
-        self._above = 0  # checks in a row in trouble
+        self._above = 0  # checks in a row in trouble since the last restore (when to act)
+        self.streak = 0  # checks in a row in trouble, across restores (when to give up)
+        self.longest_streak = 0
         self._grace = 0  # checks left to skip
         self.events = 0
         self.gave_up = False
@@ -455,6 +459,7 @@ class SafetyNet(AuxLoop):
                 "trouble": math.nan,
                 "restored": 1,
                 "gave_up": int(self.gave_up),
+                "streak": self.streak,
             }
         if self._n_runs < self.checks:
             return {}
@@ -463,9 +468,11 @@ class SafetyNet(AuxLoop):
         self._fold(x, window)
         trouble = self._trouble(x)
         self._above = self._above + 1 if trouble > 1 else 0
+        self.streak = self.streak + 1 if trouble > 1 else 0
+        self.longest_streak = max(self.longest_streak, self.streak)
         restored = 0
         if not self.gave_up and self.good is not None and (self._above >= self.IN_A_ROW or trouble > 2):
-            if self._above > self.give_up:
+            if self.streak > self.give_up:
                 self.gave_up = True
             else:
                 self._restore(rtc)
@@ -477,6 +484,7 @@ class SafetyNet(AuxLoop):
             "trouble": trouble,
             "restored": restored,
             "gave_up": int(self.gave_up),
+            "streak": self.streak,
         }
 
 
@@ -507,5 +515,6 @@ def summary(records: dict) -> dict:
             "restores": int(np.sum(sf["restored"])),
             "restored_at_frames": sf["frame"][sf["restored"] == 1].tolist(),
             "gave_up": bool(sf["gave_up"][-1]),
+            "longest_streak": int(np.max(sf["streak"])) if "streak" in sf else 0,
         }
     return out

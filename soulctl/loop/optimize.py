@@ -208,7 +208,7 @@ def default_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> fl
     """The default update period of MGM and OGTL: 1 s, lengthened (to a whole 0.1 s) where the
     frame rate needs more for MGM's 4 Welch segments of ``resolving_segment`` frames after the
     frames the delay leaves without commands, or for the probe's PROBE_MIN_CYCLES cycles: 1 s
-    at 1361-1700 Hz, 1.2 s at 1148 Hz, 1.7 s at 750 Hz, 2.6 s at 250-500 Hz, 3.3 s at 100 Hz
+    at 1361-1700 Hz, 1.2 s at 1148 Hz, 1.8 s at 750 Hz, 2.6 s at 250-500 Hz, 3.3 s at 100 Hz
     (the paper: an optimisation step takes 5-10 s, updates about every 5 s on sky)."""
     rate = observation.frame_rate_hz
     n, _ = fractional_taps(observation.delay_frames)

@@ -253,6 +253,38 @@ def test_the_safety_net_restores_the_last_good_gains_and_damps_the_optimiser(sma
     assert np.mean(tm.residual_rms_nm[-200:]) < 2 * np.mean(tm.residual_rms_nm[100:300])  # recovered
 
 
+def _checks(net: SafetyNet, residuals) -> list[dict]:
+    """Feed the net one check per residual level: 10 frames of 8 modes at that RMS (steady
+    commands), the RTC's gains as they stand; returns the net's records."""
+    rtc = RtcParameters(8, np.full(8, 0.4), lambda g: None)
+    rng = np.random.default_rng(0)
+    records = []
+    for i, level in enumerate(residuals):
+        measured = level * rng.standard_normal((10, 8))
+        commands = 1.0 + 0.01 * rng.standard_normal((10, 8))
+        window = TelemetryWindow(10 * i, 500.0, 1.5, measured, commands, commands, np.zeros((10, 16)), np.ones(10), rtc.gains.copy(), 1.0)
+        records.append(net.update(window, rtc))
+    return records
+
+
+def test_the_safety_net_gives_up_on_a_loop_that_stays_in_trouble_across_restores():
+    """A restore does not end a streak of checks in trouble, a check out of trouble does: a
+    loop still at 10x its residual after every restore is given up after ``give_up`` checks
+    (the net restored it forever when each restore restarted the count), one that recovers
+    between its restores is not."""
+    healthy = [1.0] * 8
+    net = SafetyNet(10, give_up=20)
+    records = _checks(net, healthy + [10.0] * 80)
+    in_trouble = [r for r in records[len(healthy) :] if r]
+    assert net.gave_up and net.events >= 5
+    given_up = [r for r in in_trouble if r["gave_up"]]
+    assert max(r["streak"] for r in in_trouble if not r["gave_up"]) == 20 and given_up[0]["streak"] == 21
+    assert not any(r["restored"] for r in given_up)  # and the net stops acting
+    recovering = SafetyNet(10, give_up=20)
+    _checks(recovering, healthy + ([10.0] * 3 + [1.0] * 4) * 12)
+    assert recovering.events >= 10 and not recovering.gave_up and recovering.longest_streak <= 3
+
+
 @pytest.mark.parametrize("seed", [4, 6])
 def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration, seed):
     """The turbulence alone moves the commands' RMS by up to 2.3x within 2 s (seed 6 of 1-8;
