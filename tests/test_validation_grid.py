@@ -56,10 +56,13 @@ def test_rows_are_combined_by_code_fingerprint(grid, tmp_path):
     a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
     a.write_text("\n".join(json.dumps(r) for r in (_row("mgm", 0.1, 0.2, code="old"), _row("trial", 0.1, 0.1))) + "\n")
     b.write_text(json.dumps(_row("mgm", 0.1, 0.3, code="abc")) + "\n" + json.dumps(_row("mgm", 0.1, 0.4, code="abc")) + "\n")
-    rows = grid.read_rows([a, b], "abc")
+    rows = grid.read_rows([a, b], {"abc"})
     assert sorted((r["variant"], r["windows"]["mean_after"]) for r in rows) == [("mgm", 0.3), ("trial", 0.1)]  # the first of a case
     assert len(grid.read_rows([a, b], None)) == 2
-    assert grid.read_rows([a, b], "abc", wanted={(18.5, 0.6, 1, "trial")})[0]["variant"] == "trial"
+    assert len(grid.read_rows([a, b], {"abc", "old"})) == 2 and grid.read_rows([a, b], {"old"})[0]["windows"]["mean_after"] == 0.2
+    assert grid.read_rows([a, b], {"abc"}, wanted={(18.5, 0.6, 1, "trial")})[0]["variant"] == "trial"
+    wanted = {(18.5, 0.6, 1, "mgm"), (18.5, 0.6, 1, "trial"), (18.5, 1.0, 2, "mgm")}
+    assert grid.not_run(wanted, rows) == 'not run on this code: 1 points: R18.5 1" s2'
 
 
 def test_the_fingerprint_is_of_the_code_that_runs(grid):

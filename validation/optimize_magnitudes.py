@@ -21,14 +21,15 @@ windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 The variants of one magnitude, seeing and seed run one after the other in one worker, those
 with the same OGTL setting sharing their *before* evaluation (``SharedEvaluations``).  Rows are
 appended to a JSON-lines file as points finish (a stopped run keeps what it did and is resumed
-by running again with the same --out); the summary table is printed at the end.
+by running again with the same --out, on the same code: rows of other code are run again);
+the summary table is printed at the end.
 
 Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
       [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--windows 6] [--window 1.0]
       [--workers 2] [--out FILE]
 Table of several files' rows made with the current code (each row carries the fingerprint of
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
-      python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH|any]
+      python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
 """
 
 from __future__ import annotations
@@ -250,14 +251,14 @@ def render(rows: list[dict], console: Console) -> None:
     console.print(t)
 
 
-def read_rows(paths: list[Path], code: str | None, wanted: set | None = None) -> list[dict]:
-    """The rows of ``paths`` (JSON lines) made with code fingerprint ``code`` (None: any), one
-    per case (the first: a case run twice on one code gives the same row), restricted to
-    ``wanted`` cases if given."""
+def read_rows(paths: list[Path], codes: set[str] | None, wanted: set | None = None) -> list[dict]:
+    """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
+    (None: any), one per case (the first: a case run twice on one code gives the same row),
+    restricted to ``wanted`` cases if given."""
     unique: dict = {}
     for path in paths:
         for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
-            if (code is None or r.get("code") == code) and (wanted is None or _key(r) in wanted):
+            if (codes is None or r.get("code") in codes) and (wanted is None or _key(r) in wanted):
                 unique.setdefault(_key(r), r)
     return list(unique.values())
 
@@ -282,6 +283,13 @@ def report(rows: list[dict], console: Console) -> None:
         console.print(f"  miss: {case}: {b:.4f} -> {a:.4f} ({a - b:+.4f} +- {error:.4f})")
 
 
+def not_run(wanted: set, rows: list[dict]) -> str:
+    """The points (magnitude, seeing, seed) of ``wanted`` with a variant missing from ``rows``."""
+    missing = sorted({c[:3] for c in wanted - {_key(r) for r in rows}})
+    points = ", ".join(f'R{m:g} {s:g}" s{seed}' for m, s, seed in missing)
+    return f"not run on this code: {len(missing)} points" + (f": {points}" if missing else "")
+
+
 def _cases(a) -> list[tuple]:
     return [
         (float(m), float(s), int(seed), v)
@@ -293,9 +301,10 @@ def _cases(a) -> list[tuple]:
 
 
 def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s: float) -> None:
-    """Run the cases of ``todo`` not yet in ``out``, appending their rows as points finish."""
+    """Run the cases of ``todo`` that ``out`` has no row of this code for, appending their rows
+    as points finish."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    have = {_key(r) for r in read_rows([out], None)} if out.exists() else set()
+    have = {_key(r) for r in read_rows([out], {code_fingerprint()})} if out.exists() else set()
     points: dict[tuple, list[str]] = {}  # (mag, seeing, seed) -> its variants to run
     for c in todo:
         if c not in have:
@@ -327,15 +336,17 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--table", type=Path, nargs="+", help="run nothing: the table of these files' rows made with this code")
-    p.add_argument("--code", default=None, help="with --table: the rows of this code fingerprint ('any': all rows)")
+    p.add_argument("--code", default=None, help="with --table: the rows of these code fingerprints, comma-separated ('any': all rows)")
     a = p.parse_args()
     wanted = set(_cases(a))
     if a.table:
-        code = None if a.code == "any" else (a.code or code_fingerprint())
-        report(read_rows(a.table, code, wanted), Console(width=200))
+        codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
+        rows = read_rows(a.table, codes, wanted)
+        report(rows, Console(width=200))
+        print(not_run(wanted, rows))
         return
     run_grid(_cases(a), a.out, a.workers, a.windows, a.window)
-    report(read_rows([a.out], None, wanted), Console(width=200))
+    report(read_rows([a.out], {code_fingerprint()}, wanted), Console(width=200))
 
 
 if __name__ == "__main__":
