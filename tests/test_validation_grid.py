@@ -65,10 +65,22 @@ def test_rows_are_combined_by_code_fingerprint(grid, tmp_path):
     assert grid.not_run(wanted, rows) == 'not run on this code: 1 points: R18.5 1" s2'
 
 
-def test_the_fingerprint_is_of_the_code_that_runs(grid):
-    fingerprint = grid.code_fingerprint()
-    assert len(fingerprint) == 12 and int(fingerprint, 16) >= 0
-    assert grid.code_fingerprint() == fingerprint
+def test_the_fingerprint_changes_with_any_source_or_table_and_nothing_else(grid, tmp_path):
+    package, tables = tmp_path / "soulctl", tmp_path / "tables"
+    (package / "loop").mkdir(parents=True)
+    tables.mkdir()
+    (package / "loop" / "optimize.py").write_text("PERIOD = 1.0\n")
+    (package / "notes.txt").write_text("not code")
+    (tables / "photometry.toml").write_text("zero_point = 1\n")
+    first = grid.code_fingerprint(package, tables)
+    assert len(first) == 12 and grid.code_fingerprint(package, tables) == first
+    (package / "notes.txt").write_text("still not code")
+    assert grid.code_fingerprint(package, tables) == first
+    (package / "loop" / "optimize.py").write_text("PERIOD = 1.1\n")
+    second = grid.code_fingerprint(package, tables)
+    (tables / "photometry.toml").write_text("zero_point = 2\n")
+    assert len({first, second, grid.code_fingerprint(package, tables)}) == 3
+    assert len(grid.code_fingerprint()) == 12  # the installed package's
 
 
 def test_every_rate_gets_the_frames_of_six_windows_at_750_hz(grid):

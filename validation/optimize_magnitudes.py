@@ -68,15 +68,15 @@ REFERENCE_RATE_HZ = 750.0  # ... and as many frames as six of 1 s at R14.5's 750
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
 
 
-def code_fingerprint() -> str:
+def code_fingerprint(package: Path | None = None, tables: Path | None = None) -> str:
     """12 hex digits of the SHA-256 of the soulctl sources and tables the rows were made with
     (each .py of the package and each file of its tables, by relative path and content; the
     compiled core is not included).  Rows of different sessions belong in one table when their
     fingerprints agree: the grid takes longer than a session and the code moves between them."""
     h = hashlib.sha256()
-    package = Path(soulctl.__file__).resolve().parent
+    package = package or Path(soulctl.__file__).resolve().parent
     files = [(f"soulctl/{f.relative_to(package)}", f) for f in package.rglob("*.py")]
-    files += [(f"tables/{f.name}", f) for f in tables_dir().iterdir() if f.is_file()]
+    files += [(f"tables/{f.name}", f) for f in (tables or tables_dir()).iterdir() if f.is_file()]
     for name, f in sorted(files):
         h.update(name.encode() + b"\0" + f.read_bytes() + b"\0")
     return h.hexdigest()[:12]

@@ -376,7 +376,6 @@ class SafetyNet(AuxLoop):
         self._n_runs = 0
         self._above = 0  # checks in a row in trouble since the last restore (when to act)
         self.streak = 0  # checks in a row in trouble, across restores (when to give up)
-        self.longest_streak = 0
         self._grace = 0  # checks left to skip
         self.events = 0
         self.gave_up = False
@@ -469,7 +468,6 @@ class SafetyNet(AuxLoop):
         trouble = self._trouble(x)
         self._above = self._above + 1 if trouble > 1 else 0
         self.streak = self.streak + 1 if trouble > 1 else 0
-        self.longest_streak = max(self.longest_streak, self.streak)
         restored = 0
         if not self.gave_up and self.good is not None and (self._above >= self.IN_A_ROW or trouble > 2):
             if self.streak > self.give_up:
