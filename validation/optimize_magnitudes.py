@@ -241,12 +241,11 @@ def render(rows: list[dict], console: Console) -> None:
                 "  ".join(
                     "div"
                     if r["diverged_at"] is not None
-                    else f"{judged(r, 'before'):.3f}->{judged(r, 'after'):.3f}"
-                    + ("" if r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False else "!")
+                    else f"{judged(r, 'before'):.3f}->{judged(r, 'after'):.3f}" + ("" if passes(r) else "!")
                     for r in pts
                 )
             )
-        failed = sum(1 for r in sel if not (r["ok_divergence"] and r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False))
+        failed = len(misses(sel))
         t.add_row(f"{mag:g}", variant, *cells, str(sum(r["safety_restores"] for r in sel)), f"{len(sel) - failed}/{len(sel)}")
     console.print(t)
 
@@ -263,9 +262,14 @@ def read_rows(paths: list[Path], codes: set[str] | None, wanted: set | None = No
     return list(unique.values())
 
 
+def passes(row: dict) -> bool:
+    """A checked row passes every check (no MGM-vs-trial partner counts as a pass)."""
+    return bool(row["ok_divergence"] and row["ok_after_before"] and row["ok_mgm_vs_trial"] is not False)
+
+
 def misses(rows: list[dict]) -> list[dict]:
     """The checked rows that fail a check."""
-    return [r for r in rows if not (r["ok_divergence"] and r["ok_after_before"] and r["ok_mgm_vs_trial"] is not False)]
+    return [r for r in rows if not passes(r)]
 
 
 def report(rows: list[dict], console: Console) -> None:
@@ -345,7 +349,7 @@ def main() -> None:
         report(rows, Console(width=200))
         print(not_run(wanted, rows))
         return
-    run_grid(_cases(a), a.out, a.workers, a.windows, a.window)
+    run_grid(sorted(wanted), a.out, a.workers, a.windows, a.window)
     report(read_rows([a.out], {code_fingerprint()}, wanted), Console(width=200))
 
 
