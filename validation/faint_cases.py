@@ -40,6 +40,7 @@ from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
 from gain_optimisation import observation, settling_time  # noqa: E402
+from optimize_magnitudes import code_fingerprint  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 AT_1_ARCSEC = AtmosphereSpec(seeing_arcsec=1.0)  # the paper's faint cases
@@ -157,7 +158,8 @@ def main() -> None:
         p.error(f"--only takes {', '.join(parts)}")
     # the parts not run now are kept from the file (a re-run of one part keeps the others)
     out = json.loads(a.out.read_text()) if a.out.exists() and a.only is not None else {}
-    out.update({name: parts[name]() for name in only})
+    code = code_fingerprint()  # each part says which code made it (parts may come from different runs)
+    out.update({name: {**parts[name](), "code": code} for name in only})
     out["wall_s"] = time.perf_counter() - t0
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(a.out, json.dumps(out, indent=1, default=float))

@@ -13,7 +13,7 @@ shows depends on what the turbulence does in it; R17.5, 0.6": -0.040 in one 0.5 
 (``during_run``).  The checks use the windows' means (rows recorded before `optimize` had
 windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 
-* no divergence (exit 3);
+* no divergence and no safety net that gave up (exit 3);
 * Strehl after >= Strehl before - 0.01;
 * MGM's Strehl after >= trial-and-error's - 0.01 (same magnitude, seeing, seed and OGTL: the
   same screens, ``session_seconds``).
@@ -216,7 +216,7 @@ def checks(rows: list[dict]) -> list[dict]:
     by = {_key(r): r for r in rows}
     out = []
     for r in rows:
-        ok_div = r["diverged_at"] is None
+        ok_div = r["diverged_at"] is None and not r.get("aux", {}).get("safety", {}).get("gave_up", False)  # exit 3 either way
         ok_gain = ok_div and judged(r, "after") >= judged(r, "before") - TOLERANCE
         ok_mgm = None
         if r["variant"].startswith("mgm"):

@@ -6,8 +6,8 @@ contract of the README for every command:
   is written or changed (every command runs inside ``files.staged_outputs``, committed only
   on 0 and 3);
 * 3 an unstable loop (``filter analyze``: figures still printed; ``loop run``: the simulated
-  loop diverged, its telemetry still written; ``optimize gains``: the loop diverged, no gain
-  file written);
+  loop diverged, or the safety net of its auxiliary loops could not recover it, its telemetry
+  still written; ``optimize gains``: the same, no gain file written);
 * 130 / 143 interrupted by SIGINT (Ctrl-C) / SIGTERM: one line, no output written, the
   temporaries removed;
 * 141 the reader of stdout went away (`soulctl ... | head -1`): the outputs are written;

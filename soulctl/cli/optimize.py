@@ -94,6 +94,7 @@ def _result_dict(result: OptimizeResult) -> dict:
         "trial_best": [float(g) for g in tm.aux_arrays("trial").get("best", []) if math.isfinite(g)] if r.method == "trial" else None,
         "mgm_updates": len(tm.aux.get("mgm", [])),
         "safety_restores": result.safety_events,
+        "safety_gave_up_at_frame": result.gave_up_at,
         "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
     }
 
@@ -327,7 +328,8 @@ def gains_cmd(o: GainsOptions) -> int:
     restores the last good gains and k when the loop degrades.  Prints the gains and the
     Strehl ratio and residual before and after, both measured in loops closed afresh on the
     run's own turbulence and noise (a paired comparison; the run's own phases, at other times,
-    are shown beside them); exit status 3 only if the loop diverged all the same.  With
+    are shown beside them); exit status 3 only if the loop diverged all the same or the
+    safety net could not recover it (no gain file written).  With
     --telemetry FILE: MGM offline on a recorded loop, printing the gains it would apply; its
     optical gains are the model's at --seeing, else at the seeing the record describes, else
     at the paper's table seeing (0.8").
@@ -383,8 +385,10 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
 
 
 def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
-    """Write the gain file and figures, print the results; the exit status (3: a loop diverged)."""
-    diverged = [m for m, x in results.items() if x.diverged_at is not None]
+    """Write the gain file and figures, print the results; the exit status (3: a loop diverged,
+    or the safety net could not recover it)."""
+    failed = {m: _failure(x) for m, x in results.items()}
+    diverged = [m for m, why in failed.items() if why is not None]
     final = results["mgm" if "mgm" in results else "trial"]
     if o.out is not None and not diverged:
         atomic_write_text(o.out, _gain_file_text(final))
@@ -400,8 +404,14 @@ def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
         if o.plot is not None:
             console.print(f"figures written to {o.plot}/")
     for m in diverged:
-        print(
-            f"soulctl: the loop diverged at frame {results[m].diverged_at} during the {m} optimisation; no gain file written",
-            file=sys.stderr,
-        )
+        print(f"soulctl: {failed[m]} during the {m} optimisation; no gain file written", file=sys.stderr)
     return 3 if diverged else 0
+
+
+def _failure(result: OptimizeResult) -> str | None:
+    """Why a result fails (exit 3): the loop diverged, or the safety net gave up on it; None if neither."""
+    if result.diverged_at is not None:
+        return f"the loop diverged at frame {result.diverged_at}"
+    if result.gave_up_at is not None:
+        return f"the safety net could not recover the loop (gave up at frame {result.gave_up_at})"
+    return None

@@ -486,6 +486,14 @@ class SafetyNet(AuxLoop):
         }
 
 
+def gave_up_at(records: dict) -> int | None:
+    """The frame at which the safety net gave up, from its records (``aux_arrays("safety")``):
+    the loop could not recover even at its last good state, the exit status 3 of the commands
+    that run it.  None when it did not give up (or did not run)."""
+    given_up = np.flatnonzero(np.asarray(records.get("gave_up", ())) == 1)
+    return int(records["frame"][given_up[0]]) if given_up.size else None
+
+
 def summary(records: dict) -> dict:
     """What the auxiliary loops did, from the telemetry's records (``TelemetryRecorder.aux_arrays`` per
     task name): OGTL's probe, bound and update statuses, the frame its NCPA offsets entered
@@ -513,6 +521,7 @@ def summary(records: dict) -> dict:
             "restores": int(np.sum(sf["restored"])),
             "restored_at_frames": sf["frame"][sf["restored"] == 1].tolist(),
             "gave_up": bool(sf["gave_up"][-1]),
+            "gave_up_at_frame": gave_up_at(sf),
             "longest_streak": int(np.max(sf["streak"])) if "streak" in sf else 0,
         }
     return out

@@ -13,6 +13,7 @@ from soulctl.cli.common import parse_gains
 from soulctl.control import mgm
 from soulctl.control.gains import LoopGains, check_stability
 from soulctl.control.structure import StructuralResonance, sampled_structure
+from soulctl.loop.auxloops import SafetyNet
 from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
 from soulctl.loop.run import RunRequest, closing_frames
@@ -409,3 +410,36 @@ def test_offline_mgm_repairs_a_mistuned_recorded_loop(tmp_path, capsys, cache_di
     assert status == 0, err
     after = json.loads(out)["metrics"]["residual_nm"]
     assert after < 0.85 * before, (before, after)
+
+
+@pytest.fixture
+def hopeless(monkeypatch):
+    """A safety net that finds the loop in trouble at every check (1.5x a limit): it restores
+    every 3 checks and gives up after 20 in a row."""
+    monkeypatch.setattr(SafetyNet, "_trouble", lambda self, x: 1.5)
+
+
+def test_a_loop_the_safety_net_could_not_recover_exits_3(hopeless, tmp_path, capsys, cache_dir):
+    """The issue's "exit 3 only when it could not recover": a given-up loop that has not diverged is no
+    valid result either (it exited 0).  `loop run` still writes its telemetry, `optimize gains`
+    no gain file; both name the frame."""
+    h5 = tmp_path / "given_up.h5"
+    status, out, err = cli(
+        ["loop", "run", *SMALL, "--duration", "6", "--mgm", "--period", "1", "--telemetry", str(h5), "--json"], capsys, cache_dir
+    )
+    safety = json.loads(out)["auxiliary_summary"]["safety"]
+    # restores at streaks 3, 6, ..., 18; at 21 (> 20) it gives up
+    assert status == 3 and safety["gave_up"] and safety["restores"] == 6, err
+    assert f"the safety net could not recover the loop (gave up at frame {safety['gave_up_at_frame']})" in err and h5.exists()
+    arrays, _ = read_telemetry(h5)
+    given_up = arrays["aux/safety/gave_up"] == 1
+    assert safety["gave_up_at_frame"] == arrays["aux/safety/frame"][given_up][0] and arrays["aux/safety/streak"][given_up][0] == 21
+    gains = tmp_path / "gains.toml"
+    status, out, err = cli(
+        ["optimize", "gains", *SMALL, "--method", "mgm", "--duration", "6", "--measure", "0.3", "--out", str(gains), "--json"],
+        capsys,
+        cache_dir,
+    )
+    d = json.loads(out)
+    assert status == 3 and d["diverged_at_frame"] is None and d["safety_gave_up_at_frame"] is not None, err
+    assert "could not recover the loop" in err and "no gain file written" in err and not gains.exists()
