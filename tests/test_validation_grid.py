@@ -65,6 +65,16 @@ def test_rows_are_combined_by_code_fingerprint(grid, tmp_path):
     assert grid.not_run(wanted, rows) == 'not run on this code: 1 points: R18.5 1" s2'
 
 
+def test_rows_of_code_before_the_give_up_fixes_count_when_too_few_restores_for_a_give_up(grid, tmp_path):
+    a = tmp_path / "a.jsonl"
+    few, many = (_row("mgm", 0.1, 0.2, seed=s, code="old") for s in (1, 2))
+    few["safety_restores"], many["safety_restores"] = grid.FEWEST_RESTORES - 1, grid.FEWEST_RESTORES
+    a.write_text("\n".join(json.dumps(r) for r in (few, many, _row("trial", 0.1, 0.1, code="other"))) + "\n")
+    assert grid.FEWEST_RESTORES == 6
+    assert [r["seed"] for r in grid.read_rows([a], {"abc"}, before_give_up=frozenset({"old"}))] == [1]
+    assert not grid.read_rows([a], {"abc"}) and len(grid.read_rows([a], {"old"}, before_give_up=frozenset({"old"}))) == 2
+
+
 def test_the_fingerprint_changes_with_any_source_or_table_and_nothing_else(grid, tmp_path):
     package, tables = tmp_path / "soulctl", tmp_path / "tables"
     (package / "loop").mkdir(parents=True)

@@ -30,6 +30,9 @@ Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6
 Table of several files' rows made with the current code (each row carries the fingerprint of
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
+      [--code-before-give-up HASH[,HASH...]]
+The last admits rows of code that differs from the current only in what follows the safety
+net's giving up, when they have fewer restores than a give-up needs (those runs were alike).
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from rich.table import Table
 import soulctl
 from soulctl.cli.common import default_cache_dir
 from soulctl.loop import optimize as optimize_module
-from soulctl.loop.auxloops import summary
+from soulctl.loop.auxloops import SafetyNet, summary
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
@@ -63,6 +66,9 @@ SEEINGS = (0.6, 1.0, 1.5)
 VARIANTS = ("mgm+ogtl", "trial+ogtl", "mgm", "trial")
 DURATION_PERIODS, MEASURE_S = 5, 0.5  # short runs: MGM makes 5 updates; trial-and-error its default sequences
 TOLERANCE = 0.01
+# A give-up ends a streak of give_up + 1 checks in trouble, with a restore every IN_A_ROW checks
+# at most: rows with fewer restores never came near one (tests/loop/test_auxloops.py)
+FEWEST_RESTORES = SafetyNet(1).give_up // SafetyNet.IN_A_ROW
 WINDOWS, WINDOW_S = 6, 1.0  # the checks' paired evaluation: six consecutive windows of 1 s at least ...
 REFERENCE_RATE_HZ = 750.0  # ... and as many frames as six of 1 s at R14.5's 750 Hz (``windows_for``)
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
@@ -250,14 +256,18 @@ def render(rows: list[dict], console: Console) -> None:
     console.print(t)
 
 
-def read_rows(paths: list[Path], codes: set[str] | None, wanted: set | None = None) -> list[dict]:
+def read_rows(paths: list[Path], codes: set[str] | None, wanted: set | None = None, before_give_up: frozenset = frozenset()) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
-    (None: any), one per case (the first: a case run twice on one code gives the same row),
-    restricted to ``wanted`` cases if given."""
+    (None: any), or with one of ``before_give_up`` and too few safety restores for the net to
+    have given up (``FEWEST_RESTORES``: code that differs only in what follows a give-up ran
+    those rows alike), one per case (the first: a case run twice on one code gives the same
+    row), restricted to ``wanted`` cases if given."""
     unique: dict = {}
     for path in paths:
         for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
-            if (codes is None or r.get("code") in codes) and (wanted is None or _key(r) in wanted):
+            admitted = codes is None or r.get("code") in codes
+            admitted |= r.get("code") in before_give_up and r["safety_restores"] < FEWEST_RESTORES
+            if admitted and (wanted is None or _key(r) in wanted):
                 unique.setdefault(_key(r), r)
     return list(unique.values())
 
@@ -341,11 +351,16 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--table", type=Path, nargs="+", help="run nothing: the table of these files' rows made with this code")
     p.add_argument("--code", default=None, help="with --table: the rows of these code fingerprints, comma-separated ('any': all rows)")
+    p.add_argument(
+        "--code-before-give-up",
+        default="",
+        help="with --table: also the rows of these fingerprints with fewer safety restores than a give-up needs (comma-separated)",
+    )
     a = p.parse_args()
     wanted = set(_cases(a))
     if a.table:
         codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
-        rows = read_rows(a.table, codes, wanted)
+        rows = read_rows(a.table, codes, wanted, frozenset(filter(None, a.code_before_give_up.split(","))))
         report(rows, Console(width=200))
         print(not_run(wanted, rows))
         return

@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from soulctl.control.gains import LoopGains
 from soulctl.control.trial import scan_gains
@@ -283,6 +285,23 @@ def test_the_safety_net_gives_up_on_a_loop_that_stays_in_trouble_across_restores
     recovering = SafetyNet(10, give_up=20)
     records = _checks(recovering, healthy + ([10.0] * 3 + [1.0] * 4) * 12)
     assert recovering.events >= 10 and not recovering.gave_up and max(r.get("streak", 0) for r in records) <= 3
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.sampled_from([1.0, 1.0, 2.0, 3.5, 5.0, 10.0]), min_size=30, max_size=120))
+def test_a_safety_net_that_gives_up_has_restored_at_least_give_up_over_in_a_row_times(levels):
+    """Whatever the loop does, giving up takes give_up // IN_A_ROW restores first (6: at
+    streaks 3, 6, ..., 18): a run with fewer ran as if the net could not give up, which the
+    validation grid relies on to keep rows of code from before the give-up fixes."""
+    net = SafetyNet(10, give_up=20)
+    _checks(net, [1.0] * 8 + levels)
+    assert not net.gave_up or net.events >= net.give_up // net.IN_A_ROW == 6
+
+
+def test_the_fewest_restores_before_giving_up_is_reached():
+    net = SafetyNet(10, give_up=20)
+    _checks(net, [1.0] * 8 + [3.5] * 40)  # every check in trouble, none beyond twice a limit
+    assert net.gave_up and net.events == net.give_up // net.IN_A_ROW
 
 
 @pytest.mark.parametrize("seed", [4, 6])
