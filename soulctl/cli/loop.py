@@ -15,7 +15,6 @@ from ..control.gains import MID_GROUP_END, gain_groups
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
 from ..identify.plant import plant_overrides, read_plant
-from ..loop.auxloops import gave_up_at
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
@@ -84,15 +83,6 @@ def _result_dict(result) -> dict:
         d["final_sensitivity"] = result.final_sensitivity
         d["auxiliary_summary"] = aux_summary({name: result.telemetry.aux_arrays(name) for name in result.telemetry.aux})
     return d
-
-
-def _failure(result) -> str | None:
-    """Why a run fails (exit 3): the loop diverged, or the safety net of its auxiliary loops
-    gave up on it; None if neither."""
-    if result.diverged_at is not None:
-        return f"loop diverged at frame {result.diverged_at} (residual {result.diverged_residual_nm:.0f} nm RMS)"
-    frame = gave_up_at(result.telemetry.aux_arrays("safety")) if "safety" in result.telemetry.aux else None
-    return None if frame is None else f"the safety net could not recover the loop (gave up at frame {frame})"
 
 
 def _value(x, spec: str, unit: str = "") -> str:
@@ -261,7 +251,7 @@ def run_cmd(o: RunOptions) -> int:
     fields = telemetry_fields(o.telemetry_fields)
     writer = None if o.telemetry is None else Hdf5Writer(o.telemetry, fields, o.telemetry_every, {"run_description": description.to_toml()})
     result = _run_streaming(request, cache, aux, not o.json_output and sys.stderr.isatty(), writer)
-    message = _failure(result)
+    message = result.failure()
     if message is not None:
         if o.json_output:
             print_json(_result_dict(result))

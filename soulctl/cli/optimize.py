@@ -94,7 +94,6 @@ def _result_dict(result: OptimizeResult) -> dict:
         "trial_best": [float(g) for g in tm.aux_arrays("trial").get("best", []) if math.isfinite(g)] if r.method == "trial" else None,
         "mgm_updates": len(tm.aux.get("mgm", [])),
         "safety_restores": result.safety_events,
-        "safety_gave_up_at_frame": result.gave_up_at,
         "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
     }
 
@@ -387,7 +386,7 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
 def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     """Write the gain file and figures, print the results; the exit status (3: a loop diverged,
     or the safety net could not recover it)."""
-    failed = {m: _failure(x) for m, x in results.items()}
+    failed = {m: x.failure() for m, x in results.items()}
     diverged = [m for m, why in failed.items() if why is not None]
     final = results["mgm" if "mgm" in results else "trial"]
     if o.out is not None and not diverged:
@@ -406,12 +405,3 @@ def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     for m in diverged:
         print(f"soulctl: {failed[m]} during the {m} optimisation; no gain file written", file=sys.stderr)
     return 3 if diverged else 0
-
-
-def _failure(result: OptimizeResult) -> str | None:
-    """Why a result fails (exit 3): the loop diverged, or the safety net gave up on it; None if neither."""
-    if result.diverged_at is not None:
-        return f"the loop diverged at frame {result.diverged_at}"
-    if result.gave_up_at is not None:
-        return f"the safety net could not recover the loop (gave up at frame {result.gave_up_at})"
-    return None

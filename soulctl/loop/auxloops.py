@@ -494,6 +494,14 @@ def gave_up_at(records: dict) -> int | None:
     return int(records["frame"][given_up[0]]) if given_up.size else None
 
 
+def could_not_recover(telemetry) -> str | None:
+    """The failure of a run whose safety net gave up (``TelemetryRecorder`` of the run), None
+    if it did not (or ran no net): what `loop run`, `optimize gains` and `sweep` report with
+    exit status 3 or status "diverged"."""
+    frame = gave_up_at(telemetry.aux_arrays(SafetyNet.name)) if SafetyNet.name in telemetry.aux else None
+    return None if frame is None else f"the safety net could not recover the loop (gave up at frame {frame})"
+
+
 def summary(records: dict) -> dict:
     """What the auxiliary loops did, from the telemetry's records (``TelemetryRecorder.aux_arrays`` per
     task name): OGTL's probe, bound and update statuses, the frame its NCPA offsets entered

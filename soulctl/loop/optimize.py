@@ -69,7 +69,7 @@ from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
 from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
-from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, gave_up_at
+from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, could_not_recover
 from .metrics import band_wavelength
 from .run import RunRequest, calibration_for, closed_loop_for, closing_frames
 from .simulation import ClosedLoop, LoopDiverged
@@ -293,12 +293,18 @@ class OptimizeResult:
     diverged_at: int | None = None
     diverged_in: str = "run"  # or "evaluation": the paired evaluation's loop (``evaluate``), frame counted from its start
     safety_events: int = 0  # times the safety net restored the last good gains and k
-    gave_up_at: int | None = None  # the frame the safety net gave up: the loop could not recover (exit 3)
     seconds: float = 0.0
     phases: dict = field(default_factory=dict)  # name -> (first frame, end frame)
     during_run: dict = field(default_factory=dict)  # "before"/"after" -> PhaseMetrics of the run's own phases
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
     offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
+
+    def failure(self) -> str | None:
+        """Why the optimisation failed (exit status 3, no gain file): the loop diverged, or the
+        safety net could not recover it; None if neither."""
+        if self.diverged_at is not None:
+            return f"the loop diverged at frame {self.diverged_at}" + (" (paired evaluation)" if self.diverged_in == "evaluation" else "")
+        return could_not_recover(self.loop.telemetry)
 
     def strehl_difference(self) -> tuple[float, float | None]:
         """after - before of the paired evaluation: the mean over its windows and the standard
@@ -812,6 +818,5 @@ def optimize(
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = s.net.events
-    result.gave_up_at = gave_up_at(s.loop.telemetry.aux_arrays(s.net.name))
     result.seconds = time.perf_counter() - t0
     return result

@@ -24,6 +24,7 @@ from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
+from .auxloops import could_not_recover
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import ClosedLoop, LoopDiverged
 
@@ -106,6 +107,13 @@ class RunResult:
 
     def configuration(self) -> dict:
         return run_configuration(self.request, self.gains)
+
+    def failure(self) -> str | None:
+        """Why the run failed (exit status 3): the loop diverged, or the safety net of its
+        auxiliary loops could not recover it; None if neither."""
+        if self.diverged_at is not None:
+            return f"loop diverged at frame {self.diverged_at} (residual {self.diverged_residual_nm:.0f} nm RMS)"
+        return could_not_recover(self.telemetry)
 
 
 def run_configuration(r: RunRequest, gains: LoopGains) -> dict:

@@ -18,6 +18,7 @@ from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
 from soulctl.loop.run import RunRequest, closing_frames
 from soulctl.observation import observation_for_magnitude
+from soulctl.sweep.case import run_case
 from soulctl.telemetry.hdf5 import read_telemetry
 
 # The R17 configuration (binning 4, 10x10 sub-apertures, 54 modes, 407 Hz, Tip/Tilt
@@ -441,5 +442,15 @@ def test_a_loop_the_safety_net_could_not_recover_exits_3(hopeless, tmp_path, cap
         cache_dir,
     )
     d = json.loads(out)
-    assert status == 3 and d["diverged_at_frame"] is None and d["safety_gave_up_at_frame"] is not None, err
+    assert status == 3 and d["diverged_at_frame"] is None and d["auxiliary_summary"]["safety"]["gave_up_at_frame"] is not None, err
     assert "could not recover the loop" in err and "no gain file written" in err and not gains.exists()
+
+
+def test_a_sweep_case_whose_safety_net_could_not_recover_is_diverged(hopeless, cache_dir):
+    """The sweep's status "diverged" follows the same rule (a default case runs OGTL, and its
+    safety net, when it lasts long enough)."""
+    row = run_case(
+        {"magnitude": 17.0, "oversampling": 1, "seeing": 0.6, "duration": 6.0, "auxiliary.mgm": True, "auxiliary.period_s": 1.0},
+        cache_dir=str(cache_dir),
+    )
+    assert row["status"] == "diverged" and row["reason"].startswith("the safety net could not recover the loop (gave up at frame ")
