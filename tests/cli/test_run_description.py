@@ -83,6 +83,17 @@ def test_a_bad_description_is_one_line_and_writes_nothing(text, words, tmp_path,
     assert not h5.exists()
 
 
+def test_the_textbook_example_carries_none_of_the_sky_like_error_terms(capsys, cache_dir):
+    """examples/oopao_matched.toml is the cross-check against another simulator's textbook
+    set-up: with --ideal it is the same run (it carried the 100 nm NCPA default once that
+    default came, and its Strehl fell with it)."""
+    path = next(p for p in EXAMPLES if p.stem == "oopao_matched")
+    _, plain, _ = run(["loop", "run", "--config", str(path), "--print-config", "--json"], capsys, cache_dir)
+    status, ideal, err = run(["loop", "run", "--config", str(path), "--ideal", "--print-config", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    assert json.loads(plain) == json.loads(ideal)
+
+
 @pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_every_example_is_a_valid_run_description(path, capsys, cache_dir):
     status, out, err = run(["loop", "run", "--config", str(path), "--print-config"], capsys, cache_dir)
