@@ -1,8 +1,8 @@
 """The paper's faint-star gain optimisation, its MGM transient and OGTL in a noise-dominated
 loop (issue: MGM and OGTL that never drive the loop unstable).  Not in CI (~15 min).
 
-* R13, 20x20, 980 Hz, FeII, 1.0" (paper: simulations 0.58, on sky 0.61-0.67): MGM with OGTL,
-  default options, 3 seeds;
+* R13, 20x20, 980 Hz, FeII, 1.0", wind 5 m/s (paper: simulations 0.58, on sky 0.61-0.67):
+  MGM with OGTL, default options, 3 seeds;
 * R16.5, 10x10 (binning 4, 54 modes), 390 Hz, Ks, 1.0", 2 photons per sub-aperture per frame
   (paper: simulations 0.18, on sky 0.19-0.23): the same;
 * the transient: the R13 case from 0.1x the initial gains, MGM every 5 s for 60 s: the time
@@ -44,6 +44,10 @@ from optimize_magnitudes import code_fingerprint  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 AT_1_ARCSEC = AtmosphereSpec(seeing_arcsec=1.0)  # the paper's faint cases
+# The R13 night's wind, 4-6 m/s (the on-sky table of the project's field notes; the paper's
+# text gives only the seeing); the default 8 m/s costs that loop 0.05 of FeII Strehl at fixed
+# gains.  The R16.5 night's wind is not given: the default.
+R13_NIGHT = AtmosphereSpec(seeing_arcsec=1.0, wind_m_s=5.0)
 NO_NCPA = NcpaSpec()  # the paper's simulations carry no NCPA: the figures compare with them
 PAPER = {"R13": (0.58, "0.61-0.67"), "R16.5": (0.18, "0.19-0.23")}
 
@@ -58,15 +62,16 @@ def r165_observation():
     )
 
 
-def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
+def paper_case(label: str, obs, atmosphere: AtmosphereSpec, band: str, seeds, cache) -> dict:
     rows = []
     for seed in seeds:
         r = optimize(
             OptimizeRequest(
-                RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, band=band, seed=seed, ncpa=NO_NCPA).request(), "mgm", measure_s=1.0
+                RunConfig(observation=obs, atmosphere=atmosphere, band=band, seed=seed, ncpa=NO_NCPA).request(), "mgm", measure_s=1.0
             ),
             cache,
         )
+        records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
         rows.append(
             {
                 "seed": seed,
@@ -74,16 +79,19 @@ def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
                 "before": r.before.strehl if r.before else None,
                 "after": r.after.strehl if r.after else None,
                 "k": r.loop.rtc_parameters.sensitivity,
+                "sensitivities": list(r.sensitivities),
                 "safety_restores": r.safety_events,
+                "aux": aux_summary(records),
             }
         )
-        print(label, rows[-1], flush=True)
+        print(label, {k: v for k, v in rows[-1].items() if k != "aux"}, flush=True)
     after = [x["after"] for x in rows if x["after"] is not None]
     sim, sky = PAPER[label]
     mean, scatter = float(np.mean(after)), float(np.std(after)) if len(after) > 1 else 0.0
     return {
         "case": label,
         "band": band,
+        "wind_m_s": atmosphere.wind_m_s,
         "runs": rows,
         "after_mean": mean,
         "after_scatter": scatter,
@@ -96,7 +104,7 @@ def paper_case(label: str, obs, band: str, seeds, cache) -> dict:
 def transient(obs, seconds: float, cache) -> dict:
     start = RunConfig(observation=obs).resolved().controller.gains
     low = RunConfig(
-        observation=obs, atmosphere=AT_1_ARCSEC, band="FeII", ncpa=NO_NCPA, controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
+        observation=obs, atmosphere=R13_NIGHT, band="FeII", ncpa=NO_NCPA, controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
     ).request()
     r = optimize(OptimizeRequest(low, "mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
     (RESULTS / "transient_r13").mkdir(parents=True, exist_ok=True)
@@ -148,8 +156,8 @@ def main() -> None:
     seeds = [int(s) for s in a.seeds.split(",")]
     t0 = time.perf_counter()
     parts = {
-        "R13": lambda: paper_case("R13", observation(13.0, 980.0), "FeII", seeds, cache),
-        "R16.5": lambda: paper_case("R16.5", r165_observation(), "Ks", seeds, cache),
+        "R13": lambda: paper_case("R13", observation(13.0, 980.0), R13_NIGHT, "FeII", seeds, cache),
+        "R16.5": lambda: paper_case("R16.5", r165_observation(), AT_1_ARCSEC, "Ks", seeds, cache),
         "ogtl": lambda: ogtl_alone(a.ogtl_s, cache),
         "transient": lambda: transient(observation(13.0, 980.0), a.transient_s, cache),
     }
