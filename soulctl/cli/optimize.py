@@ -386,10 +386,9 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
 def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     """Write the gain file and figures, print the results; the exit status (3: a loop diverged,
     or the safety net could not recover it)."""
-    failed = {m: x.failure() for m, x in results.items()}
-    diverged = [m for m, why in failed.items() if why is not None]
+    failures = {m: why for m, x in results.items() if (why := x.failure()) is not None}
     final = results["mgm" if "mgm" in results else "trial"]
-    if o.out is not None and not diverged:
+    if o.out is not None and not failures:
         atomic_write_text(o.out, _gain_file_text(final))
     if o.plot is not None:
         write_gain_figures(o.plot, results)
@@ -398,10 +397,10 @@ def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     else:
         console = make_console()
         _render(results, console)
-        if o.out is not None and not diverged:
+        if o.out is not None and not failures:
             console.print(f"gains written to {o.out}")
         if o.plot is not None:
             console.print(f"figures written to {o.plot}/")
-    for m in diverged:
-        print(f"soulctl: {failed[m]} during the {m} optimisation; no gain file written", file=sys.stderr)
-    return 3 if diverged else 0
+    for m, why in failures.items():
+        print(f"soulctl: {why} during the {m} optimisation; no gain file written", file=sys.stderr)
+    return 3 if failures else 0

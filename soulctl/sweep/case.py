@@ -111,8 +111,9 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
         cache = ArrayCache(cache_dir)
         if p["gain_method"] == "default":
             result = run(request, cache, calibration=calibration, aux=description.auxiliary.live())  # as `loop run --config` runs it
-            if result.failure() is not None:  # diverged, or the safety net of its auxiliary loops gave up
-                row.update(status="diverged", reason=result.failure())
+            failure = result.failure()  # diverged, or the safety net of its auxiliary loops gave up
+            if failure is not None:
+                row.update(status="diverged", reason=failure)
             else:
                 m = result.metrics
                 assert m is not None  # a loop that did not diverge has its metrics
@@ -128,8 +129,9 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 cache,
                 calibration=calibration,
             )
-            if optimised.failure() is not None:
-                row.update(status="diverged", reason=f"{optimised.failure()} ({p['gain_method']})")
+            failure = optimised.failure()
+            if failure is not None:
+                row.update(status="diverged", reason=f"{failure} ({p['gain_method']})")
             else:
                 a = optimised.after
                 assert a is not None  # measured when the loop did not diverge
