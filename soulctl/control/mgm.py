@@ -31,8 +31,24 @@ Choices where the paper is silent:
 * The minimisation: J on a grid of ``grid`` gains uniform over [0, upper_i], then a golden-section
   search, all modes at once, over the two grid cells around the best grid point, with as many
   iterations as bring that bracket below ``REL_TOL * upper_i`` (13 for the default grid).
-* J is summed over the Welch frequencies without the DC bin and without the factor df (it does
-  not move the minimum).
+* J is estimated on the prewhitened POL (``ModalGainMachine.pol_psd``): each mode's POL is
+  filtered by its control filter's denominator A_i(z) (for an integrator 1 - z^-1, a frame-to-
+  frame difference) and J summed over the Welch frequencies *with* the DC bin, without
+  detrending and without the factor df (it does not move the minimum):
+
+      J_i(g) = sum_f Phi_{A pol, i}(f) / |A_i + g A_i L1_i|^2,
+
+  the same J for the true spectra (|W|^2 = |A|^2 / |A + g A L1|^2), and A_i L1_i = chi_i B_i(z)
+  z^-d is finite at DC.  Why: a low-order mode's turbulence is red and lies largely below the
+  first Welch bin (at 5 m/s, under 0.5 Hz); a detrended Welch PSD of the POL drops that power,
+  J loses the part a high gain rejects best and the optimum falls, most for the reddest modes.
+  The prewhitened series keeps it (a slow drift of the POL is a mean of its difference, and a
+  segment's energy holds all its frequencies), and the weight 1 / |A + g A L1|^2 is smooth over
+  the window's two-bin kernel.  On a steady 10 s R13 record (980 Hz, 5 m/s) the detrended
+  estimate's optimum for modes 3-10 grew with the segment, 0.40 / 0.44 / 0.49 / 0.53 at 256 /
+  512 / 1024 / 2048 frames; the prewhitened one is 0.65-0.66 at all four (docs/physics.md).
+  The frames before the window, which the first frames' prewhitening needs, are taken as the
+  window's first frame.
 * Noise-dominated modes (``noise_floor``, ``noise_dominated``): the WFS noise is white, so the
   POL PSD's floor, its median over the top quarter of the band (``FLOOR_BAND``, where the
   turbulence of every mode has fallen by decades), is the mode's noise level.  A mode whose
@@ -51,7 +67,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import csd, welch
+from scipy.signal import csd, lfilter, welch
 
 from ..errors import InputError
 from .filters import Filter
@@ -98,21 +114,15 @@ def min_frames(settings: MgmSettings) -> int:
 
 
 def psd_frequencies(rate_hz: float, settings: MgmSettings) -> np.ndarray:
-    """The frequencies (Hz) of ``pol_psd``: the Welch bins without DC, up to Nyquist."""
+    """The frequencies (Hz) of the prewhitened POL PSD: the Welch bins from DC to Nyquist."""
     _check_rate(rate_hz)
-    return np.fft.rfftfreq(settings.segment, 1.0 / rate_hz)[1:]
-
-
-def pol_psd(pol, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.ndarray]:
-    """(f, Phi_pol) of the POL modal series pol (frames, n_modes): Welch, Hann window, 50 %
-    overlap, constant detrend, one-sided density; f without DC (F,), Phi (n_modes, F)."""
-    f, psd = welch(_checked_pol(pol, rate_hz, settings), **_welch_settings(rate_hz, settings))
-    return f[1:], np.ascontiguousarray(psd[1:].T)
+    return np.fft.rfftfreq(settings.segment, 1.0 / rate_hz)
 
 
 def _welch_settings(rate_hz: float, settings: MgmSettings) -> dict:
+    """Hann window, 50 % overlap, no detrend, one-sided density."""
     s = settings.segment
-    return dict(fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend="constant", return_onesided=True, scaling="density", axis=0)
+    return dict(fs=rate_hz, window="hann", nperseg=s, noverlap=s // 2, detrend=False, return_onesided=True, scaling="density", axis=0)
 
 
 def _checked_pol(pol, rate_hz: float, settings: MgmSettings) -> np.ndarray:
@@ -172,13 +182,24 @@ def _plant(delay_frames: float, structure, structured: bool) -> Plant:
 def unit_open_loops(filters, chi, delay_frames: float, rate_hz: float, f, structure=None) -> np.ndarray:
     """L1_i(f) = chi_i H_unit,i z^-d (paper, Eq. plant), (n_modes, F) complex; ``structure``, a
     (b, a) resonance at this rate (``transfer.Plant``), multiplies the Tip/Tilt plants (modes 0, 1)."""
+    A, M = whitened_open_loops(filters, chi, delay_frames, rate_hz, f, structure)
+    return M / A
+
+
+def whitened_open_loops(filters, chi, delay_frames: float, rate_hz: float, f, structure=None) -> tuple[np.ndarray, np.ndarray]:
+    """(A_i(f), A_i L1_i(f)), each (n_modes, F) complex: A_i the denominator prod(1 - alpha z^-1)
+    of mode i's filter, the prewhitening of its POL, and A_i L1_i = chi_i B_i(z) z^-d (B the
+    numerator; with the Tip/Tilt resonance), finite where A_i = 0 (an integrator's DC)."""
     chi = _check_modes(filters, chi)
     _check_rate(rate_hz)
     w = 2.0 * np.pi * np.asarray(f, dtype=float) / rate_hz
+    zi = np.exp(-1j * w)
     keys, idx = _distinct(filters, structure)
     plants = {s: _plant(delay_frames, structure, s).frequency_response(w) for s in {k[2] for k in keys}}
-    table = np.stack([Filter(z, p, 1.0).frequency_response(w) * plants[s] for z, p, s in keys])
-    return chi[:, None] * table[idx]
+    coefficients = [(Filter(z, p, 1.0).coefficients(), s) for z, p, s in keys]
+    den = np.stack([np.polyval(a[::-1], zi) for (_, a), _ in coefficients])
+    num = np.stack([np.polyval(b[::-1], zi) * plants[s] for (b, _), s in coefficients])
+    return den[idx], chi[:, None] * num[idx]
 
 
 def gain_limits(filters, chi, delay_frames: float, rate_hz: float, margin: float, structure=None) -> np.ndarray:
@@ -194,36 +215,28 @@ def gain_limits(filters, chi, delay_frames: float, rate_hz: float, margin: float
     return limit[idx] / chi
 
 
-def pol_spectra(measured, shifted, rate_hz: float, settings: MgmSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The POL PSD in parts, for a POL a m + c whose scale a is chosen later: the Welch
-    densities of m and of c and the real part of their cross density (each (n_modes, F), f as
-    ``pol_psd``).  Welch is a quadratic form of the detrended, windowed segments, so
-    ``psd_of_spectra(spectra, a)`` is exactly ``pol_psd(a m + c)``."""
-    m, c = _checked_pol(measured, rate_hz, settings), _checked_pol(shifted, rate_hz, settings)
-    kw = _welch_settings(rate_hz, settings)
-    parts = (welch(m, **kw)[1], welch(c, **kw)[1], csd(m, c, **kw)[1].real)
-    return tuple(np.ascontiguousarray(p[1:].T) for p in parts)  # type: ignore[return-value]
-
-
 def psd_of_spectra(spectra: tuple[np.ndarray, np.ndarray, np.ndarray], a: float) -> np.ndarray:
-    """The PSD of a m + c from ``pol_spectra``: a^2 S_mm + S_cc + 2 a Re S_mc."""
+    """The PSD of a m + c from ``ModalGainMachine.pol_spectra``: a^2 S_mm + S_cc + 2 a Re S_mc."""
     s_mm, s_cc, s_mc = spectra
     return a * a * s_mm + s_cc + 2.0 * a * s_mc
 
 
-def _parts(psd, L1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _parts(psd, L1, whitening) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(psd, c, a, b) with |A + g L|^2 = c + g (a + g b): c = |A|^2, a = 2 Re(conj(A) L), b = |L|^2."""
     psd = np.asarray(psd, dtype=float)
     L1 = np.asarray(L1)
-    if psd.ndim != 2 or L1.shape != psd.shape:
-        raise InputError(f"psd and L1 must both be (n_modes, F) arrays, got shapes {psd.shape} and {L1.shape}")
-    return psd, 2.0 * L1.real, L1.real**2 + L1.imag**2
+    A = np.ones(L1.shape) if whitening is None else np.asarray(whitening)
+    if psd.ndim != 2 or L1.shape != psd.shape or A.shape != psd.shape:
+        raise InputError(f"psd, L1 and the whitening must all be (n_modes, F) arrays, got shapes {psd.shape}, {L1.shape} and {A.shape}")
+    return psd, A.real**2 + A.imag**2, 2.0 * (A.real * L1.real + A.imag * L1.imag), L1.real**2 + L1.imag**2
 
 
-def _cost(psd, a, b, gains) -> np.ndarray:
-    """J with |1 + g L|^2 = 1 + g (a + g b), a = 2 Re L, b = |L|^2, real arithmetic."""
+def _cost(psd, c, a, b, gains) -> np.ndarray:
+    """J = sum_f psd / (c + g (a + g b)), real arithmetic; a term of zero denominator (an
+    integrator's DC bin at g = 0) is inf where psd > 0 and 0 where psd = 0."""
     if gains.ndim == 1:
-        g = gains[:, None]
-        return np.einsum("mf,mf->m", psd, 1.0 / (1.0 + g * (a + g * b)))
+        den = c + gains[:, None] * (a + gains[:, None] * b)
+        return np.sum(_ratio(psd, den), axis=1)
     n, G = gains.shape
     out = np.empty((n, G))
     step = max(1, _CHUNK_ELEMENTS // max(1, G * psd.shape[1]))
@@ -233,27 +246,34 @@ def _cost(psd, a, b, gains) -> np.ndarray:
         den = b[s, None, :] * g
         den += a[s, None, :]
         den *= g
-        den += 1.0
-        np.divide(psd[s, None, :], den, out=den)
-        out[s] = den.sum(axis=-1)
+        den += c[s, None, :]
+        out[s] = _ratio(np.broadcast_to(psd[s, None, :], den.shape), den).sum(axis=-1)
     return out
 
 
-def cost(psd, L1, gains) -> np.ndarray:
-    """J_i(g) = sum_f Phi_i(f) / |1 + g L1_i(f)|^2 (paper, Eq. cost); gains (n_modes,) gives
-    (n_modes,), gains (n_modes, G) gives (n_modes, G)."""
-    psd, a, b = _parts(psd, L1)
+def _ratio(psd, den) -> np.ndarray:
+    zero = den <= 0.0
+    if not zero.any():
+        return psd / den
+    return np.where(zero, np.where(psd > 0.0, np.inf, 0.0), psd / np.where(zero, 1.0, den))
+
+
+def cost(psd, L1, gains, whitening=None) -> np.ndarray:
+    """J_i(g) = sum_f Phi_i(f) / |A_i(f) + g L1_i(f)|^2 (paper, Eq. cost; A = 1 unless
+    ``whitening`` gives it: then Phi is the prewhitened POL's PSD and L1 the whitened open loop
+    A L1); gains (n_modes,) gives (n_modes,), gains (n_modes, G) gives (n_modes, G)."""
+    psd, c, a, b = _parts(psd, L1, whitening)
     gains = np.asarray(gains, dtype=float)
     if gains.ndim not in (1, 2) or gains.shape[0] != psd.shape[0]:
         raise InputError(f"gains must be (n_modes,) or (n_modes, G) with n_modes = {psd.shape[0]}, got shape {gains.shape}")
-    return _cost(psd, a, b, gains)
+    return _cost(psd, c, a, b, gains)
 
 
-def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid) -> np.ndarray:
-    """g_hat_i = argmin J_i over [0, upper_i] (paper, Eq. cost): a grid of ``grid`` gains, then a
-    golden-section search over the grid cells around the best point, all modes at once, to
-    REL_TOL * upper_i.  A mode with J flat (psd = 0) gets 0."""
-    psd, a, b = _parts(psd, L1)
+def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid, whitening=None) -> np.ndarray:
+    """g_hat_i = argmin J_i over [0, upper_i] (paper, Eq. cost; ``cost``): a grid of ``grid``
+    gains, then a golden-section search over the grid cells around the best point, all modes
+    at once, to REL_TOL * upper_i.  A mode with J flat (psd = 0) gets 0."""
+    psd, c, a, b = _parts(psd, L1, whitening)
     upper = np.asarray(upper, dtype=float)
     if upper.shape != (psd.shape[0],) or not (np.isfinite(upper).all() and (upper >= 0).all()):
         raise InputError(f"upper gain limits must be finite, >= 0 and one per mode ({psd.shape[0]}), got shape {upper.shape}")
@@ -261,7 +281,7 @@ def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid) -> np.ndarray:
         raise InputError(f"MGM gain grid must be an integer >= 8 points, got {grid!r}")
     rows = np.arange(psd.shape[0])
     steps = np.linspace(0.0, 1.0, grid)
-    J = _cost(psd, a, b, upper[:, None] * steps[None, :])
+    J = _cost(psd, c, a, b, upper[:, None] * steps[None, :])
     best = np.argmin(J, axis=1)
     g_grid, J_grid = upper * steps[best], J[rows, best]
 
@@ -270,19 +290,19 @@ def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid) -> np.ndarray:
     hi = upper * steps[np.minimum(best + 1, grid - 1)]
     width = 2.0 / (grid - 1)
     iterations = max(1, math.ceil(math.log(REL_TOL / width) / math.log(_INVPHI)))
-    c = hi - _INVPHI * (hi - lo)
-    d = lo + _INVPHI * (hi - lo)
-    Jc, Jd = _cost(psd, a, b, c), _cost(psd, a, b, d)
+    x1 = hi - _INVPHI * (hi - lo)
+    x2 = lo + _INVPHI * (hi - lo)
+    J1, J2 = _cost(psd, c, a, b, x1), _cost(psd, c, a, b, x2)
     for _ in range(iterations):
-        left = Jc < Jd  # the minimum is in [lo, d]: d <- c, new c; else in [c, hi]: c <- d, new d
-        hi = np.where(left, d, hi)
-        lo = np.where(left, lo, c)
+        left = J1 < J2  # the minimum is in [lo, x2]: x2 <- x1, new x1; else in [x1, hi]: x1 <- x2, new x2
+        hi = np.where(left, x2, hi)
+        lo = np.where(left, lo, x1)
         x = np.where(left, hi - _INVPHI * (hi - lo), lo + _INVPHI * (hi - lo))
-        Jx = _cost(psd, a, b, x)
-        c, d = np.where(left, x, d), np.where(left, c, x)
-        Jc, Jd = np.where(left, Jx, Jd), np.where(left, Jc, Jx)
-    left = Jc < Jd
-    g_ref, J_ref = np.where(left, c, d), np.where(left, Jc, Jd)
+        Jx = _cost(psd, c, a, b, x)
+        x1, x2 = np.where(left, x, x2), np.where(left, x1, x)
+        J1, J2 = np.where(left, Jx, J2), np.where(left, J1, Jx)
+    left = J1 < J2
+    g_ref, J_ref = np.where(left, x1, x2), np.where(left, J1, J2)
     better = J_ref < J_grid  # ties (a flat J) keep the grid point
     return np.clip(np.where(better, g_ref, g_grid), 0.0, upper)
 
@@ -315,8 +335,8 @@ def update_gains(previous, optimum, settings: MgmSettings) -> np.ndarray:
 class ModalGainMachine:
     """MGM for one set of controlled modes: unit-gain filters (one per mode; their gains are
     ignored), chi per mode, the loop delay (frames) and rate; ``structure`` an optional (b, a)
-    resonance of the Tip/Tilt plants.  The gain limits and the unit open loops on the Welch
-    frequencies are computed once, at construction."""
+    resonance of the Tip/Tilt plants.  The gain limits, the prewhitening filters A_i and the
+    whitened open loops A_i L1_i on the Welch frequencies are computed once, at construction."""
 
     filters: tuple[Filter, ...]
     chi: np.ndarray
@@ -326,6 +346,7 @@ class ModalGainMachine:
     structure: tuple | None = None
     upper: np.ndarray = field(init=False, repr=False)
     frequencies: np.ndarray = field(init=False, repr=False)
+    whitening: np.ndarray = field(init=False, repr=False)
     open_loops: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -334,8 +355,8 @@ class ModalGainMachine:
         chi.setflags(write=False)
         f = psd_frequencies(self.rate_hz, self.settings)
         upper = gain_limits(filters, chi, self.delay_frames, self.rate_hz, self.settings.margin, self.structure)
-        L1 = unit_open_loops(filters, chi, self.delay_frames, self.rate_hz, f, self.structure)
-        for name, value in (("filters", filters), ("chi", chi), ("upper", upper), ("frequencies", f), ("open_loops", L1)):
+        A, M = whitened_open_loops(filters, chi, self.delay_frames, self.rate_hz, f, self.structure)
+        for name, value in (("filters", filters), ("chi", chi), ("upper", upper), ("frequencies", f), ("whitening", A), ("open_loops", M)):
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
             object.__setattr__(self, name, value)
@@ -344,26 +365,58 @@ class ModalGainMachine:
     def n_modes(self) -> int:
         return len(self.filters)
 
+    def prewhitened(self, pol, modes: slice = slice(None)) -> np.ndarray:
+        """A_i(z) applied to each mode's series, pol (frames, modes) the machine's ``modes``; the
+        frames before the window are taken as its first frame (an integrator's difference starts
+        at 0), so that the series keeps its length and each mode its own prewhitening."""
+        pol = _checked_pol(pol, self.rate_hz, self.settings)
+        filters = self.filters[modes]
+        if pol.shape[1] != len(filters):
+            raise InputError(f"POL telemetry must be (frames, {len(filters)}) for {len(filters)} modes, got shape {pol.shape}")
+        keys, idx = _distinct(filters, None)
+        out = np.empty_like(pol)
+        for j, (_, poles, _) in enumerate(keys):
+            cols = np.flatnonzero(idx == j)
+            a = Filter((), poles, 1.0).coefficients()[1]
+            x = np.concatenate([np.repeat(pol[:1, cols], len(poles), axis=0), pol[:, cols]])
+            out[:, cols] = lfilter(a, [1.0], x, axis=0)[len(poles) :]
+        return out
+
+    def pol_psd(self, pol, modes: slice = slice(None)) -> np.ndarray:
+        """The Welch PSD (modes, F) of the prewhitened POL series pol (frames, modes) of the
+        machine's ``modes``, on ``frequencies`` (Hann window, no detrend, one-sided density)."""
+        y = self.prewhitened(pol, modes)
+        return np.ascontiguousarray(welch(y, **_welch_settings(self.rate_hz, self.settings))[1].T)
+
+    def pol_spectra(self, measured, shifted) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The prewhitened POL PSD in parts, for a POL a m + c whose scale a is chosen later: the
+        Welch densities of A m and of A c and the real part of their cross density.  Welch is
+        a quadratic form of the windowed segments, so ``psd_of_spectra(spectra, a)`` is exactly
+        ``pol_psd(a m + c)``."""
+        m, c = self.prewhitened(measured), self.prewhitened(shifted)
+        kw = _welch_settings(self.rate_hz, self.settings)
+        parts = (welch(m, **kw)[1], welch(c, **kw)[1], csd(m, c, **kw)[1].real)
+        return tuple(np.ascontiguousarray(p.T) for p in parts)  # type: ignore[return-value]
+
     def optimum(self, pol) -> tuple[np.ndarray, dict]:
         """(g_hat, info) from the POL series pol (frames, n_modes); info holds f (Hz), psd
-        (n_modes, F), upper (the gain limits), noise_floor (per mode) and noise_dominated (the
-        modes given at least NOISE_LOOP_GAIN / chi)."""
-        pol = np.asarray(pol, dtype=float)
-        if pol.ndim != 2 or pol.shape[1] != self.n_modes:
-            raise InputError(f"POL telemetry must be (frames, {self.n_modes}) for {self.n_modes} modes, got shape {pol.shape}")
-        _, psd = pol_psd(pol, self.rate_hz, self.settings)
-        return self.optimum_of_psd(psd)
+        (n_modes, F; the prewhitened POL's), upper (the gain limits), noise_floor (per mode) and
+        noise_dominated (the modes given at least NOISE_LOOP_GAIN / chi)."""
+        return self.optimum_of_psd(self.pol_psd(pol))
 
     def optimum_of_psd(self, psd) -> tuple[np.ndarray, dict]:
-        """``optimum`` from a POL PSD already estimated (n_modes, F) on ``frequencies``: one
-        window's (``pol_psd``) or the mean of several windows' (``loop.auxloops.MgmTask``)."""
+        """``optimum`` from a prewhitened POL PSD already estimated (n_modes, F) on
+        ``frequencies``: one window's (``pol_psd``) or the mean of several windows'
+        (``loop.auxloops.MgmTask``).  The noise rule reads the POL PSD psd / |A|^2 above DC."""
         psd = np.asarray(psd, dtype=float)
         if psd.shape != (self.n_modes, self.frequencies.size):
             raise InputError(f"POL PSD must be ({self.n_modes}, {self.frequencies.size}), got shape {psd.shape}")
         f = self.frequencies
-        gains = optimal_gains(psd, self.open_loops, self.upper, self.settings.grid)
-        floor = noise_floor(psd, f, self.rate_hz)
-        noisy = noise_dominated(psd, floor)
+        gains = optimal_gains(psd, self.open_loops, self.upper, self.settings.grid, self.whitening)
+        A = self.whitening[:, 1:]
+        pol = psd[:, 1:] / (A.real**2 + A.imag**2)
+        floor = noise_floor(pol, f[1:], self.rate_hz)
+        noisy = noise_dominated(pol, floor)
         gains = np.where(noisy, np.maximum(gains, np.minimum(NOISE_LOOP_GAIN / self.chi, self.upper)), gains)
         return gains, {"f": f, "psd": psd, "upper": self.upper, "noise_floor": floor, "noise_dominated": noisy}
 

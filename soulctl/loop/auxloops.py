@@ -115,8 +115,8 @@ class MgmTask(AuxLoop):
     ``probe_gain``, the table's gamma of the probed mode.  The safety net's ``damp`` halves rho.
 
     Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
-    of an update is of the mean POL PSD of these windows, each rebuilt at the geometric mean
-    of the gammas of the same updates (``mgm.pol_spectra``: the POL's parts, so that a window's
+    of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the geometric mean
+    of the gammas of the same updates (``ModalGainMachine.pol_spectra``: the POL's parts, so that a window's
     PSD follows a later gamma exactly).  The pseudo-open loop does not depend on the gains,
     so every window estimates the same PSD, and the mean of five has about 1/sqrt(5) of one's
     scatter; gamma changes with the turbulence over minutes, not from one 2-3 s update to the
@@ -163,7 +163,7 @@ class MgmTask(AuxLoop):
             return {}
         mirror = pseudo_open_loop(np.zeros_like(window.command_modes), window.command_modes, window.delay_frames, self.machine.structure)
         measured = window.measured_modes / self.machine.chi
-        spectra = mgm.pol_spectra(measured[n + 1 :], mirror[n + 1 :], self.machine.rate_hz, self.machine.settings)
+        spectra = self.machine.pol_spectra(measured[n + 1 :], mirror[n + 1 :])
         self.windows.append((spectra, window.sensitivity))
         self.gammas.append(self.gamma(rtc.sensitivity))
         psd = np.mean([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k in self.windows], axis=0)

@@ -13,8 +13,9 @@ paper's table seeing, 0.8"; ``plant_seeing``): gamma_i / gamma_p when the file r
 (``/aux/ogtl``: k tracked the optical gain of the probed mode p, ``/aux/ogtl/mode``; 30 in
 files that do not record it), gamma_i times the file's k otherwise.
 
-The gains returned are always a vector `loop run --gains` accepts: MGM's update (Eq.
-gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
+The optimum is the live MGM's, noise rule included (``ModalGainMachine.optimum_of_psd`` of the
+window's prewhitened POL PSD).  The gains returned are always a vector `loop run --gains`
+accepts: MGM's update (Eq. gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
 nominal maximum stable gain (chi = 1, the check of `loop run`) with the file's structural
 resonance, `loop run`'s default one and none, and at 10 (``ranges.LOOP_GAIN``).  MGM's own
 limit, (1 - margin) g_max / chi_i, lies above the nominal one where chi_i < 1; the modes
@@ -23,7 +24,7 @@ capped are reported.
 Memory: only the fields needed are read, and only over the window: /sensitivity and the tail
 of /gain_history/frames (one value per frame at most), one row of /gain_history/gains, /gains,
 and /measured_modes and /command_modes in blocks of modes of at most ``BLOCK_BYTES`` (float64)
-each, plus the PSDs (n_modes x segment / 2).  A window of one block (the usual case) is read
+each, plus the PSDs (n_modes x (segment / 2 + 1)).  A window of one block (the usual case) is read
 once; a larger one is read twice, checked before the calibration, used after it.
 
 Refused with exit status 2, naming the field: a file that is not a regular HDF5 file, a
@@ -295,8 +296,8 @@ def offline_mgm(
         for i, cols in enumerate(blocks):
             measured, commands = data[i] if data else _window_data(tm, rows, [cols], True, path)[0]
             pol = pseudo_open_loop(measured / chi[cols], commands, delay, machine.structure if cols.start == 0 else None)
-            psd.append(mgm.pol_psd(pol[n + 1 :], rate, settings)[1])
-    optimum = mgm.optimal_gains(np.concatenate(psd), machine.open_loops, machine.upper, settings.grid)
+            psd.append(machine.pol_psd(pol[n + 1 :], cols))
+    optimum, _ = machine.optimum_of_psd(np.concatenate(psd))
     gains = mgm.update_gains(previous, optimum, settings)
     limits = nominal_limits(observation, structure, settings.margin)
     capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))

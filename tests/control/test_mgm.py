@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy.signal import lfilter
+from scipy.signal import lfilter, welch
 
 from soulctl.control import mgm
 from soulctl.control.filters import Filter
@@ -22,7 +22,6 @@ from soulctl.control.mgm import (
     gain_limits,
     min_frames,
     optimal_gains,
-    pol_psd,
     unit_open_loops,
     update_gains,
 )
@@ -88,7 +87,7 @@ def test_mgm_optimum_matches_brute_force_closed_loop(delay, alpha):
     )
     print(msg)
     assert abs(rel) < 0.05, msg
-    assert info["f"].shape == (machine.settings.segment // 2,) and info["f"][0] > 0
+    assert info["f"].shape == (machine.settings.segment // 2 + 1,) and info["f"][0] == 0.0
 
 
 def test_mgm_telemetry_tells_the_delay():
@@ -197,7 +196,7 @@ def test_no_signal_gives_gain_zero():
     assert np.array_equal(g, [0.0, 0.0])
     machine = ModalGainMachine([Filter.integrator(1.0)] * 2, [1.0, 1.0], 2.0, RATE)
     pol = np.zeros((2000, 2))
-    pol[:, 1] = 3.0  # constant: nothing left after the detrend
+    pol[:, 1] = 3.0  # constant: its prewhitened series (a difference) is zero
     g, _ = machine.optimum(pol)
     assert np.array_equal(g, [0.0, 0.0])
 
@@ -220,7 +219,7 @@ def test_machine_matches_single_modes_and_steps():
     pol = lfilter([1.0], [1.0, -0.995], rng.standard_normal((3000, 6)), axis=0) + rng.standard_normal((3000, 6))
     machine = ModalGainMachine(filters, chi, 2.0, 1700.0, structure=structure)
     g, info = machine.optimum(pol)
-    assert set(info) == {"f", "psd", "upper", "noise_floor", "noise_dominated"} and info["psd"].shape == (6, 256)
+    assert set(info) == {"f", "psd", "upper", "noise_floor", "noise_dominated"} and info["psd"].shape == (6, 257)
     for i in (0, 1, 3, 5):  # Tip/Tilt keeps its resonance when alone as mode 0
         alone = ModalGainMachine([filters[i]], chi[i : i + 1], 2.0, 1700.0, structure=structure if i < 2 else None)
         assert alone.upper[0] == pytest.approx(machine.upper[i], rel=1e-12)
@@ -237,9 +236,9 @@ def test_noise_floor_is_the_white_noise_density():
     rng = np.random.default_rng(5)
     x, _ = disturbance(seed=1)
     noise = 2.0 * rng.standard_normal((FRAMES, 1))
+    machine = ModalGainMachine([Filter.integrator(1.0)], [CHI], 2.0, RATE)
     for pol in (noise, noise + x[:, None]):
-        f, psd = pol_psd(pol, RATE, MgmSettings())
-        assert mgm.noise_floor(psd, f, RATE)[0] == pytest.approx(4.0 / (RATE / 2), rel=0.1)
+        assert machine.optimum(pol)[1]["noise_floor"][0] == pytest.approx(4.0 / (RATE / 2), rel=0.1)
 
 
 @pytest.mark.parametrize("snr, dominated", [(0.0, True), (0.3, True), (0.6, True), (2.0, False), (10.0, False)])
@@ -249,30 +248,50 @@ def test_noise_dominated_is_signal_power_below_the_noise(snr, dominated):
     x, _ = disturbance(seed=2)
     noise = rng.standard_normal(FRAMES)
     pol = (np.sqrt(snr) * x / x.std() + noise)[:, None]
-    f, psd = pol_psd(pol, RATE, MgmSettings())
-    assert mgm.noise_dominated(psd, mgm.noise_floor(psd, f, RATE))[0] == dominated
+    machine = ModalGainMachine([Filter.integrator(1.0)], [CHI], 2.0, RATE)
+    assert machine.optimum(pol)[1]["noise_dominated"][0] == dominated
+
+
+def detrended_optimum(machine, pol) -> float:
+    """The optimum of MGM's former estimate, for contrast: the Welch PSD of the POL itself, each
+    segment's mean removed, J summed without the DC bin (single-mode machine)."""
+    seg = machine.settings.segment
+    f, psd = welch(pol, fs=machine.rate_hz, window="hann", nperseg=seg, noverlap=seg // 2, detrend="constant")
+    L1 = unit_open_loops(machine.filters, machine.chi, machine.delay_frames, machine.rate_hz, f[1:])
+    return float(optimal_gains(psd[None, 1:], L1, machine.upper)[0])
 
 
 @pytest.mark.parametrize("snr", [0.1, 0.5, 0.9])
-def test_a_noise_dominated_mode_keeps_a_floor_gain_that_beats_the_short_windows_zero(snr):
-    """A signal below the noise, MGM on 250-frame windows (64-frame Welch segments): J's minimum
-    falls to g = 0 (the signal is in the lowest bins), the noise rule lifts it to g chi =
-    NOISE_LOOP_GAIN; the brute-force residual there is within 1.5 times the best gain's, at
-    g = 0 more than twice it."""
+def test_a_noise_dominated_modes_optimum_from_short_windows_stays_off_the_edge(snr):
+    """A signal below the noise, MGM on 250-frame windows (64-frame Welch segments, 3.9 Hz
+    bins; 72 windows).  The signal is red and lies mostly below the first bin: the detrended
+    estimate's minimum fell to g = 0, the edge, in most windows, where the residual is 3-9
+    times the best.  The prewhitened estimate keeps that power; it never reaches the edge and
+    the residual at its median is within 1.2 times the best.  The noise rule's floor (g chi =
+    NOISE_LOOP_GAIN) is a guard on top: g_hat = max(optimum, floor), within 1.5 times the best."""
     x, _ = disturbance(seed=0)
     noise = np.random.default_rng(7).standard_normal(FRAMES) * 3.0
     x = x / x.std() * np.sqrt(snr) * 3.0 / CHI  # signal variance snr x the noise's (in POL units)
     machine = ModalGainMachine([Filter.leaky(0.99, 1.0)], np.array([CHI]), 1.5, RATE, MgmSettings(segment=64))
     pol = x + noise / CHI
-    f, psd = pol_psd(pol[:250, None], RATE, machine.settings)
-    assert optimal_gains(psd, machine.open_loops, machine.upper)[0] < 0.01 * machine.upper[0]  # the edge
-    g_hat, info = machine.optimum(pol[:250, None])
-    assert info["noise_dominated"][0] and g_hat[0] == pytest.approx(mgm.NOISE_LOOP_GAIN / CHI)
-    gains = np.append(np.linspace(0.0, 0.2, 41) * machine.upper[0], g_hat[0])
+    starts = range(SETTLE, FRAMES - 250, 250)
+    raw = np.array(
+        [
+            optimal_gains(machine.pol_psd(pol[s : s + 250, None]), machine.open_loops, machine.upper, whitening=machine.whitening)[0]
+            for s in starts
+        ]
+    )
+    former = np.array([detrended_optimum(machine, pol[s : s + 250]) for s in starts])
+    edge = 0.01 * machine.upper[0]
+    assert np.mean(former < edge) > 0.5 and np.all(raw > edge), (np.mean(former < edge), raw.min())
+    g_hat, info = machine.optimum(pol[SETTLE : SETTLE + 250, None])
+    assert info["noise_dominated"][0] and g_hat[0] == pytest.approx(max(raw[0], mgm.NOISE_LOOP_GAIN / CHI), rel=1e-12)
+    gains = np.append(np.linspace(0.0, 0.2, 41) * machine.upper[0], [np.median(raw), g_hat[0]])
     m, y = closed_loop(x, noise, CHI, gains, 1.5, 0.99)
     variance = np.var((x[:, None] - y)[SETTLE:], axis=0)
-    assert variance[-1] <= 1.5 * variance[:-1].min()
-    assert variance[0] > 2 * variance[:-1].min()
+    best = variance[:41].min()
+    assert variance[-2] <= 1.2 * best and variance[-1] <= 1.5 * best
+    assert variance[0] > 2 * best
 
 
 @pytest.mark.parametrize(
@@ -300,19 +319,23 @@ def test_bad_settings(kwargs):
 def test_short_window_and_bad_telemetry():
     s = MgmSettings(segment=256)
     assert min_frames(s) == 640 and min_frames(MgmSettings()) == 1280
-    f, psd = pol_psd(np.random.default_rng(4).standard_normal((640, 3)), RATE, s)
-    assert f.shape == (128,) and psd.shape == (3, 128) and f[0] == pytest.approx(RATE / 256)
+    machine = ModalGainMachine([Filter.integrator(1.0)] * 2 + [tt_iir()], [1.0] * 3, 2.0, RATE, s)
+    psd = machine.pol_psd(np.random.default_rng(4).standard_normal((640, 3)))
+    f = machine.frequencies
+    assert f.shape == (129,) and psd.shape == (3, 129) and f[0] == 0.0 and f[1] == pytest.approx(RATE / 256)
     with pytest.raises(InputError, match=r"639 frames \(0.639 s\) is shorter than 640 frames \(0.64 s\).*4 PSD segments of 256"):
-        pol_psd(np.zeros((639, 3)), RATE, s)
+        machine.pol_psd(np.zeros((639, 3)))
     bad = np.zeros((640, 3))
     bad[10, 2] = np.nan
     with pytest.raises(InputError, match="finite"):
-        pol_psd(bad, RATE, s)
+        machine.pol_psd(bad)
     bad[10, 2] = np.inf
     with pytest.raises(InputError, match="finite"):
-        pol_psd(bad, RATE, s)
+        machine.pol_psd(bad)
     with pytest.raises(InputError):
-        pol_psd(np.zeros(1000), RATE, s)
+        machine.pol_psd(np.zeros(1000))
+    with pytest.raises(InputError):
+        machine.pol_psd(np.zeros((640, 2)))
     with pytest.raises(InputError):
         ModalGainMachine([Filter.integrator(1.0)], [0.0], 2.0, RATE)
     with pytest.raises(InputError):
@@ -320,17 +343,25 @@ def test_short_window_and_bad_telemetry():
 
 
 def test_welch_density_scaling():
-    """White noise of variance s^2 has the one-sided density 2 s^2 / rate."""
+    """White noise of variance s^2 has the one-sided density 2 s^2 / rate: the prewhitened PSD
+    over |A|^2 above DC; summed with df over all bins, DC included, the PSD is the prewhitened
+    series' variance (Parseval: 2 s^2 for a difference, (1 + 0.99^2) s^2 for the leaky
+    integrator's 1 - 0.99 z^-1)."""
     pol = 2.0 * np.random.default_rng(5).standard_normal((40000, 2))
-    _, psd = pol_psd(pol, RATE, MgmSettings())
-    assert np.mean(psd) == pytest.approx(2 * 4.0 / RATE, rel=0.02)
+    machine = ModalGainMachine([Filter.integrator(1.0), Filter.leaky(0.99, 1.0)], [CHI] * 2, 2.0, RATE)
+    psd = machine.pol_psd(pol)
+    A2 = np.abs(machine.whitening) ** 2
+    assert np.mean(psd[:, 1:] / A2[:, 1:]) == pytest.approx(2 * 4.0 / RATE, rel=0.02)
+    df = machine.frequencies[1]
+    np.testing.assert_allclose(np.sum(psd, axis=1) * df, [2 * 4.0, (1 + 0.99**2) * 4.0], rtol=0.02)
 
 
-def test_segments_that_resolve_1_hz_keep_a_slow_noisy_loops_optimum():
-    """A 250 Hz loop whose noise puts the optimum loop gain near 0.1 (bandwidth ~ 4 Hz): with
-    64-frame segments (3.9 Hz bins) the disturbance below them falls in the DC bin MGM leaves
-    out and the optimum drops to about half the brute-force one; with the default period's
-    segment (``resolving_segment``: 256 frames, 0.98 Hz) it stays within 25 %."""
+def test_short_segments_keep_a_slow_noisy_loops_optimum():
+    """A 250 Hz loop whose noise puts the optimum loop gain near 0.1 (bandwidth ~ 4 Hz).  With
+    64-frame segments (3.9 Hz bins) the detrended estimate loses the disturbance below the
+    first bin and its optimum drops to about half the brute-force one; the prewhitened
+    estimate stays within 25 % with 64- and 256-frame segments (0.98 Hz,
+    ``resolving_segment``, the default period's) alike."""
     from soulctl.loop.optimize import resolving_segment
 
     rate, delay = 250.0, 1.5
@@ -342,14 +373,16 @@ def test_segments_that_resolve_1_hz_keep_a_slow_noisy_loops_optimum():
     m, y = closed_loop(x, noise, CHI, np.append(gains, 0.3), delay, 1.0)
     g_bf = gains[np.argmin(np.var((x[:, None] - y[:, :-1])[SETTLE:], axis=0))]
     pol = m[:, -1] / CHI + y[:, -1]
-    ratio = {}
+    ratio, former = {}, {}
     for segment in (64, resolving_segment(rate)):
         machine = ModalGainMachine([Filter.integrator(1.0)], np.array([CHI]), delay, rate, MgmSettings(segment=segment))
         window = min_frames(machine.settings)
-        estimates = [machine.optimum(pol[s : s + window, None])[0][0] for s in range(SETTLE, FRAMES - window, window)]
-        ratio[segment] = float(np.median(estimates)) / g_bf
+        starts = range(SETTLE, FRAMES - window, window)
+        ratio[segment] = float(np.median([machine.optimum(pol[s : s + window, None])[0][0] for s in starts])) / g_bf
+        former[segment] = float(np.median([detrended_optimum(machine, pol[s : s + window]) for s in starts])) / g_bf
     assert resolving_segment(rate) == 256
-    assert ratio[64] < 0.6 and 0.75 < ratio[256] < 1.25, ratio
+    assert former[64] < 0.6, former
+    assert 0.75 < ratio[64] < 1.25 and 0.75 < ratio[256] < 1.25, ratio
 
 
 def test_the_pol_psd_rebuilt_from_its_parts_is_the_psd_of_the_pol():
@@ -358,12 +391,12 @@ def test_the_pol_psd_rebuilt_from_its_parts_is_the_psd_of_the_pol():
     rng = np.random.default_rng(2)
     m = lfilter([1.0], [1.0, -0.95], rng.standard_normal((1200, 3)), axis=0) + rng.standard_normal((1200, 3))
     c = lfilter([1.0], [1.0, -0.99], rng.standard_normal((1200, 3)), axis=0)
-    settings = MgmSettings(segment=128)
-    parts = mgm.pol_spectra(m, c, RATE, settings)
+    machine = ModalGainMachine([Filter.integrator(1.0), tt_iir(), Filter.leaky(0.99, 1.0)], [CHI] * 3, 2.0, RATE, MgmSettings(segment=128))
+    parts = machine.pol_spectra(m, c)
     for a in (0.3, 1.0, 2.7):
-        np.testing.assert_allclose(mgm.psd_of_spectra(parts, a), pol_psd(a * m + c, RATE, settings)[1], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(mgm.psd_of_spectra(parts, a), machine.pol_psd(a * m + c), rtol=1e-10, atol=1e-12)
     with pytest.raises(InputError):
-        mgm.pol_spectra(m[:100], c[:100], RATE, settings)  # shorter than 4 segments
+        machine.pol_spectra(m[:100], c[:100])  # shorter than 4 segments
 
 
 def _fixed_gain_windows(n_windows, frames, noise_std, delay, seed):
@@ -389,12 +422,12 @@ def test_live_mgm_averages_the_psds_of_its_last_windows_and_scatters_less(seed):
     """The live MGM (``MgmTask``) takes its optimum from the mean POL PSD of its last
     ``PSD_UPDATES`` windows: the pseudo-open loop does not depend on the gains, so each window
     estimates the same PSD.  On 30 short windows (320 frames, 64-frame segments) of a noisy
-    loop (noise std 20, optimum ~0.29), the optimum scatters about 1/sqrt(5) as much from one
-    update to the next as from one window's PSD (0.26-0.36 measured), stays within 10 % of the
-    brute-force optimum, and the brute-force residual at the gains it picks is closer to the
-    best one (excess 15-35 % from one window, under 1 % averaged).  Nearer the noise-dominated
-    boundary (noise std 30) the excess still falls, 70-83 % to 43-60 %: there the optimum
-    flips between the gain and the noise rule's floor."""
+    loop (noise std 20, brute-force optimum 0.29-0.30), the optimum scatters about 1/sqrt(5)
+    as much from one update to the next as from one window's PSD (ratio 0.36 measured), stays
+    within 12 % of the brute-force optimum (0.316 and 0.307: MGM on the whole record with
+    1024-frame segments gives 0.314 and 0.309, so the offset is J's on this record, not the
+    windows'), and the brute-force residual at the gains it picks is closer to the best one
+    (excess 2-4 % from one window, 0.2-1.1 % averaged)."""
     from soulctl.loop.auxloop import RtcParameters, TelemetryWindow
     from soulctl.loop.auxloops import MgmTask
 
@@ -423,5 +456,5 @@ def test_live_mgm_averages_the_psds_of_its_last_windows_and_scatters_less(seed):
     ratio = np.std(five) / np.std(one)
     msg = f"scatter ratio {ratio:.2f}; median {np.median(five):.3f} against {g_bf:.3f}; excess {excess_one:.4f} -> {excess_five:.4f}"
     assert ratio < 0.6, msg
-    assert abs(np.median(five) / g_bf - 1) < 0.1, msg
+    assert abs(np.median(five) / g_bf - 1) < 0.12, msg
     assert excess_five < 0.5 * excess_one, msg
