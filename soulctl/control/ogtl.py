@@ -26,8 +26,13 @@ OGTL knows when it does not know (``estimate``, ``next_sensitivity``):
 * *Spiral*: when k was raised by ``SPIRAL_RAISE`` (20 %) or more since the last reliable
   estimate and chi_hat has not risen with it, the loop lost more optical gain than k added:
   raising k raised every effective gain, the residual grew and the PWFS's gain fell (a poorly
-  corrected, noise-dominated loop).  k goes back to its value at that estimate.  Near
-  convergence the steps are small and the rule is idle, so it does not bias k.
+  corrected, noise-dominated loop).  k goes back to its value at that estimate and is not
+  raised past it for the next ``SPIRAL_HOLD`` (5) reliable estimates, twice as many after each
+  further spiral.  Why it expires: at the threshold SNR of 5 chi_hat scatters by 20 %, so a
+  true 20 % rise of chi is missed about one time in four; a ceiling that never expired held
+  k at 1.5 for a whole R16.5 run (at 4.3-4.9 in the other seeds) and below 1.95 at R17.5.  A
+  true spiral comes back when the ceiling lifts and is caught again, each time after twice
+  as long.  Near convergence the steps are small and the rule is idle, so it does not bias k.
 * *Growth*: k is not raised while the commands' RMS grows by more than 30 % from one update to
   the next.
 * *NCPA offsets*: reference-slope offsets wait until a reliable estimate puts the probed
@@ -65,6 +70,7 @@ WORST_SEEING_ARCSEC = 2.0  # k_max = 1 / gamma_probe at this seeing (SOUL's nigh
 MIN_SNR = 5.0  # an estimate moves k only from this SNR on
 MAX_STEP = 1.5  # k changes by at most this factor per update
 SPIRAL_RAISE = 1.2  # a raise of k since the last reliable estimate that chi must follow
+SPIRAL_HOLD = 5  # reliable estimates a spiral's ceiling on k lasts (doubled at each further spiral)
 OFFSETS_CHI_TOLERANCE = 0.2  # NCPA offsets are applied once the probed mode's |chi - 1| is this or less
 REFERENCE_BINS = (-6, -5, -4, -3, 3, 4, 5, 6)  # off-frequency bins (of the window) of the noise reference
 # Why an update moved k less than the integrator asked (recorded per update as ``status``).

@@ -53,7 +53,9 @@ class OgtlTask(AuxLoop):
         self._commands_rms: float | None = None  # of the previous window (the growth rule)
         self.chi_now: float | None = None  # the latest reliable chi of the probed mode, at the k it set
         self._last: tuple[float, float] | None = None  # (k, chi_hat) of the last reliable estimate
-        self.ceiling = math.inf  # k's ceiling once a spiral was seen (``ogtl.spiralling``)
+        self.ceiling = math.inf  # k's ceiling after a spiral (``ogtl.spiralling``), for ``_ceiling_left`` reliable estimates
+        self._ceiling_left = 0
+        self._hold = ogtl.SPIRAL_HOLD  # the next spiral's ceiling lasts this long (doubled each time)
 
     def start(self, rtc: RtcParameters, rate_hz: float) -> None:
         self.frequency_hz = self.settings.probe_frequency(rate_hz)
@@ -62,6 +64,16 @@ class OgtlTask(AuxLoop):
 
     def damp(self) -> None:
         self.step_scale *= 0.5
+
+    def _set_ceiling(self, k: float) -> None:
+        """k is not raised past ``k`` (its value before the spiral) for the hold, which doubles."""
+        self.ceiling, self._ceiling_left, self._hold = k, self._hold, 2 * self._hold
+
+    def _count_down(self) -> None:
+        """One more reliable estimate without a spiral: the ceiling lifts when its hold is over."""
+        self._ceiling_left = max(0, self._ceiling_left - 1)
+        if self._ceiling_left == 0:
+            self.ceiling = math.inf
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         m = self.settings.mode - 1
@@ -77,9 +89,10 @@ class OgtlTask(AuxLoop):
         reliable = status not in (ogtl.LOW_SNR, ogtl.NO_ESTIMATE)
         if reliable and self._last is not None and ogtl.spiralling(window.sensitivity, est.chi, self._last):
             k, status = self._last[0], ogtl.SPIRAL
-            self.ceiling = k  # k is not raised past the value before the spiral again
+            self._set_ceiling(k)
         elif reliable:
             self._last = (window.sensitivity, est.chi)
+            self._count_down()
         if reliable:
             self.chi_now = est.chi * k / window.sensitivity
         elif self.chi_now is not None:

@@ -172,6 +172,51 @@ def test_what_the_live_tasks_measure_of_the_residual_does_not_move_with_k(k):
     assert metrics["modal_rms_nm"] == pytest.approx(np.sqrt(np.sum(np.mean(residual**2, axis=0))), rel=1e-12)
 
 
+def _ogtl_updates(monkeypatch, chi_of_k, updates: int) -> list[dict]:
+    """OGTL's records over ``updates`` periods, the lock-in's estimate replaced by chi_of_k(k,
+    update) at SNR 100 (every estimate reliable); 40 modes, the probe on mode 30."""
+    from soulctl.control import ogtl
+
+    count = iter(range(updates))
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(chi_of_k(rtc.sensitivity, next(count)), 0.01, 100.0))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+    z = np.zeros((frames, 40))
+    records = []
+    for _ in range(updates):
+        window = TelemetryWindow(0, 1000.0, 1.5, z, z, z, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        records.append(task.update(window, rtc))
+    return records
+
+
+def test_ogtl_lifts_a_spirals_ceiling_after_its_hold(monkeypatch):
+    """gamma = 0.25 (k should reach 4), one estimate low by 1/1.5 just after the first raise:
+    that looks like a spiral (k raised 1.5x, chi_hat not risen), and k goes back to 1.  The
+    ceiling lasts SPIRAL_HOLD reliable estimates; then k converges to 4 (the former rule held
+    it at 1 for good)."""
+    from soulctl.control import ogtl
+
+    records = _ogtl_updates(monkeypatch, lambda k, i: 0.25 * k / (1.5 if i == 1 else 1.0), 20)
+    status = [r["status"] for r in records]
+    assert status[1] == ogtl.SPIRAL and status.count(ogtl.SPIRAL) == 1
+    k = [r["sensitivity"] for r in records]
+    assert k[0] == 1.5 and max(k[1 : 2 + ogtl.SPIRAL_HOLD]) == 1.0 and k[2 + ogtl.SPIRAL_HOLD] == 1.5
+    assert k[-1] == pytest.approx(4.0, rel=0.02)
+
+
+def test_ogtl_catches_a_true_spiral_again_each_time_after_twice_as_long(monkeypatch):
+    """The optical gain falls faster than k rises (gamma = 0.25 k^-1.2): every raise is a spiral.
+    k never passes the first raise's 1.5, and the spirals come SPIRAL_HOLD + 2, then
+    2 SPIRAL_HOLD + 2 updates apart (the hold's estimates, the raise, the spiral seen)."""
+    from soulctl.control import ogtl
+
+    records = _ogtl_updates(monkeypatch, lambda k, i: 0.25 * k**-0.2, 30)
+    spirals = [i for i, r in enumerate(records) if r["status"] == ogtl.SPIRAL]
+    assert max(r["sensitivity"] for r in records) <= 1.5 + 1e-12
+    hold = ogtl.SPIRAL_HOLD
+    assert np.diff(spirals)[:2].tolist() == [hold + 2, 2 * hold + 2], spirals
+
+
 class _OgtlEstimate:
     """What MGM reads of OGTL: its latest reliable chi of the probed mode at the current k."""
 
