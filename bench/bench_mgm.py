@@ -108,10 +108,12 @@ def main() -> None:
         naive_t.append(t2 - t0)
         naive_min_t.append(t2 - t1)
 
-    J_mgm = cost(psd, machine.open_loops, g_mgm, machine.whitening)
+    g_min = optimal_gains(psd, machine.open_loops, machine.upper, settings.grid, machine.whitening)  # before the noise rule
+    J_mgm = cost(psd, machine.open_loops, g_min, machine.whitening)
     J_naive = cost(psd, machine.open_loops, g_naive, machine.whitening)
     agreement = {
-        "max_abs_gain_diff_over_upper": float(np.max(np.abs(g_mgm - g_naive) / machine.upper)),
+        "max_abs_gain_diff_over_upper": float(np.max(np.abs(g_min - g_naive) / machine.upper)),
+        "modes_raised_by_the_noise_rule": int(np.sum(g_mgm > g_min)),
         "modes_mgm_cost_higher_by_1e-6": int(np.sum(J_mgm > J_naive * (1 + 1e-6))),
         "max_rel_cost_excess": float(np.max(J_mgm / J_naive - 1.0)),
         "tt_gains": [float(g) for g in g_mgm[:2]],
@@ -154,7 +156,8 @@ def main() -> None:
     )
     print(
         f"agreement: max |g_MGM - g_naive| / upper = {agreement['max_abs_gain_diff_over_upper']:.2e}, "
-        f"modes where MGM's cost is higher (> 1e-6 rel.): {agreement['modes_mgm_cost_higher_by_1e-6']}"
+        f"modes where MGM's cost is higher (> 1e-6 rel.): {agreement['modes_mgm_cost_higher_by_1e-6']} "
+        f"(the minimisation, before the noise rule, which raised {agreement['modes_raised_by_the_noise_rule']} modes)"
     )
 
     result = {

@@ -67,7 +67,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import csd, lfilter, welch
+from scipy.signal import csd, welch
 
 from ..errors import InputError
 from .filters import Filter
@@ -142,6 +142,14 @@ def _checked_pol(pol, rate_hz: float, settings: MgmSettings) -> np.ndarray:
         bad = np.nonzero(~np.isfinite(pol).all(axis=0))[0]
         raise InputError(f"POL telemetry must be finite: NaN or inf in {bad.size} mode(s), first mode {int(bad[0])}")
     return pol
+
+
+def _fir(x: np.ndarray, a: np.ndarray, out: np.ndarray) -> None:
+    """out(k) = sum_j a_j x(k - j) along the frames, x(k < 0) taken as x(0)."""
+    np.multiply(x, a[0], out=out)
+    for j in range(1, a.size):
+        out[j:] += a[j] * x[:-j]
+        out[:j] += a[j] * x[:1]
 
 
 def _check_rate(rate_hz: float) -> None:
@@ -378,8 +386,12 @@ class ModalGainMachine:
         for j, (_, poles, _) in enumerate(keys):
             cols = np.flatnonzero(idx == j)
             a = Filter((), poles, 1.0).coefficients()[1]
-            x = np.concatenate([np.repeat(pol[:1, cols], len(poles), axis=0), pol[:, cols]])
-            out[:, cols] = lfilter(a, [1.0], x, axis=0)[len(poles) :]
+            if cols[-1] - cols[0] + 1 == cols.size:  # contiguous: filtered in place
+                _fir(pol[:, cols[0] : cols[-1] + 1], a, out[:, cols[0] : cols[-1] + 1])
+            else:
+                part = np.empty((pol.shape[0], cols.size))
+                _fir(pol[:, cols], a, part)
+                out[:, cols] = part
         return out
 
     def pol_psd(self, pol, modes: slice = slice(None)) -> np.ndarray:
