@@ -55,10 +55,12 @@ Choices where the paper is silent:
   POL power above that floor is below the noise's over the band (SNR < 1) gets at least the
   loop gain ``NOISE_LOOP_GAIN`` (g chi = 0.05, capped at the upper limit).  Why: the signal of
   such a mode is red and lives in the lowest Welch bins; with the short segments of a short
-  window (64 frames at 250 Hz: 3.9 Hz bins) J's minimum falls to g = 0, the lower edge of the
-  range, in 96-100 % of 250-frame windows for SNR 0.05-0.9, where the true optimum is g chi =
-  0.02-0.11 and g = 0 leaves 2-9 times its residual; g chi = 0.05 stays within 1.4 times it
-  over that SNR range, for delays of 1.5-3.5 frames (docs/physics.md, tests/control/test_mgm.py).
+  window (64 frames at 250 Hz: 3.9 Hz bins) the detrended spectrum MGM first used put J's
+  minimum at g = 0, the lower edge of the range, in 96-100 % of 250-frame windows for SNR
+  0.05-0.9, where the true optimum is g chi = 0.02-0.11 and g = 0 leaves 2-9 times its
+  residual; g chi = 0.05 stays within 1.4 times it over that SNR range, for delays of 1.5-3.5
+  frames.  The prewhitened estimate keeps that signal and no longer reaches the edge; the
+  floor stays as a guard (docs/physics.md, tests/control/test_mgm.py).
 """
 
 from __future__ import annotations
