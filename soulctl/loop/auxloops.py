@@ -128,9 +128,9 @@ class MgmTask(AuxLoop):
     ``probe_gain``, the table's gamma of the probed mode.  The safety net's ``damp`` halves rho.
 
     Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
-    of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the geometric mean
-    of the gammas of the same updates (``ModalGainMachine.pol_spectra``: the POL's parts, so that a window's
-    PSD follows a later gamma exactly).  The pseudo-open loop does not depend on the gains,
+    of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the
+    geometric mean of the gammas of the same updates (``ModalGainMachine.pol_spectra``: the
+    POL's parts, so that a window's PSD follows a later gamma exactly).  The pseudo-open loop does not depend on the gains,
     so every window estimates the same PSD, and the mean of five has about 1/sqrt(5) of one's
     scatter; gamma changes with the turbulence over minutes, not from one 2-3 s update to the
     next, while OGTL's estimate of it scatters by 15-20 % at the faint end.  With one window

@@ -15,8 +15,8 @@ files that do not record it), gamma_i times the file's k otherwise.
 
 The optimum is the live MGM's, noise rule included (``ModalGainMachine.optimum_of_psd`` of the
 window's prewhitened POL PSD).  The gains returned are always a vector `loop run --gains`
-accepts: MGM's update (Eq. gainUpdate, from the gains in force during the window) capped at (1 - margin) of each mode's
-nominal maximum stable gain (chi = 1, the check of `loop run`) with the file's structural
+accepts: MGM's update (Eq. gainUpdate, from the gains in force during the window) capped at
+(1 - margin) of each mode's nominal maximum stable gain (chi = 1, the check of `loop run`) with the file's structural
 resonance, `loop run`'s default one and none, and at 10 (``ranges.LOOP_GAIN``).  MGM's own
 limit, (1 - margin) g_max / chi_i, lies above the nominal one where chi_i < 1; the modes
 capped are reported.
@@ -24,8 +24,8 @@ capped are reported.
 Memory: only the fields needed are read, and only over the window: /sensitivity and the tail
 of /gain_history/frames (one value per frame at most), one row of /gain_history/gains, /gains,
 and /measured_modes and /command_modes in blocks of modes of at most ``BLOCK_BYTES`` (float64)
-each, plus the PSDs (n_modes x (segment / 2 + 1)).  A window of one block (the usual case) is read
-once; a larger one is read twice, checked before the calibration, used after it.
+each, plus the PSDs (n_modes x (segment / 2 + 1)).  A window of one block (the usual case) is
+read once; a larger one is read twice, checked before the calibration, used after it.
 
 Refused with exit status 2, naming the field: a file that is not a regular HDF5 file, a
 missing field, a field of the wrong type, shape or range (NaN and infinite values included),
