@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 
 from soulctl.optics.cache import ArrayCache
@@ -7,3 +9,11 @@ from soulctl.optics.cache import ArrayCache
 def optics_cache(tmp_path_factory):
     """One on-disk cache for the session: the modal basis is computed once, not per test."""
     return ArrayCache(tmp_path_factory.mktemp("optics-cache"))
+
+
+@pytest.fixture(scope="session")
+def cache_dir(optics_cache):
+    """The same cache's folder for the commands' --cache-dir: each configuration is calibrated
+    once per session (per xdist worker), not once per test module.  Tests of the cache itself
+    make their own."""
+    return Path(optics_cache.directory)

@@ -11,11 +11,6 @@ from soulctl.telemetry.hdf5 import read_telemetry
 FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3"]
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("loop-cache")
-
-
 def run(args, capsys, cache_dir):
     status = main([*args, "--cache-dir", str(cache_dir)])
     out, err = capsys.readouterr()

@@ -11,12 +11,6 @@ from soulctl.optics.atmosphere import tilt_variance_rad2
 SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1"]
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    """Shared by the tests that do not test the cache itself: the modal basis is computed once."""
-    return tmp_path_factory.mktemp("cli-optics-cache")
-
-
 def run(args, capsys):
     status = main(args)
     out, err = capsys.readouterr()

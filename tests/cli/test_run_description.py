@@ -14,11 +14,6 @@ SMALL = ["--mag", "16.5", "--oversampling", "1", "--seed", "5"]
 EXAMPLES = sorted((Path(__file__).parents[2] / "examples").glob("*.toml"))
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("run-description-cache")
-
-
 def run(args, capsys, cache_dir):
     status = main([*args, "--cache-dir", str(cache_dir)])
     out, err = capsys.readouterr()

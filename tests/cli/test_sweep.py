@@ -34,11 +34,6 @@ GRID = "magnitude = [16.0, 17.0]\nseeing = [0.8, 1.2]\noversampling = 1\nduratio
 TINY = "magnitude = [16.6, 17.0, 17.5]\nbinning = 4\noversampling = 1\nduration = 0.05\n"
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("sweep-cache")
-
-
 @pytest.fixture
 def grid(tmp_path):
     path = tmp_path / "grid.toml"

@@ -14,11 +14,6 @@ from soulctl.ranges import MODES
 FAST = ["--mag", "16.5", "--oversampling", "1", "--duration", "0.05"]
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("values-cache")
-
-
 def run(args, capsys, cache_dir=None):
     extra = ["--cache-dir", str(cache_dir)] if cache_dir is not None else []
     status = main([str(a) for a in args] + extra)
