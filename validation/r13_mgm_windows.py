@@ -27,21 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from soulctl.cli.common import default_cache_dir
 from soulctl.control import mgm
-from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.metrics import band_wavelength, pseudo_open_loop
-from soulctl.loop.optimize import OptimizeRequest, mgm_machine, plant_model, settled_evaluation_loop
-from soulctl.loop.run import calibration_for
-from soulctl.optics.cache import ArrayCache
-from soulctl.run_config import RunConfig
+from soulctl.loop.optimize import mgm_machine, plant_model, settled_evaluation_loop
 
 sys.path.insert(0, str(Path(__file__).parent))
-from faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402
-from gain_optimisation import observation  # noqa: E402
 from optimize_magnitudes import code_fingerprint  # noqa: E402
+from r13_low_order_scan import r13_case  # noqa: E402
 
 K = 3.3  # OGTL's k at the end of the optimisation (r13_low_order_scan.json: 3.25-3.29)
 # MGM's final g k per group at this seed (modes 1-2, 3-10, 11-30, 31-60, 61-120, 121-250)
@@ -115,11 +109,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=2)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "r13_mgm_windows.json")
     a = p.parse_args()
-    run = RunConfig(observation=observation(13.0, 980.0), atmosphere=R13_NIGHT, band="FeII", seed=a.seed, ncpa=NO_NCPA).request()
-    request = OptimizeRequest(run, "mgm", measure_s=1.0)  # the optimisation's session, hence its screens
-    cache = ArrayCache(default_cache_dir())
-    cal = calibration_for(run, cache)
-    design = run.gains or default_gains(run.observation, sampled_structure(run.structure, run.observation.frame_rate_hz))
+    request, cache, cal, design = r13_case(a.seed)  # the optimisation's session, hence its screens
     gains = np.empty(cal.basis.n_modes)
     for modes, gk in PRODUCTS:
         gains[modes] = gk / K
