@@ -58,8 +58,9 @@ from ..run_config import ControllerSpec, RunConfig
 from ..telemetry.formats import check_decimation, open_telemetry
 from ..telemetry.hdf5 import run_description_of
 from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
+from .chi_model import mgm_chi, optical_gain_table
 from .metrics import pseudo_open_loop
-from .optimize import mgm_chi, mgm_machine, optical_gain_table, welch_settings
+from .optimize import mgm_machine, welch_settings
 from .run import calibration_for
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM

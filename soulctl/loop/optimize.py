@@ -64,12 +64,13 @@ from ..disturbance.modal_psd import cutoff_hz, modal_psd
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
 from ..optics.atmosphere import LAMBDA_REF_M, AtmosphereConfig
-from ..optics.cache import ArrayCache, EntrySpec, cache_key
+from ..optics.cache import ArrayCache
 from ..optics.calibration import Calibration
-from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
+from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, could_not_recover
+from .chi_model import mgm_chi, optical_gain_table, plant_model, probe_gain
 from .metrics import band_wavelength
 from .run import RunRequest, calibration_for, closed_loop_for, closing_frames
 from .simulation import ClosedLoop, LoopDiverged
@@ -315,25 +316,6 @@ class OptimizeResult:
         return float(d.mean()), (float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else None)
 
 
-def optical_gain_table(
-    calibration: Calibration, cache: ArrayCache, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC, screens: int = SCREENS, seed: int = 1
-) -> np.ndarray:
-    """gamma_i of the calibration's modes at the reference correction level, cached."""
-    key = cache_key("optical-gains", {"calibration": calibration.setup.key(), "seeing": seeing_arcsec, "screens": screens, "seed": seed})
-    hit = cache.load(key, EntrySpec({"gains": (calibration.basis.n_modes,)}))
-    if hit is not None:
-        return hit["gains"]
-    gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains
-    cache.store(key, {"gains": gains})
-    return gains
-
-
-def mgm_chi(gamma: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
-    """chi_i of MGM's plant: gamma_i / gamma_probe with OGTL (chi = 1 on the probed mode),
-    gamma_i (k = 1) without."""
-    return gamma / gamma[probe_mode - 1] if ogtl else gamma.copy()
-
-
 def mgm_machine(
     observation,
     structure,
@@ -563,19 +545,6 @@ def safety_net(rate_hz: float, tasks) -> SafetyNet:
     tuned = [t for t in tasks if t is not None and hasattr(t, "damp")]
     checks = max(1, round(max(SAFETY_CHECK_MIN_FRAMES, SAFETY_CHECK_S * rate_hz) / SAFETY_RUN_FRAMES))
     return SafetyNet(SAFETY_RUN_FRAMES, tuned, checks=checks)
-
-
-def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC) -> float:
-    """gamma of the probed mode in the reference table: MGM's chi scale before OGTL has a reliable estimate."""
-    return float(optical_gain_table(calibration, cache, seeing_arcsec)[probe_mode - 1])
-
-
-def plant_model(
-    calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC
-) -> np.ndarray:
-    """chi_i of the optimisers' plant: gamma_i / gamma_probe of the reference table with OGTL
-    (OGTL holds the probed mode at 1), gamma_i without (k = 1)."""
-    return mgm_chi(optical_gain_table(calibration, cache, seeing_arcsec), ogtl, probe_mode)
 
 
 def _new_loop(request: OptimizeRequest, cal: Calibration, gains: LoopGains, structure) -> ClosedLoop:

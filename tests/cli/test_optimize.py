@@ -212,8 +212,8 @@ def test_offline_chi_is_the_table_at_the_records_seeing(recorded, tmp_path, caps
     """MGM's plant is the loop's: gamma at the 0.6" the record describes (not the paper's 0.8",
     whose lower gamma over-drove the loop; docs/physics.md); --seeing overrides it, and a
     record without a run description (LBT's, AOT's) falls back to 0.8" and says so."""
+    from soulctl.loop.chi_model import optical_gain_table
     from soulctl.loop.offline import recorded_run
-    from soulctl.loop.optimize import optical_gain_table
     from soulctl.loop.run import calibration_for
     from soulctl.optics.cache import ArrayCache
     from soulctl.telemetry.formats import open_telemetry

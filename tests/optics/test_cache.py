@@ -6,7 +6,7 @@ import shutil
 import numpy as np
 import pytest
 
-from soulctl.loop.optimize import optical_gain_table
+from soulctl.loop.chi_model import optical_gain_table
 from soulctl.optics.asm import AsmGeometry
 from soulctl.optics.cache import CHECKSUM, ArrayCache, EntrySpec, checksum
 from soulctl.optics.calibration import BasisSetup, CalibrationSetup, basis_entry, calibrate, modal_basis

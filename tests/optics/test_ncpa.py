@@ -12,8 +12,8 @@ import pytest
 from soulctl.control.gains import LoopGains, default_gains
 from soulctl.control.structure import sampled_structure
 from soulctl.errors import InputError
+from soulctl.loop.chi_model import optical_gain_table
 from soulctl.loop.metrics import band_wavelength
-from soulctl.loop.optimize import optical_gain_table
 from soulctl.loop.run import calibration_for, closed_loop_for, run
 from soulctl.loop.simulation import ClosedLoop, LoopDiverged
 from soulctl.observation import observation_for_magnitude
