@@ -4,7 +4,8 @@ magnified (``optics.registration``), at the paper's bright operating point (R9.7
 40x40, 500 modes, H band) and at R13 (980 Hz, 20x20, 250 modes, FeII), 1.0" seeing, default
 gains, the same seed and turbulence at every point.  The loop's loss of control at large
 mis-registration is a result, not an error: the reconstructor then drives modes the mirror
-no longer makes.
+no longer makes.  Each row also has the verdict of the eigenmodes of R D' (``control.coupling``:
+how many are unstable, the gain margin), to set beside the Strehl ratio the loop reached.
 
     python validation/misregistration_curve.py [--duration 1] [--seeds 1] [--cases 0,1] [--out FILE]
 
@@ -47,6 +48,9 @@ def one(base: RunConfig, registration: Misregistration, cache) -> dict:
     row = {"diverged_at": r.diverged_at, "seconds": round(time.perf_counter() - t0, 1)}
     if m is not None:
         row |= {"strehl": m.strehl, "residual_nm": m.residual_nm, "tt_jitter_mas": m.tt_jitter_mas}
+    if r.coupling is not None:  # the eigenmodes of R D' (control.coupling); chi = gamma_i at the seeing, k = 1
+        c = r.coupling
+        row |= {"unstable_eigenmodes": c.unstable, "gain_margin": c.margin, "largest_pole": c.largest_pole, "lost": r.failure() is not None}
     return row
 
 
@@ -91,10 +95,13 @@ def figure(rows: list[dict], path: Path) -> None:
             ref = [(origin, d.get("strehl") or 0.0) for d in mine if d["kind"] == "shift" and d["value"] == 0.0]
             pts = ref + sorted((d["value"], d.get("strehl") or 0.0) for d in mine if d["kind"] == kind and d["value"] != origin)
             if len(pts) > 1:
-                ax.plot(*zip(*pts), "o-", label=label)
+                line = ax.plot(*zip(*pts), "o-", label=label)[0]
+                lost = [(d["value"], d.get("strehl") or 0.0) for d in mine if d["kind"] == kind and d.get("lost")]
+                if lost:  # the eigenmodes of R D' call the loop lost (control.coupling)
+                    ax.plot(*zip(*lost), "x", color=line.get_color(), markersize=11, mew=2)
         ax.set_xlabel(unit)
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("Strehl ratio (diverged: 0)")
+    axes[0].set_ylabel("Strehl ratio (x: lost, unstable eigenmodes)")
     axes[0].legend()
     fig.suptitle('Mis-registration of the adaptive secondary on the pyramid (1.0", default gains, seed 1)')
     fig.tight_layout()

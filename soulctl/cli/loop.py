@@ -77,6 +77,8 @@ def _result_dict(result) -> dict:
         "metrics": None if m is None else m.to_dict(),
         "notes": list(result.notes),
     }
+    if result.coupling is not None:
+        d["misregistration_stability"] = result.coupling.to_dict()
     if result.telemetry.aux:
         d["auxiliary_loops"] = sorted(result.telemetry.aux)
         d["final_gains"] = result.final_gains.tolist()
@@ -123,6 +125,12 @@ def _render(result, console: Console) -> None:
         t.add_row("final slope sensitivity k", f"{result.final_sensitivity:.3f}")
         for label, text in aux_rows(result.telemetry):
             t.add_row(label, text)
+    if result.coupling is not None:
+        c = result.coupling
+        t.add_row(
+            "mis-registration: unstable eigenmodes",
+            f"{c.unstable} of {c.eigenmodes} (largest pole |z| {c.largest_pole:.3f}, gain margin x{c.margin:.2f})",
+        )
     t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s" if result.seconds > 0 else "n/a")
     console.print(t)
     for note in result.notes:
@@ -234,7 +242,9 @@ def run_cmd(o: RunOptions) -> int:
     closed (their records go to the telemetry file).  The run is a run description (--config,
     else the defaults; --print-config shows it); every other option overrides one of its
     fields, and the telemetry file stores it, so that `--config t.h5` runs the same loop again.
-    Exit status 3 if the loop diverges (the telemetry so far is still written).
+    Exit status 3 if the loop diverges (the telemetry so far is still written), or if a
+    --misregistration leaves eigenmodes of the loop unstable (the loop is lost: its figures are
+    still printed with --json and its telemetry written).
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """

@@ -9,15 +9,16 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .. import defaults
-from ..control.gains import LoopGains, check_stability, default_gains
-from ..control.ogtl import OFFSETS_CHI_TOLERANCE
+from ..control.coupling import CouplingStability, coupling_stability
+from ..control.gains import LoopGains, check_stability, default_gains, unit_loops
+from ..control.ogtl import OFFSETS_CHI_TOLERANCE, PROBE_MODE
 from ..control.structure import StructuralResonance, sampled_structure
-from ..control.transfer import VIBRATION_HZ
+from ..control.transfer import VIBRATION_HZ, Loop, Plant
 from ..disturbance.vibrations import VibrationSpectrum
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
-from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling
+from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling, moved_mirror_response
 from ..optics.calibration_noise import CalibrationNoise, measured_calibration
 from ..optics.ncpa import NcpaSpec, non_common_path
 from ..optics.pwfs import PyramidConfig
@@ -25,6 +26,7 @@ from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloops import could_not_recover
+from .chi_model import plant_model
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import ClosedLoop, LoopDiverged
 
@@ -104,6 +106,7 @@ class RunResult:
     final_gains: np.ndarray | None = None  # per mode, at the end (auxiliary loops may change them)
     final_sensitivity: float = 1.0  # the slope sensitivity k at the end
     notes: tuple[str, ...] = ()  # what the run changed of the request, and why (e.g. vibration lines dropped)
+    coupling: CouplingStability | None = None  # the mis-registered loop's stability (None: registered)
 
     def configuration(self) -> dict:
         return run_configuration(self.request, self.gains)
@@ -113,7 +116,17 @@ class RunResult:
         auxiliary loops could not recover it; None if neither."""
         if self.diverged_at is not None:
             return f"loop diverged at frame {self.diverged_at} (residual {self.diverged_residual_nm:.0f} nm RMS)"
+        c = self.coupling
+        if c is not None and not c.stable:
+            return (
+                f"the loop is lost: with this mis-registration {c.unstable} of its {c.eigenmodes} eigenmodes are unstable "
+                f"(closed-loop pole at |z| = {c.largest_pole:.3f}; stable only with the gains x {c.margin:.2f}); "
+                f"they grow until the pyramid saturates (Strehl {self._strehl_text()})"
+            )
         return could_not_recover(self.telemetry)
+
+    def _strehl_text(self) -> str:
+        return "n/a" if self.metrics is None or self.metrics.strehl is None else f"{self.metrics.strehl:.3f}"
 
 
 def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
@@ -188,6 +201,28 @@ def calibration_setup(request: RunRequest) -> CalibrationSetup:
 
 def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
     return calibrate(calibration_setup(request), cache)
+
+
+def registration_stability(
+    request: RunRequest, cal: Calibration, gains: LoopGains, structure, cache: ArrayCache, aux=None
+) -> CouplingStability | None:
+    """The loop's stability with the request's mis-registration (``control.coupling``): Q = R D'
+    of the moved mirror, the gains the loop starts with, chi_i from the optical model at the
+    run's seeing (gamma_i / gamma_probe with OGTL, which holds k gamma_probe at 1; gamma_i with
+    k = 1 without); None when the mirror is where it was calibrated."""
+    registration = request.registration
+    if registration is None or registration.is_identity:
+        return None
+    obs = request.observation
+    ogtl = aux is not None and aux.ogtl
+    probe_mode = aux.ogtl_settings.mode if ogtl else PROBE_MODE
+    chi = plant_model(cal, cache, ogtl, min(probe_mode, obs.modes), request.seeing_arcsec)
+    filters, ba = unit_loops(obs, structure, gains.forgetting, obs.modes)
+    rate, d = obs.frame_rate_hz, obs.delay_frames
+    tip_tilt = Loop(filters[0], Plant(d, 1.0, ba) if ba is not None else Plant(d), rate)
+    other = Loop(filters[-1], Plant(d), rate)
+    coupling = cal.reconstructor @ moved_mirror_response(cal, registration)
+    return coupling_stability(coupling, gains.per_mode(obs.modes) * chi, tip_tilt, other)
 
 
 def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n_close: int, tasks, progress) -> None:
@@ -302,6 +337,7 @@ def run(
     loop = closed_loop_for(request, cal, gains, structure, sink)
     loop.telemetry.moments_from(request.skip)
     n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
+    coupling = registration_stability(request, cal, gains, structure, cache, aux)
     psf = loop.psf_accumulator(band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
@@ -331,4 +367,5 @@ def run(
         loop.rtc_parameters.gains,
         loop.rtc_parameters.sensitivity,
         loop.notes + _repeat_note(loop, request) + _offsets_note(loop),
+        coupling,
     )

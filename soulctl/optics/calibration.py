@@ -27,6 +27,7 @@ from .cache import ArrayCache, EntrySpec, cache_key
 from .detector import Detector
 from .pupil import Pupil
 from .pwfs import SUBAPERTURES_BIN1, Pyramid, PyramidConfig
+from .registration import Misregistration
 from .sensor import WavefrontSensor
 
 BASIS_PIXELS = 80  # pupil sampling on which the KL modes are computed (~3.5 pixels per actuator)
@@ -179,3 +180,13 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
     ref = sensor.reference_slopes.astype(np.float64)
     cache.store(key, {"D": D, "R": R, "reference": ref})
     return Calibration(setup, basis, D, R, ref, False, time.perf_counter() - t0)
+
+
+def moved_mirror_response(calibration: Calibration, registration: Misregistration) -> np.ndarray:
+    """(n_slopes, n_modes): D', the slopes per nm of the calibration's modes made by the mirror
+    as ``registration`` moves it on the pyramid (push-pull as ``calibrate``; noiseless, the
+    unaberrated beam).  R D' is the loop's modal coupling, the identity when registered."""
+    sensor = calibration_sensor(calibration.setup.pyramid)
+    basis = calibration.basis
+    shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
+    return push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)

@@ -114,6 +114,10 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
             failure = result.failure()  # diverged, or the safety net of its auxiliary loops gave up
             if failure is not None:
                 row.update(status="diverged", reason=failure)
+                if result.metrics is not None:  # a loop lost to mis-registration ran to the end: its figures stay
+                    m = result.metrics
+                    figures = {"strehl": m.strehl, "tt_jitter_mas": m.tt_jitter_mas, "residual_nm": m.residual_nm}
+                    row.update({k: v for k, v in figures.items() if v is not None})
             else:
                 m = result.metrics
                 assert m is not None  # a loop that did not diverge has its metrics

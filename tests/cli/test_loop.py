@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from soulctl.cli.app import main
+from soulctl.sweep.case import run_case
 from soulctl.telemetry.hdf5 import read_telemetry
 
 FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3"]
@@ -24,7 +25,7 @@ def test_json_result_and_same_seed_same_numbers(capsys, cache_dir):
     m = d["metrics"]
     assert 0 < m["strehl"] < 1 and m["tt_jitter_mas"] > 0 and m["residual_nm"] > 0
     assert d["configuration"]["observation"]["wfs"]["binning"] == 3 and d["configuration"]["frames"] == 75
-    assert d["diverged_at_frame"] is None
+    assert d["diverged_at_frame"] is None and "misregistration_stability" not in d
     status, out2, _ = run([*FAINT, "--json", "--seed", "3"], capsys, cache_dir)
     assert json.loads(out2)["metrics"] == m
     status, out3, _ = run([*FAINT, "--json", "--seed", "4"], capsys, cache_dir)
@@ -54,6 +55,33 @@ def test_divergence_exits_3_and_keeps_the_telemetry(tmp_path, capsys, cache_dir)
     assert "loop diverged at frame" in err and "Traceback" not in err
     arrays, attrs = read_telemetry(h5)
     assert attrs["diverged_at"] >= 0 and arrays["residual_rms_nm"].shape[0] == attrs["diverged_at"] + 1
+
+
+def test_a_loop_lost_to_misregistration_exits_3_with_its_figures(tmp_path, capsys, cache_dir):
+    """Two pitches of shift leave eigenmodes of R D' unstable: the loop saturates instead of
+    diverging, and is reported lost (exit 3) with its figures and telemetry; half a pitch is not."""
+    h5 = tmp_path / "lost.h5"
+    status, out, err = run([*FAINT, "--misregistration", "2,0", "--json", "--telemetry", str(h5)], capsys, cache_dir)
+    assert status == 3 and "the loop is lost" in err and "eigenmodes are unstable" in err and "Traceback" not in err
+    d = json.loads(out)
+    c = d["misregistration_stability"]
+    assert not c["stable"] and c["unstable"] > 0 and c["margin"] < 1 and c["largest_pole"] > 1
+    assert d["diverged_at_frame"] is None and d["metrics"]["strehl"] is not None
+    assert read_telemetry(h5)[1]["diverged_at"] == -1
+    status, out, err = run([*FAINT, "--misregistration", "0.5,0", "--json"], capsys, cache_dir)
+    assert status == 0, err
+    c = json.loads(out)["misregistration_stability"]
+    assert c["stable"] and c["unstable"] == 0 and c["margin"] > 1
+
+
+def test_a_sweep_case_lost_to_misregistration_is_diverged_with_its_figures(cache_dir):
+    """The sweep's rule is `loop run`'s: status "diverged" with the reason, and the lost loop's
+    figures kept (a Strehl-against-shift sweep keeps its curve)."""
+    case = {"magnitude": 16.5, "oversampling": 1, "duration": 0.3, "misregistration.shift_x_pitch": 2.0}
+    row = run_case(case, cache_dir=str(cache_dir))
+    assert row["status"] == "diverged" and row["reason"].startswith("the loop is lost"), row
+    assert 0 < row["strehl"] < 1 and row["residual_nm"] > 0
+    assert run_case(case | {"misregistration.shift_x_pitch": 0.5}, cache_dir=str(cache_dir))["status"] == "ok"
 
 
 def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_dir):

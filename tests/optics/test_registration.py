@@ -82,11 +82,17 @@ def test_the_loop_loses_strehl_as_the_mirror_moves_and_the_description_keeps_it(
     238 and 524 nm (seed 1, 1 s, 0.6"); here the order, on 0.5 s."""
     obs = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
     base = RunConfig(observation=obs, duration_s=0.5, oversampling=1).with_values({"atmosphere.seeing_arcsec": 0.6})
-    residual = []
+    residual, verdicts = [], []
     for shift in (0.0, 1.0, 2.0):
         config = dataclasses.replace(base, registration=Misregistration(shift_x_pitch=shift))
         assert RunConfig.from_dict(config.to_dict()) == config  # the TOML form keeps it
         result = run(config.request(), optics_cache)
         assert result.diverged_at is None
         residual.append(result.metrics.residual_nm)
+        verdicts.append(result.coupling)
     assert residual[0] < 0.95 * residual[1] and residual[1] < 0.8 * residual[2], residual
+    # the eigenmodes of R D' (control.coupling): none when registered, all stable at 1 pitch
+    # (margin 2.7), 8 of 54 unstable at 2 pitches (margin 0.39): the loop is lost, not diverged
+    assert verdicts[0] is None and verdicts[1].stable and verdicts[1].margin > 1.5
+    assert verdicts[2].unstable > 0 and verdicts[2].margin < 1
+    assert "the loop is lost" in result.failure() and result.diverged_at is None

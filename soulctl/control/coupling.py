@@ -1,0 +1,103 @@
+"""The loop's stability when its modes couple: the mirror moved against the calibration
+(mis-registration, fidelity issue item 4) makes the measured modes R D' c instead of c, with
+the modal coupling Q = R D' (the identity when registered).
+
+The RTC (paper Eq. 1) runs one filter per mode; modes 3-last share the leaky integrator's
+shape and differ only by their gain g_i and optical gain chi_i, so their loop
+h(z) P(z) diag(g chi) Q decouples on the eigenvectors of diag(g chi) Q into scalar loops
+mu_j h(z) P(z).  Eigenmode j is stable iff the roots of a(z^-1) q(z^-1) + mu_j b(z^-1) p(z^-1)
+lie inside the unit circle (h = b/a, P = p/q).  mu_j is complex once the mirror moves: its
+phase eats the loop's phase margin, and the loop is lost when one eigenmode's phase exceeds
+what its gain leaves.  Tip/Tilt (their own filter and the structural resonance) are analysed
+on Q's 2x2 block; their coupling to the other modes is neglected (||Q[2:, :2]|| / ||Q[:2, :2]||
+is 0.14 at one pitch of shift).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .transfer import Loop
+
+MARGIN_SCALES = np.geomspace(1e-3, 8.0, 60)  # factors on diag(g chi) searched for the margin
+
+
+@dataclass(frozen=True)
+class CouplingStability:
+    """The coupled loop's verdict: its eigenmodes, how many are unstable, the least stable
+    closed-loop pole, and the margin (the largest factor on every g chi up to which all
+    eigenmodes stay stable; > 1 stable with that much gain to spare, < 1 lost)."""
+
+    eigenmodes: int
+    unstable: int
+    largest_pole: float  # |z| of the least stable closed-loop pole
+    margin: float
+    largest_phase_deg: float  # |arg mu| of the most rotated eigenmode
+
+    @property
+    def stable(self) -> bool:
+        return self.unstable == 0
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__) | {"stable": self.stable}
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+def _polynomials(unit: Loop) -> tuple[np.ndarray, np.ndarray]:
+    """(a q, b p) of the unit-gain loop, padded to one length, in powers of z^-1."""
+    b, a = unit.controller.coefficients()
+    ap = np.convolve(a, unit.plant.denominator())
+    bp = np.convolve(b, unit.plant.numerator())
+    n = max(ap.size, bp.size)
+    return np.pad(ap, (0, n - ap.size)), np.pad(bp, (0, n - bp.size))
+
+
+def pole_radii(unit: Loop, mu: np.ndarray) -> np.ndarray:
+    """The largest closed-loop pole modulus of each scalar loop mu_j h(z) P(z) (complex mu_j),
+    from the companion matrices of a q + mu_j b p, all at once."""
+    ap, bp = _polynomials(unit)
+    poly = ap[None, :] + np.asarray(mu, dtype=complex)[:, None] * bp[None, :]
+    poly = poly / poly[:, :1]
+    n = poly.shape[1] - 1
+    if n == 0:
+        return np.zeros(len(mu))
+    companion = np.zeros((len(mu), n, n), dtype=complex)
+    companion[:, 0, :] = -poly[:, 1:]
+    companion[:, np.arange(1, n), np.arange(n - 1)] = 1.0
+    return np.abs(np.linalg.eigvals(companion)).max(axis=1)
+
+
+def _radii(groups: list[tuple[Loop, np.ndarray]], scale: float) -> np.ndarray:
+    return np.concatenate([pole_radii(unit, scale * mu) for unit, mu in groups])
+
+
+def _margin(groups: list[tuple[Loop, np.ndarray]]) -> float:
+    """The largest factor s such that every eigenmode of s diag(g chi) Q is stable for all
+    factors up to s (0 if unstable at the smallest, inf beyond the search)."""
+    stable = [bool(np.all(_radii(groups, s) < 1.0)) for s in MARGIN_SCALES]
+    if all(stable):
+        return math.inf
+    first = stable.index(False)
+    if first == 0:
+        return 0.0
+    lo, hi = MARGIN_SCALES[first - 1], MARGIN_SCALES[first]
+    for _ in range(30):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if np.all(_radii(groups, mid) < 1.0) else (lo, mid)
+    return float(lo)
+
+
+def coupling_stability(coupling: np.ndarray, gains_chi: np.ndarray, tip_tilt_unit: Loop, unit: Loop) -> CouplingStability:
+    """The verdict for the modal coupling Q (n x n) with the loop gains g_i chi_i; ``tip_tilt_unit``
+    and ``unit``: the unit-gain loops of Tip/Tilt and of the other modes (see the module)."""
+    q, g = np.asarray(coupling, dtype=float), np.asarray(gains_chi, dtype=float)
+    groups = [(tip_tilt_unit, np.linalg.eigvals(g[:2, None] * q[:2, :2]))]
+    if len(g) > 2:
+        groups.append((unit, np.linalg.eigvals(g[2:, None] * q[2:, 2:])))
+    radii = _radii(groups, 1.0)
+    mu = np.concatenate([m for _, m in groups])
+    phases = np.degrees(np.abs(np.angle(mu[np.abs(mu) > 0]))) if np.any(np.abs(mu) > 0) else np.zeros(1)
+    return CouplingStability(len(mu), int(np.sum(radii >= 1.0)), float(radii.max()), _margin(groups), float(phases.max()))

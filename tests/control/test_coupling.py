@@ -1,0 +1,71 @@
+"""The coupled loop's stability (mis-registration) against the scalar loop's own margins: the
+gain margin from the closed-loop poles (``max_stable_gain``) and the phase margin from the
+Nyquist curve (``analyze``), and the closed-loop poles from np.roots."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import block_diag
+
+from soulctl.control.coupling import coupling_stability, pole_radii
+from soulctl.control.filters import Filter
+from soulctl.control.transfer import Loop, Plant, analyze, max_stable_gain
+
+RATE = 1000.0
+
+
+def unit(d=2.0, forgetting=1.0):
+    return Loop(Filter.leaky(forgetting, 1.0) if forgetting < 1 else Filter.integrator(1.0), Plant(d), RATE)
+
+
+def rotations(phi_deg: float, n_blocks: int) -> np.ndarray:
+    c, s = math.cos(math.radians(phi_deg)), math.sin(math.radians(phi_deg))
+    return block_diag(*[np.array([[c, -s], [s, c]])] * n_blocks)
+
+
+def test_pole_radii_are_the_characteristic_polynomials_roots():
+    rng = np.random.default_rng(3)
+    loop = unit(2.6, 0.99)
+    mu = rng.normal(0.4, 0.3, 20) + 1j * rng.normal(0, 0.3, 20)
+    b, a = loop.controller.coefficients()
+    bp = np.convolve(b, loop.plant.numerator())
+    ap = np.pad(a, (0, bp.size - a.size))
+    expected = [np.max(np.abs(np.roots(ap + m * bp))) for m in mu]
+    np.testing.assert_allclose(pole_radii(loop, mu), expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("d, g", [(1.0, 0.5), (2.0, 0.3), (2.73, 0.2)])
+def test_without_coupling_the_margin_is_the_scalar_loops_gain_margin(d, g):
+    """Q = I: every eigenmode is the scalar loop, lost exactly past its maximum stable gain."""
+    loop = unit(d)
+    g_max = max_stable_gain(loop.with_gain(g))
+    verdict = coupling_stability(np.eye(6), np.full(6, g), loop, loop)
+    assert verdict.stable and verdict.eigenmodes == 6 and verdict.largest_phase_deg == pytest.approx(0, abs=1e-9)
+    assert verdict.margin == pytest.approx(g_max / g, rel=1e-6)
+    assert coupling_stability(np.eye(6), np.full(6, 1.01 * g_max), loop, loop).unstable == 6
+
+
+@pytest.mark.parametrize("d, g", [(2.0, 0.3), (3.5, 0.15)])
+def test_a_rotation_of_the_modes_loses_the_loop_at_its_phase_margin(d, g):
+    """Q made of 2x2 rotations by phi has eigenvalues exp(+-i phi): the loop g L e^{i phi} meets -1
+    when phi reaches the phase margin of g L (e^{-i phi} too: over negative frequencies the loop
+    with a complex gain is the conjugate's, so both of each pair are lost together)."""
+    loop = unit(d)
+    pm = analyze(loop.with_gain(g)).phase_margin_deg
+    assert 20 < pm < 90
+    gains = np.full(6, g)
+    below = coupling_stability(rotations(pm - 1.0, 3), gains, loop, loop)
+    above = coupling_stability(rotations(pm + 1.0, 3), gains, loop, loop)
+    assert below.stable and below.margin > 1 and below.largest_phase_deg == pytest.approx(pm - 1.0)
+    assert above.unstable == 6 and above.margin < 1 and above.largest_pole > 1
+
+
+def test_tip_tilt_is_judged_with_its_own_loop():
+    """A Tip/Tilt gain the other modes' loop could not take, stable with Tip/Tilt's own (one
+    frame less delay): the 2x2 block goes to ``tip_tilt_unit``."""
+    slow, fast = unit(3.0), unit(1.0)
+    g = np.array([1.2, 1.2, 0.2, 0.2])
+    assert coupling_stability(np.eye(4), g, fast, slow).stable
+    assert coupling_stability(np.eye(4), g, slow, slow).unstable == 2
+    assert math.isfinite(coupling_stability(np.eye(4), g, fast, slow).to_dict()["margin"])
