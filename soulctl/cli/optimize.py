@@ -95,7 +95,7 @@ def _result_dict(result: OptimizeResult) -> dict:
         "mgm_updates": len(tm.aux.get("mgm", [])),
         "safety_restores": result.safety_events,
         "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
-    }
+    } | ({} if result.coupling is None else {"misregistration_stability": result.coupling.to_dict()})
 
 
 def _difference_dict(result: OptimizeResult) -> dict | None:
@@ -385,7 +385,7 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
 
 def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     """Write the gain file and figures, print the results; the exit status (3: a loop diverged,
-    or the safety net could not recover it)."""
+    the safety net could not recover it, or the final gains leave a mis-registered loop lost)."""
     failures = {m: why for m, x in results.items() if (why := x.failure()) is not None}
     final = results["mgm" if "mgm" in results else "trial"]
     if o.out is not None and not failures:

@@ -45,6 +45,7 @@ import numpy as np
 from .. import defaults
 from ..control import mgm
 from ..control import ogtl as ogtl_model
+from ..control.coupling import CouplingStability
 from ..control.delay import fractional_taps
 from ..control.gains import (
     DEFAULT_FORGETTING,
@@ -72,7 +73,7 @@ from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAM
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, could_not_recover
 from .chi_model import mgm_chi, optical_gain_table, plant_model, probe_gain
 from .metrics import band_wavelength
-from .run import RunRequest, calibration_for, closed_loop_for, closing_frames
+from .run import RunRequest, calibration_for, closed_loop_for, closing_frames, registration_stability
 from .simulation import ClosedLoop, LoopDiverged
 
 METHODS = ("trial", "mgm")
@@ -298,6 +299,7 @@ class OptimizeResult:
     phases: dict = field(default_factory=dict)  # name -> (first frame, end frame)
     during_run: dict = field(default_factory=dict)  # "before"/"after" -> PhaseMetrics of the run's own phases
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
+    coupling: CouplingStability | None = None  # a mis-registered loop's stability with the optimised gains
     offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
 
     def failure(self) -> str | None:
@@ -305,6 +307,12 @@ class OptimizeResult:
         safety net could not recover it; None if neither."""
         if self.diverged_at is not None:
             return f"the loop diverged at frame {self.diverged_at}" + (" (paired evaluation)" if self.diverged_in == "evaluation" else "")
+        c = self.coupling
+        if c is not None and not c.stable:
+            return (
+                f"the optimised gains leave the mis-registered loop lost: {c.unstable} of its {c.eigenmodes} eigenmodes are "
+                f"unstable (closed-loop pole at |z| = {c.largest_pole:.3f}; stable only with the gains x {c.margin:.2f})"
+            )
         return could_not_recover(self.loop.telemetry)
 
     def strehl_difference(self) -> tuple[float, float | None]:
@@ -787,5 +795,8 @@ def optimize(
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = s.net.events
+    result.coupling = registration_stability(
+        r, cal, result.gains, gains.forgetting, structure, cache, request.ogtl, request.ogtl_settings.mode
+    )
     result.seconds = time.perf_counter() - t0
     return result

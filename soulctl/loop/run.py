@@ -204,25 +204,30 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
 
 
 def registration_stability(
-    request: RunRequest, cal: Calibration, gains: LoopGains, structure, cache: ArrayCache, aux=None
+    request: RunRequest,
+    cal: Calibration,
+    mode_gains: np.ndarray,
+    forgetting: float,
+    structure,
+    cache: ArrayCache,
+    ogtl: bool = False,
+    probe_mode: int = PROBE_MODE,
 ) -> CouplingStability | None:
     """The loop's stability with the request's mis-registration (``control.coupling``): Q = R D'
-    of the moved mirror, the gains the loop starts with, chi_i from the optical model at the
-    run's seeing (gamma_i / gamma_probe with OGTL, which holds k gamma_probe at 1; gamma_i with
-    k = 1 without); None when the mirror is where it was calibrated."""
+    of the moved mirror, one gain per mode, chi_i from the optical model at the run's seeing
+    (gamma_i / gamma_probe with OGTL, which holds k gamma_probe at 1; gamma_i with k = 1
+    without); None when the mirror is where it was calibrated."""
     registration = request.registration
     if registration is None or registration.is_identity:
         return None
     obs = request.observation
-    ogtl = aux is not None and aux.ogtl
-    probe_mode = aux.ogtl_settings.mode if ogtl else PROBE_MODE
     chi = plant_model(cal, cache, ogtl, min(probe_mode, obs.modes), request.seeing_arcsec)
-    filters, ba = unit_loops(obs, structure, gains.forgetting, obs.modes)
+    filters, ba = unit_loops(obs, structure, forgetting, obs.modes)
     rate, d = obs.frame_rate_hz, obs.delay_frames
     tip_tilt = Loop(filters[0], Plant(d, 1.0, ba) if ba is not None else Plant(d), rate)
     other = Loop(filters[-1], Plant(d), rate)
     coupling = cal.reconstructor @ moved_mirror_response(cal, registration)
-    return coupling_stability(coupling, gains.per_mode(obs.modes) * chi, tip_tilt, other)
+    return coupling_stability(coupling, np.asarray(mode_gains) * chi, tip_tilt, other)
 
 
 def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n_close: int, tasks, progress) -> None:
@@ -337,7 +342,9 @@ def run(
     loop = closed_loop_for(request, cal, gains, structure, sink)
     loop.telemetry.moments_from(request.skip)
     n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
-    coupling = registration_stability(request, cal, gains, structure, cache, aux)
+    ogtl = aux is not None and aux.ogtl
+    probe_mode = aux.ogtl_settings.mode if ogtl else PROBE_MODE
+    coupling = registration_stability(request, cal, gains.per_mode(obs.modes), gains.forgetting, structure, cache, ogtl, probe_mode)
     psf = loop.psf_accumulator(band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()

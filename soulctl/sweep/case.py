@@ -99,6 +99,18 @@ def _finished(**metrics) -> dict:
     return {"status": "ok", **metrics}
 
 
+def _outcome(failure: str | None, figures) -> dict:
+    """A run's status and metrics: 'diverged' with the reason when it failed, keeping the figures
+    of a loop that ran to the end (lost to mis-registration, or beyond its safety net's help);
+    else ``_finished``.
+    ``figures``: ``LoopMetrics`` or ``PhaseMetrics`` (None when the loop diverged)."""
+    values = None if figures is None else {k: getattr(figures, k) for k in ("strehl", "tt_jitter_mas", "residual_nm")}
+    if failure is not None:
+        return {"status": "diverged", "reason": failure} | {k: v for k, v in (values or {}).items() if v is not None}
+    assert values is not None  # a loop that did not diverge has its metrics
+    return _finished(**values)
+
+
 def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str | None = None) -> dict:
     """Run one case; never raises for a case's own failure (status 'failed' and the reason)."""
     p = {**DEFAULTS, **case}
@@ -111,17 +123,8 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
         cache = ArrayCache(cache_dir)
         if p["gain_method"] == "default":
             result = run(request, cache, calibration=calibration, aux=description.auxiliary.live())  # as `loop run --config` runs it
-            failure = result.failure()  # diverged, or the safety net of its auxiliary loops gave up
-            if failure is not None:
-                row.update(status="diverged", reason=failure)
-                if result.metrics is not None:  # a loop lost to mis-registration ran to the end: its figures stay
-                    m = result.metrics
-                    figures = {"strehl": m.strehl, "tt_jitter_mas": m.tt_jitter_mas, "residual_nm": m.residual_nm}
-                    row.update({k: v for k, v in figures.items() if v is not None})
-            else:
-                m = result.metrics
-                assert m is not None  # a loop that did not diverge has its metrics
-                row.update(_finished(strehl=m.strehl, tt_jitter_mas=m.tt_jitter_mas, residual_nm=m.residual_nm))
+            failure = result.failure()  # diverged, lost to mis-registration, or the safety net gave up
+            row.update(_outcome(failure, result.metrics))
         else:
             period = optimisation_period_s(p["duration"], request.observation)
             run_request = description.request(ogtl=OPTIMISER_OGTL)  # automatic NCPA offsets come with the optimiser's OGTL
@@ -134,12 +137,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
                 calibration=calibration,
             )
             failure = optimised.failure()
-            if failure is not None:
-                row.update(status="diverged", reason=f"{failure} ({p['gain_method']})")
-            else:
-                a = optimised.after
-                assert a is not None  # measured when the loop did not diverge
-                row.update(_finished(strehl=a.strehl, tt_jitter_mas=a.tt_jitter_mas, residual_nm=a.residual_nm))
+            row.update(_outcome(None if failure is None else f"{failure} ({p['gain_method']})", optimised.after))
     except InputError as e:
         row["reason"] = str(e)
     except Exception as e:  # recorded, never stops the sweep

@@ -451,3 +451,21 @@ def test_a_sweep_case_whose_safety_net_could_not_recover_is_diverged(hopeless, c
         cache_dir=str(cache_dir),
     )
     assert row["status"] == "diverged" and row["reason"].startswith("the safety net could not recover the loop (gave up at frame ")
+
+
+def test_optimised_gains_that_leave_a_misregistered_loop_lost_exit_3(tmp_path, capsys, cache_dir):
+    """The mis-registration verdict of `loop run` (control.coupling) also judges the gains an
+    optimisation ends with: two pitches of shift, which the optimisers cannot repair, give no
+    gain file and exit 3 with the verdict in the JSON."""
+    description = tmp_path / "moved.toml"
+    status, out, err = cli(
+        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--misregistration", "2,0", "--print-config"], capsys, cache_dir
+    )
+    assert status == 0, err
+    description.write_text(out)
+    gains = tmp_path / "gains.toml"
+    args = ["optimize", "gains", "--config", str(description), "--no-ogtl", "--period", "1.1", "--duration", "1.1", "--measure", "0.1"]
+    status, out, err = cli([*args, "--out", str(gains), "--json"], capsys, cache_dir)
+    assert status == 3 and "the optimised gains leave the mis-registered loop lost" in err, err
+    c = json.loads(out)["misregistration_stability"]
+    assert not c["stable"] and c["unstable"] > 0 and c["margin"] < 1 and not gains.exists()

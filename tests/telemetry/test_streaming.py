@@ -176,7 +176,7 @@ def _flushed(path) -> int:
     try:
         with h5py.File(path, "r", locking=False) as f:  # the writer holds the file's lock
             return f["frame_counter"].shape[0] if "frame_counter" in f else 0
-    except OSError:
+    except (OSError, RuntimeError):  # read while the writer extends it: h5py may see a half-written block
         return 0
 
 
