@@ -42,8 +42,9 @@ class CouplingStability:
         return self.unstable == 0
 
     def to_dict(self) -> dict:
-        d = dict(self.__dict__) | {"stable": self.stable}
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+        """JSON-ready: an unbounded margin (stable at every factor searched) is "inf", as
+        ``transfer.LoopAnalysis`` writes it."""
+        return dict(self.__dict__) | {"stable": self.stable, "margin": self.margin if math.isfinite(self.margin) else "inf"}
 
 
 def _polynomials(unit: Loop) -> tuple[np.ndarray, np.ndarray]:

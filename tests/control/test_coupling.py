@@ -69,3 +69,4 @@ def test_tip_tilt_is_judged_with_its_own_loop():
     assert coupling_stability(np.eye(4), g, fast, slow).stable
     assert coupling_stability(np.eye(4), g, slow, slow).unstable == 2
     assert math.isfinite(coupling_stability(np.eye(4), g, fast, slow).to_dict()["margin"])
+    assert coupling_stability(np.eye(4), np.full(4, 1e-3), fast, slow).to_dict()["margin"] == "inf"  # beyond the search
