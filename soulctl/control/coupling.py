@@ -95,10 +95,18 @@ def coupling_stability(coupling: np.ndarray, gains_chi: np.ndarray, tip_tilt_uni
     """The verdict for the modal coupling Q (n x n) with the loop gains g_i chi_i; ``tip_tilt_unit``
     and ``unit``: the unit-gain loops of Tip/Tilt and of the other modes (see the module)."""
     q, g = np.asarray(coupling, dtype=float), np.asarray(gains_chi, dtype=float)
-    groups = [(tip_tilt_unit, np.linalg.eigvals(g[:2, None] * q[:2, :2]))]
-    if len(g) > 2:
-        groups.append((unit, np.linalg.eigvals(g[2:, None] * q[2:, 2:])))
-    radii = _radii(groups, 1.0)
+    blocks = [(tip_tilt_unit, g[:2, None] * q[:2, :2])] + ([(unit, g[2:, None] * q[2:, 2:])] if len(g) > 2 else [])
+    groups = [(loop, _in_loop(np.linalg.eigvals(m))) for loop, m in blocks]
     mu = np.concatenate([m for _, m in groups])
-    phases = np.degrees(np.abs(np.angle(mu[np.abs(mu) > 0]))) if np.any(np.abs(mu) > 0) else np.zeros(1)
+    if mu.size == 0:  # every gain 0: nothing is fed back
+        return CouplingStability(0, 0, 0.0, math.inf, 0.0)
+    radii = _radii(groups, 1.0)
+    phases = np.degrees(np.abs(np.angle(mu)))
     return CouplingStability(len(mu), int(np.sum(radii >= 1.0)), float(radii.max()), _margin(groups), float(phases.max()))
+
+
+def _in_loop(mu: np.ndarray) -> np.ndarray:
+    """The eigenvalues that feed something back: a mode at gain 0 gets no input, and the pole at
+    z = 1 its integrator keeps is not excited (as ``gains.check_stability`` skips gains <= 0)."""
+    scale = max(1.0, float(np.abs(mu).max())) if mu.size else 1.0
+    return mu[np.abs(mu) > 1e-12 * scale]

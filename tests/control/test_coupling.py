@@ -70,3 +70,13 @@ def test_tip_tilt_is_judged_with_its_own_loop():
     assert coupling_stability(np.eye(4), g, slow, slow).unstable == 2
     assert math.isfinite(coupling_stability(np.eye(4), g, fast, slow).to_dict()["margin"])
     assert coupling_stability(np.eye(4), np.full(4, 1e-3), fast, slow).to_dict()["margin"] == "inf"  # beyond the search
+
+
+def test_modes_at_gain_zero_are_not_in_the_loop():
+    """A gain of 0 feeds nothing back: its integrator's pole at z = 1 is not a lost mode (the
+    Tip/Tilt IIR has one), and with every gain 0 there is nothing to judge."""
+    loop = unit(2.0)  # a pure integrator: pole at z = 1 at gain 0
+    verdict = coupling_stability(rotations(30.0, 2), np.array([0.0, 0.0, 0.3, 0.3]), loop, loop)
+    assert verdict.stable and verdict.eigenmodes == 2
+    nothing = coupling_stability(np.eye(4), np.zeros(4), loop, loop)
+    assert nothing.stable and nothing.eigenmodes == 0 and nothing.to_dict()["margin"] == "inf"
