@@ -226,7 +226,7 @@ def registration_stability(
     rate, d = obs.frame_rate_hz, obs.delay_frames
     tip_tilt = Loop(filters[0], Plant(d, 1.0, ba) if ba is not None else Plant(d), rate)
     other = Loop(filters[-1], Plant(d), rate)
-    coupling = cal.reconstructor @ moved_mirror_response(cal, registration)
+    coupling = cal.reconstructor @ moved_mirror_response(cal, registration, cache)
     return coupling_stability(coupling, np.asarray(mode_gains) * chi, tip_tilt, other)
 
 

@@ -182,11 +182,19 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
     return Calibration(setup, basis, D, R, ref, False, time.perf_counter() - t0)
 
 
-def moved_mirror_response(calibration: Calibration, registration: Misregistration) -> np.ndarray:
+def moved_mirror_response(calibration: Calibration, registration: Misregistration, cache: ArrayCache = ArrayCache(None)) -> np.ndarray:
     """(n_slopes, n_modes): D', the slopes per nm of the calibration's modes made by the mirror
     as ``registration`` moves it on the pyramid (push-pull as ``calibrate``; noiseless, the
-    unaberrated beam).  R D' is the loop's modal coupling, the identity when registered."""
+    unaberrated beam), cached with the calibration's set-up.  R D' is the loop's modal
+    coupling, the identity when registered."""
+    key = cache_key("moved-mirror", {"calibration": calibration.setup.key(), "registration": asdict(registration)})
+    spec = EntrySpec({"D": ("slopes", calibration.basis.n_modes)}, {"slopes": (2, MAX_SLOPES)})
+    hit = cache.load(key, spec)
+    if hit is not None:
+        return hit["D"]
     sensor = calibration_sensor(calibration.setup.pyramid)
     basis = calibration.basis
     shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
-    return push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
+    D = push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
+    cache.store(key, {"D": D})
+    return D

@@ -13,7 +13,8 @@ from soulctl.loop.run import run
 from soulctl.loop.stages import Mirror
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import AsmGeometry
-from soulctl.optics.calibration import CalibrationSetup, calibrate
+from soulctl.optics.cache import ArrayCache
+from soulctl.optics.calibration import CalibrationSetup, calibrate, moved_mirror_response
 from soulctl.optics.pupil import Pupil
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
 from soulctl.optics.registration import Misregistration
@@ -75,6 +76,20 @@ def test_the_registered_mirror_is_the_calibrations(calibration):
     # as the disturbance's stage computes it
     shape, y = moved.shape(c)
     np.testing.assert_allclose(moved.disturbance_modes(np.zeros(54), c, y, 0.0), moved.project(shape), rtol=1e-9, atol=1e-9)
+
+
+def test_the_moved_mirrors_coupling_is_the_identity_when_registered_and_cached(calibration, optics_cache, tmp_path):
+    """R D' = I for the registered mirror (to the sparse influence functions' 1e-4 floor);
+    shifted, its diagonal falls and it is no longer symmetric (complex eigenvalues); a second
+    call reads the cached D' bit for bit."""
+    R = calibration.reconstructor
+    np.testing.assert_allclose(R @ moved_mirror_response(calibration, Misregistration()), np.eye(54), atol=2e-3)
+    cache = ArrayCache(tmp_path)
+    shifted = Misregistration(shift_x_pitch=1.0)
+    D = moved_mirror_response(calibration, shifted, cache)
+    np.testing.assert_array_equal(moved_mirror_response(calibration, shifted, cache), D)
+    q = R @ D
+    assert np.mean(np.diag(q)) < 0.95 and np.abs(np.linalg.eigvals(q).imag).max() > 0.1
 
 
 def test_the_loop_loses_strehl_as_the_mirror_moves_and_the_description_keeps_it(optics_cache):
