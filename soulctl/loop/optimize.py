@@ -309,10 +309,7 @@ class OptimizeResult:
             return f"the loop diverged at frame {self.diverged_at}" + (" (paired evaluation)" if self.diverged_in == "evaluation" else "")
         c = self.coupling
         if c is not None and not c.stable:
-            return (
-                f"the optimised gains leave the mis-registered loop lost: {c.unstable} of its {c.eigenmodes} eigenmodes are "
-                f"unstable (closed-loop pole at |z| = {c.largest_pole:.3f}; stable only with the gains x {c.margin:.2f})"
-            )
+            return f"the optimised gains leave the mis-registered loop lost: {c.unstable_text()}"
         return could_not_recover(self.loop.telemetry)
 
     def strehl_difference(self) -> tuple[float, float | None]:
@@ -795,8 +792,6 @@ def optimize(
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = s.net.events
-    result.coupling = registration_stability(
-        r, cal, result.gains, gains.forgetting, structure, cache, request.ogtl, request.ogtl_settings.mode
-    )
+    result.coupling = registration_stability(r, cal, s.loop, gains.forgetting, structure, cache)
     result.seconds = time.perf_counter() - t0
     return result

@@ -11,7 +11,7 @@ import numpy as np
 from .. import defaults
 from ..control.coupling import CouplingStability, coupling_stability
 from ..control.gains import LoopGains, check_stability, default_gains, unit_loops
-from ..control.ogtl import OFFSETS_CHI_TOLERANCE, PROBE_MODE
+from ..control.ogtl import OFFSETS_CHI_TOLERANCE
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ, Loop, Plant
 from ..disturbance.vibrations import VibrationSpectrum
@@ -26,7 +26,7 @@ from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloops import could_not_recover
-from .chi_model import plant_model
+from .chi_model import optical_gain_table
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
 from .simulation import ClosedLoop, LoopDiverged
 
@@ -119,8 +119,7 @@ class RunResult:
         c = self.coupling
         if c is not None and not c.stable:
             return (
-                f"the loop is lost: with this mis-registration {c.unstable} of its {c.eigenmodes} eigenmodes are unstable "
-                f"(closed-loop pole at |z| = {c.largest_pole:.3f}; stable only with the gains x {c.margin:.2f}); "
+                f"the loop is lost: with this mis-registration {c.unstable_text()}; "
                 f"they grow until the pyramid saturates (Strehl {self._strehl_text()})"
             )
         return could_not_recover(self.telemetry)
@@ -204,30 +203,26 @@ def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:
 
 
 def registration_stability(
-    request: RunRequest,
-    cal: Calibration,
-    mode_gains: np.ndarray,
-    forgetting: float,
-    structure,
-    cache: ArrayCache,
-    ogtl: bool = False,
-    probe_mode: int = PROBE_MODE,
+    request: RunRequest, cal: Calibration, loop: ClosedLoop, forgetting: float, structure, cache: ArrayCache
 ) -> CouplingStability | None:
-    """The loop's stability with the request's mis-registration (``control.coupling``): Q = R D'
-    of the moved mirror, one gain per mode, chi_i from the optical model at the run's seeing
-    (gamma_i / gamma_probe with OGTL, which holds k gamma_probe at 1; gamma_i with k = 1
-    without); None when the mirror is where it was calibrated."""
+    """The loop's stability with the request's mis-registration (``control.coupling``) at the
+    end of its run: Q = R D', R the loop's own reconstructor (the measured one with calibration
+    noise), D' the moved mirror's response; the gains and slope sensitivity k in force then
+    (what MGM and OGTL ended with), chi_i = k gamma_i with gamma_i the noiseless calibration's
+    optical-gain table at the run's seeing (computed once per seeing, then cached); None when
+    the mirror is where it was calibrated."""
     registration = request.registration
     if registration is None or registration.is_identity:
         return None
     obs = request.observation
-    chi = plant_model(cal, cache, ogtl, min(probe_mode, obs.modes), request.seeing_arcsec)
+    params = loop.rtc_parameters
+    chi = params.sensitivity * optical_gain_table(cal, cache, request.seeing_arcsec)
     filters, ba = unit_loops(obs, structure, forgetting, obs.modes)
     rate, d = obs.frame_rate_hz, obs.delay_frames
     tip_tilt = Loop(filters[0], Plant(d, 1.0, ba) if ba is not None else Plant(d), rate)
     other = Loop(filters[-1], Plant(d), rate)
-    coupling = cal.reconstructor @ moved_mirror_response(cal, registration, cache)
-    return coupling_stability(coupling, np.asarray(mode_gains) * chi, tip_tilt, other)
+    coupling = loop.calibration.reconstructor @ moved_mirror_response(cal, registration, cache)
+    return coupling_stability(coupling, np.asarray(params.gains) * chi, tip_tilt, other)
 
 
 def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n_close: int, tasks, progress) -> None:
@@ -342,9 +337,6 @@ def run(
     loop = closed_loop_for(request, cal, gains, structure, sink)
     loop.telemetry.moments_from(request.skip)
     n_close, tasks, gains = _prepare(loop, request, gains, cal, cache, aux, sink)
-    ogtl = aux is not None and aux.ogtl
-    probe_mode = aux.ogtl_settings.mode if ogtl else PROBE_MODE
-    coupling = registration_stability(request, cal, gains.per_mode(obs.modes), gains.forgetting, structure, cache, ogtl, probe_mode)
     psf = loop.psf_accumulator(band_wavelength(request.band))
     diverged_at = diverged_rms = None
     t1 = time.perf_counter()
@@ -353,9 +345,10 @@ def run(
     except LoopDiverged as e:
         diverged_at, diverged_rms = e.frame, e.residual_nm
     seconds = time.perf_counter() - t1
-    metrics, image = None, None
+    metrics, image, coupling = None, None, None
     spectra: dict = {}
     if diverged_at is None:
+        coupling = registration_stability(request, cal, loop, gains.forgetting, structure, cache)
         metrics, spectra = _metrics(request, loop.telemetry, psf, loop.mas_per_nm_tt)
         image = psf.psf
     return RunResult(

@@ -10,9 +10,11 @@ from scipy.linalg import block_diag
 
 from soulctl.control.coupling import coupling_stability, pole_radii
 from soulctl.control.filters import Filter
+from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant, analyze, max_stable_gain
 
 RATE = 1000.0
+IIR_1700 = Filter.iir((-0.31, 0.69, 0.698, 0.705), (0.042, 0.102, 0.954, 1.0), 1.0)  # the paper's 1700 Hz Tip/Tilt IIR shape
 
 
 def unit(d=2.0, forgetting=1.0):
@@ -24,15 +26,36 @@ def rotations(phi_deg: float, n_blocks: int) -> np.ndarray:
     return block_diag(*[np.array([[c, -s], [s, c]])] * n_blocks)
 
 
-def test_pole_radii_are_the_characteristic_polynomials_roots():
+@pytest.mark.parametrize(
+    "loop",
+    [
+        Loop(Filter.leaky(0.99, 1.0), Plant(2.6), RATE),
+        Loop(
+            Filter.iir((-0.31, 0.69, 0.698, 0.705), (0.042, 0.102, 0.954, 1.0), 1.0),
+            Plant.with_structure(3.567, StructuralResonance(), 1700.0),
+            1700.0,
+        ),
+    ],
+    ids=["leaky integrator", "Tip/Tilt IIR with the 127 Hz structure"],
+)
+def test_pole_radii_are_the_closed_loop_poles_of_the_loop_at_that_gain(loop):
+    """For real mu the scalar loop is ``loop`` at gain mu: its own characteristic polynomial's
+    roots; for complex mu, np.roots of a q + mu b p."""
     rng = np.random.default_rng(3)
-    loop = unit(2.6, 0.99)
-    mu = rng.normal(0.4, 0.3, 20) + 1j * rng.normal(0, 0.3, 20)
+    real = rng.uniform(0.05, 1.5, 10)
+    expected = [np.max(np.abs(loop.with_gain(m).closed_loop_poles())) for m in real]
+    np.testing.assert_allclose(pole_radii(loop, real), expected, rtol=1e-8)
+    mu = rng.normal(0.4, 0.3, 10) + 1j * rng.normal(0, 0.3, 10)
     b, a = loop.controller.coefficients()
-    bp = np.convolve(b, loop.plant.numerator())
-    ap = np.pad(a, (0, bp.size - a.size))
-    expected = [np.max(np.abs(np.roots(ap + m * bp))) for m in mu]
-    np.testing.assert_allclose(pole_radii(loop, mu), expected, rtol=1e-9)
+    ap, bp = np.convolve(a, loop.plant.denominator()), np.convolve(b, loop.plant.numerator())
+    n = max(ap.size, bp.size)
+    ap, bp = np.pad(ap, (0, n - ap.size)), np.pad(bp, (0, n - bp.size))
+    np.testing.assert_allclose(pole_radii(loop, mu), [np.max(np.abs(np.roots(ap + m * bp))) for m in mu], rtol=1e-8)
+
+
+def test_a_plant_without_delay_can_put_a_pole_at_infinity():
+    loop = Loop(Filter.integrator(1.0), Plant(0.0), RATE)  # 1 + mu = 0 at mu = -1
+    assert math.isinf(pole_radii(loop, np.array([-1.0]))[0])
 
 
 @pytest.mark.parametrize("d, g", [(1.0, 0.5), (2.0, 0.3), (2.73, 0.2)])
@@ -69,7 +92,28 @@ def test_tip_tilt_is_judged_with_its_own_loop():
     assert coupling_stability(np.eye(4), g, fast, slow).stable
     assert coupling_stability(np.eye(4), g, slow, slow).unstable == 2
     assert math.isfinite(coupling_stability(np.eye(4), g, fast, slow).to_dict()["margin"])
-    assert coupling_stability(np.eye(4), np.full(4, 1e-3), fast, slow).to_dict()["margin"] == "inf"  # beyond the search
+
+
+def test_the_margin_is_found_far_above_and_is_zero_when_no_gain_helps():
+    """A loop with a delay always has a finite margin, however small its gains (the search
+    reaches 1e4); an eigenvalue with a negative real part drives an integrator the wrong way
+    at every gain: margin 0, and the message says no factor helps."""
+    loop = unit(1.4)
+    g_max = max_stable_gain(loop.with_gain(0.1))
+    tiny = coupling_stability(np.eye(2), np.full(2, 1e-3), loop, loop)
+    assert tiny.margin == pytest.approx(g_max / 1e-3, rel=1e-6) and tiny.to_dict()["margin"] == tiny.margin
+    wrong = coupling_stability(np.diag([1.0, 1.0, -0.5, 1.0]), np.full(4, 0.2), loop, loop)
+    assert wrong.unstable == 1 and wrong.margin == 0.0 and "no common factor on the gains stabilises them" in wrong.unstable_text()
+
+
+def test_a_mode_the_coupling_hides_from_its_integrator_is_judged():
+    """A singular Q (a mode the moved mirror no longer makes) with a non-zero gain: its
+    integrator sees no signal and keeps its pole at z = 1, a random walk, not a stable mode;
+    with a leaky integrator it decays (pole 0.99)."""
+    q = np.eye(4)
+    q[3, 3] = 0.0
+    assert coupling_stability(q, np.full(4, 0.3), unit(2.0), unit(2.0)).unstable == 1
+    assert coupling_stability(q, np.full(4, 0.3), unit(2.0), unit(2.0, 0.99)).stable
 
 
 def test_modes_at_gain_zero_are_not_in_the_loop():
