@@ -265,6 +265,8 @@ def run_cmd(o: RunOptions) -> int:
     if message is not None:
         if o.json_output:
             print_json(_result_dict(result))
+        elif result.metrics is not None:  # a loop that ran to the end (lost, or beyond its safety net): its figures
+            _render(result, make_console())
         print(f"soulctl: {message}" + (f"; telemetry written to {o.telemetry}" if o.telemetry else ""), file=sys.stderr)
         return 3
     if o.plot is not None:

@@ -68,6 +68,8 @@ def test_a_loop_lost_to_misregistration_exits_3_with_its_figures(tmp_path, capsy
     assert not c["stable"] and c["unstable"] > 0 and c["margin"] < 1 and c["largest_pole"] > 1
     assert d["diverged_at_frame"] is None and d["metrics"]["strehl"] is not None
     assert read_telemetry(h5)[1]["diverged_at"] == -1
+    status, out, err = run([*FAINT, "--misregistration", "2,0"], capsys, cache_dir)  # the table too
+    assert status == 3 and "Strehl ratio" in out and "mis-registration" in out and "the loop is lost" in err
     status, out, err = run([*FAINT, "--misregistration", "0.5,0", "--json"], capsys, cache_dir)
     assert status == 0, err
     c = json.loads(out)["misregistration_stability"]
