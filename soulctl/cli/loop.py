@@ -243,8 +243,8 @@ def run_cmd(o: RunOptions) -> int:
     else the defaults; --print-config shows it); every other option overrides one of its
     fields, and the telemetry file stores it, so that `--config t.h5` runs the same loop again.
     Exit status 3 if the loop diverges (the telemetry so far is still written), or if a
-    --misregistration leaves eigenmodes of the loop unstable (the loop is lost: its figures are
-    still printed with --json and its telemetry written).
+    --misregistration leaves eigenmodes of the loop unstable (the loop is lost: it runs to the
+    end, its figures are still printed and its telemetry written).
 
     Example: soulctl loop run --mag 9.7 --seeing 1.0 --duration 1 --plot out/
     """
