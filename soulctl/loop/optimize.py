@@ -303,8 +303,9 @@ class OptimizeResult:
     offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
 
     def failure(self) -> str | None:
-        """Why the optimisation failed (exit status 3, no gain file): the loop diverged, or the
-        safety net could not recover it; None if neither."""
+        """Why the optimisation failed (exit status 3, no gain file): the loop diverged, its
+        final gains leave a mis-registered loop lost (``coupling``), or the safety net could not
+        recover it; None if none of these."""
         if self.diverged_at is not None:
             return f"the loop diverged at frame {self.diverged_at}" + (" (paired evaluation)" if self.diverged_in == "evaluation" else "")
         c = self.coupling
@@ -792,6 +793,7 @@ def optimize(
         except LoopDiverged as e:
             result.diverged_at, result.diverged_in = e.frame, "evaluation"
     result.safety_events = s.net.events
-    result.coupling = registration_stability(r, cal, s.loop, gains.forgetting, structure, cache)
+    if result.diverged_at is None:
+        result.coupling = registration_stability(r, cal, s.loop, gains.forgetting, structure, cache)
     result.seconds = time.perf_counter() - t0
     return result

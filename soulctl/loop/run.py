@@ -112,8 +112,9 @@ class RunResult:
         return run_configuration(self.request, self.gains)
 
     def failure(self) -> str | None:
-        """Why the run failed (exit status 3): the loop diverged, or the safety net of its
-        auxiliary loops could not recover it; None if neither."""
+        """Why the run failed (exit status 3): the loop diverged, a mis-registration left it
+        lost (``coupling``), or the safety net of its auxiliary loops could not recover it;
+        None if none of these."""
         if self.diverged_at is not None:
             return f"loop diverged at frame {self.diverged_at} (residual {self.diverged_residual_nm:.0f} nm RMS)"
         c = self.coupling
