@@ -48,9 +48,10 @@ class CouplingStability:
         return f"{self.unstable} of its {self.eigenmodes} eigenmodes are unstable ({pole}; {cure})"
 
     def to_dict(self) -> dict:
-        """JSON-ready: an unbounded margin (stable at every factor searched) is "inf", as
-        ``transfer.LoopAnalysis`` writes it."""
-        return dict(self.__dict__) | {"stable": self.stable, "margin": self.margin if math.isfinite(self.margin) else "inf"}
+        """JSON-ready: an unbounded figure (a margin stable at every factor searched, a pole at
+        infinity) is "inf", as ``transfer.LoopAnalysis`` writes it."""
+        d = {k: ("inf" if isinstance(v, float) and math.isinf(v) else v) for k, v in self.__dict__.items()}
+        return d | {"stable": self.stable}
 
 
 def _polynomials(unit: Loop) -> tuple[np.ndarray, np.ndarray]:

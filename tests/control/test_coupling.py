@@ -2,6 +2,7 @@
 gain margin from the closed-loop poles (``max_stable_gain``) and the phase margin from the
 Nyquist curve (``analyze``), and the closed-loop poles from np.roots."""
 
+import json
 import math
 
 import numpy as np
@@ -56,6 +57,8 @@ def test_pole_radii_are_the_closed_loop_poles_of_the_loop_at_that_gain(loop):
 def test_a_plant_without_delay_can_put_a_pole_at_infinity():
     loop = Loop(Filter.integrator(1.0), Plant(0.0), RATE)  # 1 + mu = 0 at mu = -1
     assert math.isinf(pole_radii(loop, np.array([-1.0]))[0])
+    verdict = coupling_stability(-np.eye(2), np.ones(2), loop, loop).to_dict()
+    assert verdict["largest_pole"] == "inf" and verdict["unstable"] == 2 and json.dumps(verdict, allow_nan=False)
 
 
 @pytest.mark.parametrize("d, g", [(1.0, 0.5), (2.0, 0.3), (2.73, 0.2)])
