@@ -1,0 +1,97 @@
+"""Can the pyramid hold a loop that a linear sensor has closed?  The R9.7 loop (1700 Hz, 40x40,
+500 modes, default gains, no NCPA, k = 1, seed 1) runs its first --linear-s seconds on a linear
+wavefront sensor (slopes = D0 times the true residual's modes: the calibration's interaction
+matrix, optical gain 1, no noise), then on the modelled pyramid with its detector for the rest.
+If the loop at 1.6" falls from the linear sensor's residual to the one it reaches when closed
+on the pyramid from a flat mirror, the pyramid cannot hold it, whatever the closing procedure.
+
+    python validation/pyramid_hold.py [--seeings 1.0,1.6] [--linear-s 0.3] [--duration 1.5] [--out FILE]
+
+Residual RMS (nm, all pupil pixels) over spans before and after the switch, with the Marechal
+H-band Strehl ratio exp(-(2 pi sigma / 1650 nm)^2) as a rough scale; "og" rows divide every
+gain by its mode's optical gain at that seeing (``loop.chi_model.optical_gain_table``) at the
+switch.  ~40 s per row on one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import default_gains
+from soulctl.control.structure import sampled_structure
+from soulctl.files import atomic_write_text
+from soulctl.loop.chi_model import optical_gain_table
+from soulctl.loop.run import calibration_for, closed_loop_for
+from soulctl.optics.cache import ArrayCache
+from soulctl.run_config import RunConfig
+
+OUT = Path(__file__).parent / "results" / "pyramid_hold.json"
+H_NM = 1650.0
+
+
+def linear_until(loop, calibration, frames: int) -> None:
+    """Replace the loop's pyramid by a linear sensor (D0 times the residual's modes) for its
+    first ``frames`` frames: the residual map is read where the pyramid receives it."""
+    sensor, d0 = loop.sensor, calibration.interaction_matrix.astype(np.float32)
+    intensity, slopes_of_frame, seen = sensor.pyramid.intensity, sensor.slopes_of_frame, {}
+
+    def pyramid(opd):
+        seen["opd"] = opd
+        return intensity(opd)
+
+    def slopes(frame):
+        if loop.frame >= frames:
+            return slopes_of_frame(frame)
+        return (d0 @ loop.mirror.project(seen["opd"][loop.pupil.mask].astype(np.float64))).astype(np.float32)
+
+    sensor.pyramid.intensity, sensor.slopes_of_frame = pyramid, slopes
+
+
+def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayCache) -> dict:
+    values = {"star.magnitude_r": 9.7, "run.band": "H", "ncpa.rms_nm": 0.0, "atmosphere.seeing_arcsec": seeing, "run.seed": 1}
+    request = RunConfig().with_values(values | {"run.duration_s": duration}).request()
+    obs = request.observation
+    cal = calibration_for(request, cache)
+    structure = sampled_structure(request.structure, obs.frame_rate_hz)
+    gains = request.gains or default_gains(obs, structure)
+    loop = closed_loop_for(request, cal, gains, structure)
+    switch, n = round(linear_s * obs.frame_rate_hz), round(duration * obs.frame_rate_hz)
+    linear_until(loop, cal, switch)
+    rms = np.zeros(n)
+    for k in range(n):
+        if k == switch and og:
+            loop.set_gains(gains.per_mode(obs.modes) / optical_gain_table(cal, cache, seeing))
+        rms[k] = np.sqrt(np.mean(loop.step() ** 2))
+    spans = {"linear, last 200 frames": (switch - 200, switch), "pyramid, first 200": (switch, switch + 200)}
+    spans |= {"pyramid, next 600": (switch + 200, switch + 800), "pyramid, last 500": (n - 500, n)}
+    out = {}
+    for name, (a, b) in spans.items():
+        sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
+        out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
+    return {"seeing": seeing, "og_compensated_at_switch": og, "linear_s": linear_s, "duration_s": duration, "spans": out}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeings", default="1.0,1.6")
+    p.add_argument("--linear-s", type=float, default=0.3)
+    p.add_argument("--duration", type=float, default=1.5)
+    p.add_argument("--out", type=Path, default=OUT)
+    a = p.parse_args()
+    cache = ArrayCache(default_cache_dir())
+    rows = []
+    for seeing in (float(s) for s in a.seeings.split(",")):
+        for og in (False, True) if seeing > 1.0 else (False,):
+            row = one(seeing, a.linear_s, a.duration, og, cache)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    atomic_write_text(a.out, json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
