@@ -14,22 +14,19 @@ Run:  python bench/bench_design.py [--rates 1700,1350,1000,750] [--seeds 3] [--o
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from results_file import save
 from rich.console import Console
 from rich.table import Table
 
-from soulctl import __version__, tables
+from soulctl import tables
 from soulctl.control.delay import DelayModel
 from soulctl.control.design import design_tt_filter
 from soulctl.control.filters import Filter
 from soulctl.control.transfer import Loop, Plant, analyze
-from soulctl.files import atomic_write_text
 
 TARGET_S = 60.0
 
@@ -102,15 +99,7 @@ def main() -> None:
         f"analyze(): median {analysis['median_ms']:.2f} ms, p99 {analysis['p99_ms']:.2f} ms "
         f"(p99/median {analysis['p99_ms'] / analysis['median_ms']:.2f}) over {args.repeat} calls"
     )
-    result = {
-        "soulctl": __version__,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": platform.processor()},
-        "design": rows,
-        "analyze": analysis,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1))
-    console.print(f"written {args.out}")
+    save(args.out, {"design": rows, "analyze": analysis}, console)
 
 
 if __name__ == "__main__":

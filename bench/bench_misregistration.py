@@ -19,22 +19,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
-import platform
 import resource
 import time
 from pathlib import Path
 
 import numpy as np
+from results_file import save
 from rich.console import Console
 from rich.table import Table
 
-from soulctl import __version__
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
-from soulctl.files import atomic_write_text
 from soulctl.loop.run import calibration_for, closed_loop_for, registration_stability, run
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import moved_mirror_response
@@ -117,15 +113,7 @@ def main() -> None:
     console = Console()
     console.print(t)
     console.print(f"peak RSS {rss_mb:.0f} MB")
-    result = {
-        "soulctl": __version__,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": platform.processor()},
-        "rows": rows,
-        "peak_rss_mb": rss_mb,
-    }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(a.out, json.dumps(result, indent=1))
-    console.print(f"written {a.out}")
+    save(a.out, {"rows": rows, "peak_rss_mb": rss_mb}, console)
 
 
 if __name__ == "__main__":
