@@ -23,8 +23,8 @@ from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
 from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
-from ..ranges import LOOP_GAIN
-from ..run_config import RunConfig, read_run_config
+from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
+from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
 from .numbers import number
 from .output import console as make_console
 
@@ -35,6 +35,12 @@ RUN_CONFIG = typer.Option(
     metavar="FILE",
     help="Run description (TOML, as --print-config prints it; an observation file from 'soulctl configure --out' is one) "
     "or a telemetry file (.h5) whose run is repeated; the other options override its fields.",
+)
+MISREGISTRATION = typer.Option(
+    None,
+    "--misregistration",
+    metavar="DX,DY[,ROT[,MAG]]",
+    help="The mirror on the pyramid against the calibration: shift in actuator pitches, rotation (deg), magnification.",
 )
 NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (the cache is otherwise reused).")
 CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder (default $XDG_CACHE_HOME/soulctl or ~/.cache/soulctl).")
@@ -345,3 +351,20 @@ def aux_rows(telemetry) -> list[tuple[str, str]]:
             ("safety net: restores of the last good gains and k", f"{f['restores']}" + (" (could not recover)" if f["gave_up"] else ""))
         )
     return rows
+
+
+def misregistration_overrides(text: str | None) -> dict:
+    """--misregistration DX,DY[,ROT[,MAG]] as the run description's [misregistration] fields."""
+    if text is None:
+        return {}
+    cells = [c.strip() for c in text.split(",")]
+    if not 2 <= len(cells) <= 4:
+        raise InputError(f"--misregistration takes DX,DY[,ROT[,MAG]] (2 to 4 numbers), got {text!r}")
+    values = {}
+    for key, cell, accepted in zip(REGISTRATION_KEYS, cells, (SHIFT_PITCH, SHIFT_PITCH, ROTATION_DEG, MAGNIFICATION)):
+        try:
+            value = float(cell)
+        except ValueError:
+            raise InputError(f"--misregistration {key} must be a number in {accepted.text()}, got {cell!r}") from None
+        values[f"misregistration.{key}"] = accepted.check(value, f"--misregistration {key}")
+    return values

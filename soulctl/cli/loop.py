@@ -18,8 +18,7 @@ from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, MAGNIFICATION, NCPA_RMS_NM, ROTATION_DEG, SHIFT_PITCH, TELEMETRY_EVERY
-from ..run_config import REGISTRATION_KEYS
+from ..ranges import DURATION_S, NCPA_RMS_NM, TELEMETRY_EVERY
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
@@ -174,12 +173,7 @@ class RunOptions:
     no_vibrations: bool = NO_VIBRATIONS
     no_resonance: bool = NO_RESONANCE
     oversampling: int | None = common.OVERSAMPLING
-    misregistration: str | None = typer.Option(
-        None,
-        "--misregistration",
-        metavar="DX,DY[,ROT[,MAG]]",
-        help="The mirror on the pyramid against the calibration: shift in actuator pitches, rotation (deg), magnification.",
-    )
+    misregistration: str | None = common.MISREGISTRATION
     ncpa: float | None = typer.Option(
         None,
         "--ncpa",
@@ -314,7 +308,7 @@ def _run_overrides(o: RunOptions) -> dict:
         "ncpa.rms_nm": o.ncpa,
         "ncpa.compensated": o.ncpa_offsets,
     }
-    given = {k: v for k, v in values.items() if v is not None} | misregistration_overrides(o.misregistration)
+    given = {k: v for k, v in values.items() if v is not None} | common.misregistration_overrides(o.misregistration)
     return _ideal(o, given) | given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)
 
 
@@ -338,23 +332,6 @@ def _ideal(o: RunOptions, given: dict) -> dict:
     if both:
         raise InputError(f"--ideal turns OGTL and the error terms off: give it without the option that sets {both[0]}")
     return IDEAL
-
-
-def misregistration_overrides(text: str | None) -> dict:
-    """--misregistration DX,DY[,ROT[,MAG]] as the run description's [misregistration] fields."""
-    if text is None:
-        return {}
-    cells = [c.strip() for c in text.split(",")]
-    if not 2 <= len(cells) <= 4:
-        raise InputError(f"--misregistration takes DX,DY[,ROT[,MAG]] (2 to 4 numbers), got {text!r}")
-    values = {}
-    for key, cell, accepted in zip(REGISTRATION_KEYS, cells, (SHIFT_PITCH, SHIFT_PITCH, ROTATION_DEG, MAGNIFICATION)):
-        try:
-            value = float(cell)
-        except ValueError:
-            raise InputError(f"--misregistration {key} must be a number in {accepted.text()}, got {cell!r}") from None
-        values[f"misregistration.{key}"] = accepted.check(value, f"--misregistration {key}")
-    return values
 
 
 def _run_with_progress(request, cache, aux, show: bool, sink=None):

@@ -9,15 +9,29 @@ import numpy as np
 import typer
 
 from ..control.check import DEFAULT_MODULUS_MARGIN, STATE_BUDGET, Criteria, check_modes, state_count
+from ..control.coupling import CouplingStability, registration_verdict
 from ..control.gains import LoopGains, mode_filters, read_gain_file
 from ..control.rtc_file import TOLERANCE, compare, is_rtc_file, read_rtc_file
 from ..control.structure import sampled_structure
 from ..errors import InputError
 from ..files import input_file
 from ..identify.plant import read_plant
+from ..loop.run import calibration_for
+from ..optics.cache import ArrayCache
+from ..optics.calibration import moved_mirror_response
 from ..optics.optical_gains import read_optical_gain_table
 from ..ranges import Range
-from .common import JSON_OUTPUT, RUN_CONFIG, quantity_table, run_description
+from .common import (
+    CACHE_DIR,
+    JSON_OUTPUT,
+    MISREGISTRATION,
+    NO_CACHE,
+    RUN_CONFIG,
+    array_cache,
+    misregistration_overrides,
+    quantity_table,
+    run_description,
+)
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -48,6 +62,9 @@ class CheckOptions:
     )
     gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(GAIN_MARGIN), help="Least gain margin per mode (1: stable).")
     phase_margin: float = typer.Option(0.0, "--phase-margin", parser=number(PHASE_MARGIN), help="Least phase margin per mode (deg).")
+    misregistration: str | None = MISREGISTRATION
+    no_cache: bool = NO_CACHE
+    cache_dir: Path | None = CACHE_DIR
     json_output: bool = JSON_OUTPUT
 
 
@@ -58,8 +75,10 @@ def check_cmd(o: CheckOptions) -> int:
     stability, gain, phase and modulus margins and maximum stable gain on the plant (delay,
     optical gain chi_i, the 127 Hz structure on Tip/Tilt), the RTC states against the 672-state
     budget, and for an RTC description Lambda, Delta, Xi, Sigma rebuilt from the declared
-    filters (--config/--mag) and compared.  Exit 0 when all holds, 3 when a mode is unstable or
-    below a margin or the matrices differ, 2 on malformed input.
+    filters (--config/--mag) and compared.  With a mis-registration (--misregistration, or the
+    [misregistration] of --config) also the coupled loop of the moved mirror: its eigenmodes'
+    stability and common gain margin (the modelled R D').  Exit 0 when all holds, 3 when a mode
+    or eigenmode is unstable or below a margin or the matrices differ, 2 on malformed input.
 
     Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
     """
@@ -70,7 +89,7 @@ def check_cmd(o: CheckOptions) -> int:
     ):
         accepted.check(value, option)
     input_file(o.params, "PARAMS")
-    description = run_description(o.config, o.mag, {})
+    description = run_description(o.config, o.mag, misregistration_overrides(o.misregistration))
     obs = description.observation
     comparison = None
     if is_rtc_file(o.params):
@@ -94,7 +113,9 @@ def check_cmd(o: CheckOptions) -> int:
     criteria = Criteria(o.modulus_margin, o.gain_margin, o.phase_margin)
     checks = check_modes(filters, chi, delay, obs.frame_rate_hz, ba, criteria)
     states = state_count(filters)
-    ok = all(c.passed for c in checks) and states <= STATE_BUDGET and (comparison is None or comparison.consistent)
+    coupling = _coupling(description, np.asarray(gains) * chi, delay, array_cache(o.no_cache, o.cache_dir))
+    coupled = coupling is None or (coupling.stable and coupling.margin >= criteria.gain_margin)
+    ok = all(c.passed for c in checks) and states <= STATE_BUDGET and (comparison is None or comparison.consistent) and coupled
     if o.json_output:
         print_json(
             {
@@ -106,15 +127,29 @@ def check_cmd(o: CheckOptions) -> int:
                 "criteria": criteria.__dict__,
                 "failed_modes": [c.mode for c in checks if not c.passed],
                 "rebuild_differences": None if comparison is None else comparison.differences,
+                "misregistration_stability": None if coupling is None else coupling.to_dict(),
                 "modes": [c.to_dict() for c in checks],
             }
         )
     else:
-        _render(checks, states, delay, ok, comparison)
+        _render(checks, states, delay, ok, comparison, coupling)
     return 0 if ok else UNSAFE_EXIT
 
 
-def _render(checks, states: int, delay: float, ok: bool, comparison) -> None:
+def _coupling(description, gains_chi: np.ndarray, delay: float, cache: ArrayCache) -> CouplingStability | None:
+    """The coupled loop with the description's mis-registration (``control.coupling``): Q = R D'
+    of the configuration's modelled calibration (noiseless, cached as `loop run` caches it) and
+    the gains times the check's chi_i; None when the mirror is registered."""
+    registration = description.registration
+    if registration.is_identity:
+        return None
+    cal = calibration_for(description.request(), cache)
+    q = cal.reconstructor @ moved_mirror_response(cal, registration, cache)
+    obs = description.observation
+    return registration_verdict(obs, description.structure, description.controller.forgetting, q, gains_chi, delay)
+
+
+def _render(checks, states: int, delay: float, ok: bool, comparison, coupling: CouplingStability | None) -> None:
     worst = sorted(checks, key=lambda c: (c.passed, c.modulus_margin))[:WORST]
     t = quantity_table(f"worst modes by modulus margin (delay {delay:.3f} frames)")
     for c in worst:
@@ -131,8 +166,14 @@ def _render(checks, states: int, delay: float, ok: bool, comparison) -> None:
                 f"{name} against the declared filters",
                 "not compared (no R, M)" if d is None else f"{d:.2e} ({'ok' if d <= TOLERANCE else 'DIFFERS'})",
             )
+    lost = ""
+    if coupling is not None:
+        figures = f"largest pole |z| {coupling.largest_pole:.3f}, gain margin x{coupling.margin:.2f}"
+        t.add_row("mis-registration: unstable eigenmodes", f"{coupling.unstable} of {coupling.eigenmodes} ({figures})")
+        lost = "" if coupling.stable else f", {coupling.unstable} eigenmode(s) unstable when mis-registered"
     failed = sum(not c.passed for c in checks)
     t.add_row(
-        "verdict", "safe to upload" if ok else f"NOT safe: {failed} mode(s) fail" + ("" if states <= STATE_BUDGET else ", too many states")
+        "verdict",
+        "safe to upload" if ok else f"NOT safe: {failed} mode(s) fail" + ("" if states <= STATE_BUDGET else ", too many states") + lost,
     )
     make_console().print(t)

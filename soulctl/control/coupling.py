@@ -20,7 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .transfer import Loop
+from ..observation import Observation
+from .gains import unit_loops
+from .transfer import Loop, Plant
 
 MARGIN_SCALES = np.union1d(np.geomspace(1e-3, 1e4, 71), [1.0])  # factors on diag(g chi) searched for the margin
 
@@ -121,3 +123,17 @@ def coupling_stability(coupling: np.ndarray, gains_chi: np.ndarray, tip_tilt_uni
     radii = _radii(groups, 1.0)
     phases = np.degrees(np.abs(np.angle(mu[mu != 0]))) if np.any(mu != 0) else np.zeros(1)
     return CouplingStability(len(mu), int(np.sum(radii >= 1.0)), float(radii.max()), _margin(groups), float(phases.max()))
+
+
+def registration_verdict(
+    observation: Observation, structure, forgetting: float, coupling: np.ndarray, gains_chi: np.ndarray, delay_frames: float
+) -> CouplingStability:
+    """``coupling_stability`` with the configuration's own unit loops: Tip/Tilt's filter on
+    z^-d and the 127 Hz structure (when the frame rate samples it), the other modes' leaky
+    integrator on z^-d; the verdict `loop run` gives at the end of a run and `rtc check` before
+    an upload."""
+    filters, ba = unit_loops(observation, structure, forgetting, observation.modes)
+    rate = observation.frame_rate_hz
+    tip_tilt = Loop(filters[0], Plant(delay_frames, 1.0, ba) if ba is not None else Plant(delay_frames), rate)
+    other = Loop(filters[-1], Plant(delay_frames), rate)
+    return coupling_stability(coupling, gains_chi, tip_tilt, other)

@@ -9,11 +9,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .. import defaults
-from ..control.coupling import CouplingStability, coupling_stability
-from ..control.gains import LoopGains, check_stability, default_gains, unit_loops
+from ..control.coupling import CouplingStability, registration_verdict
+from ..control.gains import LoopGains, check_stability, default_gains
 from ..control.ogtl import OFFSETS_CHI_TOLERANCE
 from ..control.structure import StructuralResonance, sampled_structure
-from ..control.transfer import VIBRATION_HZ, Loop, Plant
+from ..control.transfer import VIBRATION_HZ
 from ..disturbance.vibrations import VibrationSpectrum
 from ..observation import Observation
 from ..optics.atmosphere import AtmosphereConfig, Layer
@@ -218,12 +218,8 @@ def registration_stability(
     obs = request.observation
     params = loop.rtc_parameters
     chi = params.sensitivity * optical_gain_table(cal, cache, request.seeing_arcsec)
-    filters, ba = unit_loops(obs, structure, forgetting, obs.modes)
-    rate, d = obs.frame_rate_hz, obs.delay_frames
-    tip_tilt = Loop(filters[0], Plant(d, 1.0, ba) if ba is not None else Plant(d), rate)
-    other = Loop(filters[-1], Plant(d), rate)
     coupling = loop.calibration.reconstructor @ moved_mirror_response(cal, registration, cache)
-    return coupling_stability(coupling, np.asarray(params.gains) * chi, tip_tilt, other)
+    return registration_verdict(obs, structure, forgetting, coupling, np.asarray(params.gains) * chi, obs.delay_frames)
 
 
 def _close_and_run(loop: ClosedLoop, request: RunRequest, psf: PsfAccumulator, n_close: int, tasks, progress) -> None:

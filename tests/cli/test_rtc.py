@@ -106,3 +106,50 @@ def test_rtc_description_missing_matrix_is_exit_2(tmp_path, capsys):
     _write(path, arrays)
     status, _, err = _run(["rtc", "check", str(path), "--mag", MAG], capsys)
     assert status == 2 and "missing Sigma" in err
+
+
+def test_misregistration_verdict_before_an_upload_is_loop_runs(tmp_path, capsys, cache_dir):
+    """`rtc check --misregistration` judges the coupled loop of the moved mirror as `loop run`
+    does at the end of a run: with the run's optical gains as the chi table, the same verdict
+    (two pitches of shift lose the default R16.5 gains, exit 3; half a pitch does not); the
+    [misregistration] of --config is read as the option is."""
+    from soulctl.cli.common import run_description
+    from soulctl.loop.chi_model import optical_gain_table
+    from soulctl.loop.run import calibration_for
+    from soulctl.optics.cache import ArrayCache
+
+    description = run_description(None, "16.5", {"run.oversampling": 1})
+    config, gains, table = tmp_path / "run.toml", tmp_path / "gains.toml", tmp_path / "chi.csv"
+    config.write_text(description.to_toml())
+    resolved = description.resolved()
+    g = LoopGains(*resolved.controller.gains).per_mode(description.observation.modes)
+    gains.write_text("gains = [" + ", ".join(map(repr, g.tolist())) + "]\n")
+    request = description.request()
+    gamma = optical_gain_table(calibration_for(request, ArrayCache(cache_dir)), ArrayCache(cache_dir), request.seeing_arcsec)
+    table.write_text("mode,optical_gain\n" + "".join(f"{i + 1},{x!r}\n" for i, x in enumerate(gamma.tolist())))
+    check = ["rtc", "check", str(gains), "--config", str(config), "--chi-table", str(table), "--cache-dir", str(cache_dir), "--json"]
+    run = ["loop", "run", "--config", str(config), "--duration", "0.3", "--no-ogtl", "--cache-dir", str(cache_dir), "--json"]
+    for shift, status_expected in (("2,0", 3), ("0.5,0", 0)):
+        status, out, err = _run([*check, "--misregistration", shift], capsys)
+        assert status == status_expected and "Traceback" not in err, err
+        verdict = json.loads(out)["misregistration_stability"]
+        assert json.loads(out)["passed"] is (status_expected == 0)
+        status, out, err = _run([*run, "--misregistration", shift], capsys)
+        assert status == status_expected, err
+        in_run = json.loads(out)["misregistration_stability"]
+        assert verdict["unstable"] == in_run["unstable"] and verdict["eigenmodes"] == in_run["eigenmodes"]
+        for key in ("largest_pole", "margin", "largest_phase_deg"):
+            assert verdict[key] == pytest.approx(in_run[key], rel=1e-9), key
+    status, out, err = _run([*check, "--misregistration", "0,0"], capsys)  # registered: no verdict, the per-mode checks only
+    assert status == 0 and json.loads(out)["misregistration_stability"] is None
+    moved = tmp_path / "moved.toml"
+    moved.write_text(description.with_values({"misregistration.shift_x_pitch": 2.0}).to_toml())
+    status, out, err = _run(["rtc", "check", str(gains), "--config", str(moved), "--chi-table", str(table), "--cache-dir", str(cache_dir)], capsys)
+    assert status == 3 and "mis-registration: unstable eigenmodes" in out and "NOT safe" in out
+
+
+def test_misregistration_option_refused_out_of_range(tmp_path, capsys):
+    gains = tmp_path / "gains.toml"
+    gains.write_text("gains = [" + ", ".join(map(str, _gains(_observation()))) + "]\n")
+    status, out, err = _run(["rtc", "check", str(gains), "--mag", MAG, "--misregistration", "0.1"], capsys)
+    assert status == 2 and "--misregistration takes DX,DY" in err and out == ""
