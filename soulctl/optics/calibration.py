@@ -93,10 +93,10 @@ class CalibrationSetup:
         check_sampling(self.n_modes, self.pyramid.oversampling)
 
     def key(self) -> str:
-        return cache_key(
-            "calibration",
-            {"pyramid": asdict(self.pyramid), "n_modes": self.n_modes, "basis": self.basis.key(), "push_nm": self.push_nm},
-        )
+        """The cache key; a monochromatic pyramid's (no ``band_nm``) is the key it had before
+        bands existed, so cached calibrations stay valid."""
+        pyramid = {k: v for k, v in asdict(self.pyramid).items() if k != "band_nm" or v}
+        return cache_key("calibration", {"pyramid": pyramid, "n_modes": self.n_modes, "basis": self.basis.key(), "push_nm": self.push_nm})
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,11 @@ mask translated by the opposite offset, evaluated analytically: one forward FFT 
 wavefront, then one inverse FFT per modulation point (batched, threaded, complex64).
 
 Sensing wavelength: 750 nm, the effective wavelength of SOUL's 600-950 nm WFS band (Arcetri
-semi-analytic error budget); polychromatism is not modelled.
+semi-analytic error budget).  A polychromatic beam (``band_nm``: wavelengths of equal photon
+weight) sums the monochromatic frames of its wavelengths, each with the modulation at the same
+angle (``modulation_lambda_over_d`` is in lambda/D at ``wavelength_m``) and the same pupil
+images (the pyramid's deflection is taken as achromatic); the same OPD is less phase at the
+band's red end, which keeps the sensor linear over larger residuals.
 Intensities returned by :meth:`Pyramid.intensity` are binned detector frames normalised so
 that an unaberrated frame holds a total of 1; multiply by the photons per frame.
 """
@@ -31,7 +35,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -42,6 +46,7 @@ from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
 
 SUBAPERTURES_BIN1 = 40
 WFS_WAVELENGTH_M = 750e-9
+MAX_BAND_WAVELENGTHS = 9
 _FFT_PER_PUPIL = 96 / 40  # N / n_pup
 _SEPARATION_PER_PUPIL = 48 / 40  # distance between pupil image centres / n_pup
 
@@ -61,6 +66,7 @@ class PyramidConfig:
     diameter_m: float = LBT_DIAMETER_M
     obstruction: float = LBT_OBSTRUCTION
     n_modulation: int | None = None  # None: the 4 ceil(2 r) rule
+    band_nm: tuple[float, ...] = ()  # a polychromatic beam's wavelengths (equal photons); () monochromatic
 
     def __post_init__(self):
         if self.binning not in (1, 2, 3, 4):
@@ -76,6 +82,15 @@ class PyramidConfig:
             raise InputError(f"valid sub-aperture threshold must be in (0, 1), got {self.valid_threshold}")
         if self.n_modulation is not None and not (1 <= self.n_modulation <= 1000):
             raise InputError(f"modulation points must be 1..1000, got {self.n_modulation}")
+        if len(self.band_nm) > MAX_BAND_WAVELENGTHS or not all(math.isfinite(w) and 300 <= w <= 3000 for w in self.band_nm):
+            raise InputError(f"WFS band must be 1..{MAX_BAND_WAVELENGTHS} wavelengths in 300..3000 nm, got {list(self.band_nm)}")
+        for w in self.band_nm:
+            self.monochromatic(w)  # each wavelength's modulation in range
+
+    def monochromatic(self, wavelength_nm: float) -> PyramidConfig:
+        """This configuration at one wavelength of its band: the modulation at the same angle."""
+        radius = self.modulation_lambda_over_d * self.wavelength_m / (wavelength_nm * 1e-9)
+        return replace(self, wavelength_m=wavelength_nm * 1e-9, modulation_lambda_over_d=radius, band_nm=())
 
     @property
     def pupil(self) -> Pupil:
@@ -130,6 +145,14 @@ class Pyramid:
         self.workers = _available_cores() if workers == -1 else workers
         if self.workers < 1:
             raise InputError(f"workers must be >= 1 or -1 (one per core), got {workers}")
+        self._parts = [Pyramid(config.monochromatic(w), workers) for w in config.band_nm]
+        if not self._parts:
+            self._monochromatic(config)
+        self._pool: ThreadPoolExecutor | None = None
+        self._norm = 1.0 / (self._raw_total())
+
+    def _monochromatic(self, config: PyramidConfig) -> None:
+        """The propagation's geometry, masks and per-thread scratch at one wavelength."""
         n_pup, N = self.pupil.n_pixels, config.fft_size
         self._offset = (N - n_pup) // 2  # the pupil sits at the centre of the padded field
         # At binning 3 a pupil image is 13.3 detector pixels wide: shifting the pixel grid by
@@ -144,8 +167,6 @@ class Pyramid:
         threads = min(self.workers, config.points)
         self._shares = [range(t, config.points, threads) for t in range(threads)]
         self._scratch = [_Scratch(N, len(share)) for share in self._shares]
-        self._pool: ThreadPoolExecutor | None = None
-        self._norm = 1.0 / (self._raw_total())
 
     def _modulated_masks(self) -> np.ndarray:
         """(points, N, N) complex64: the pyramid's transmission shifted by each modulation offset."""
@@ -172,7 +193,11 @@ class Pyramid:
         return float(self._raw(np.zeros((1,) + (self.pupil.n_pixels,) * 2))[0].sum())
 
     def _raw(self, opd_nm: np.ndarray) -> np.ndarray:
-        """Unnormalised binned intensity for a batch of OPD maps (batch, n_pup, n_pup)."""
+        """Unnormalised binned intensity for a batch of OPD maps (batch, n_pup, n_pup); a
+        band's: the mean of its wavelengths' normalised frames (equal photons)."""
+        if self._parts:
+            frames = np.stack([p._raw(opd_nm) * np.float32(p._norm) for p in self._parts])
+            return frames.mean(axis=0, dtype=np.float32)
         c = self.config
         N, o, n_pup = c.fft_size, self._offset, self.pupil.n_pixels
         k = 2 * np.pi / (c.wavelength_m * 1e9)

@@ -112,9 +112,72 @@ def test_sensitivity_falls_as_the_modulation_grows():
     assert gains[1] / gains[2] == pytest.approx(2.0, rel=0.15)
 
 
+def _sensor_of(config: PyramidConfig) -> WavefrontSensor:
+    return WavefrontSensor(Pyramid(config), Detector(read_noise_e=0, excess_noise=False), photons_per_frame=1.0)
+
+
+def _high_order_mode(wfs: WavefrontSensor) -> np.ndarray:
+    p = wfs.pupil
+    c = (np.arange(p.n_pixels) + 0.5) / p.n_pixels
+    x, y = np.meshgrid(c, c)
+    return (np.cos(2 * np.pi * 9 * x) * np.cos(2 * np.pi * 6 * y) * p.mask).astype(np.float32)  # ~11 cycles/pupil
+
+
+def test_chromatic_response_tilt_by_angle_high_orders_by_phase():
+    """At the same modulation angle: a small tilt's signal depends on the angle only (geometric
+    optics, s = 2 theta / (pi r), both in radians), at any wavelength; a mode of spatial
+    frequency beyond the modulation is sensed by its phase, so per nm of OPD as 1/lambda; and
+    under a 150 nm residual the red end keeps more of its gain (the same OPD is less phase)."""
+    base = PyramidConfig(binning=2, oversampling=1, modulation_lambda_over_d=3.0)
+    sensors = {w: _sensor_of(base.monochromatic(w)) for w in (650.0, 900.0)}
+    tilt = {w: mean_slopes(wfs, tip_map(wfs, 0.1))[0] for w, wfs in sensors.items()}
+    assert tilt[650.0] == pytest.approx(tilt[900.0], rel=0.02)
+    mode = _high_order_mode(sensors[650.0])
+    linear = {w: wfs.slopes(5 * mode) - wfs.slopes(-5 * mode) for w, wfs in sensors.items()}
+    assert np.linalg.norm(linear[650.0]) / np.linalg.norm(linear[900.0]) == pytest.approx(900 / 650, rel=0.06)
+    n = mode.shape[0]
+    x, y = np.meshgrid(np.arange(n) / n, np.arange(n) / n)
+    rng = np.random.default_rng(2)
+    residual = np.zeros((n, n))
+    for fx, fy in rng.integers(1, 15, (60, 2)):  # a rough f^-11/3 spectrum up to 14 cycles
+        residual += np.cos(2 * np.pi * (fx * x + fy * y) + rng.uniform(0, 2 * np.pi)) / np.hypot(fx, fy) ** (11 / 6)
+    mask = sensors[650.0].pupil.mask > 0
+    residual = (150 * residual / residual[mask].std() * mask).astype(np.float32)
+    kept = {}
+    for w, wfs in sensors.items():
+        d = wfs.slopes(residual + 5 * mode) - wfs.slopes(residual - 5 * mode)
+        kept[w] = float(d @ linear[w] / (linear[w] @ linear[w]))
+    assert 0.5 < kept[650.0] < kept[900.0] < 1.0
+
+
+def test_a_band_is_the_mean_of_its_wavelengths():
+    """A polychromatic beam of equal photon weights: the frame is the mean of its wavelengths'
+    normalised frames, each at the band's modulation angle; one wavelength at 750 nm is the
+    monochromatic default, bit for bit."""
+    base = PyramidConfig(binning=4, oversampling=1)
+    opd = np.random.default_rng(3).normal(0, 80, (40, 40)).astype(np.float32)
+    band = Pyramid(PyramidConfig(binning=4, oversampling=1, band_nm=(650.0, 900.0)))
+    parts = [Pyramid(base.monochromatic(w)).intensity(opd) for w in (650.0, 900.0)]
+    np.testing.assert_allclose(band.intensity(opd), (parts[0] + parts[1]) / 2, rtol=1e-5, atol=1e-9)
+    assert band.reference_intensity.sum() == pytest.approx(1.0, rel=1e-5)
+    assert base.monochromatic(900.0).modulation_lambda_over_d == pytest.approx(3.0 * 750 / 900)
+    one = Pyramid(PyramidConfig(binning=4, oversampling=1, band_nm=(750.0,)))
+    np.testing.assert_array_equal(one.intensity(opd), Pyramid(base).intensity(opd))
+
+
 @pytest.mark.parametrize(
     "kwargs",
-    [{"binning": 5}, {"binning": 0}, {"modulation_lambda_over_d": -1.0}, {"oversampling": 7}, {"wavelength_m": 0.0}],
+    [
+        {"binning": 5},
+        {"binning": 0},
+        {"modulation_lambda_over_d": -1.0},
+        {"oversampling": 7},
+        {"wavelength_m": 0.0},
+        {"band_nm": (200.0, 750.0)},
+        {"band_nm": (float("nan"),)},
+        {"band_nm": (750.0,) * 10},
+        {"band_nm": (320.0,), "modulation_lambda_over_d": 10.0},  # 23 lambda/D at 320 nm
+    ],
 )
 def test_non_physical_configurations_are_input_errors(kwargs):
     with pytest.raises(InputError) as e:
