@@ -16,7 +16,7 @@ is 0.14 at one pitch of shift).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,6 +38,7 @@ class CouplingStability:
     largest_pole: float  # |z| of the least stable closed-loop pole
     margin: float
     largest_phase_deg: float  # |arg mu| of the most rotated eigenmode
+    registered_unstable: int = 0  # of those, unstable with the mirror registered too (Q = I): the gains' own doing
 
     @property
     def stable(self) -> bool:
@@ -47,7 +48,10 @@ class CouplingStability:
         """'N of its M eigenmodes are unstable (...)' for the failure messages."""
         cure = f"stable only with the gains x {self.margin:.2f}" if self.margin > 0 else "no common factor on the gains stabilises them"
         pole = f"closed-loop pole at |z| = {self.largest_pole:.3f}"
-        return f"{self.unstable} of its {self.eigenmodes} eigenmodes are unstable ({pole}; {cure})"
+        own = ""
+        if self.registered_unstable:
+            own = f"; {self.registered_unstable} unstable with the mirror registered too: the gains' own doing"
+        return f"{self.unstable} of its {self.eigenmodes} eigenmodes are unstable ({pole}; {cure}{own})"
 
     def to_dict(self) -> dict:
         """JSON-ready: an unbounded figure (a margin stable at every factor searched, a pole at
@@ -131,9 +135,15 @@ def registration_verdict(
     """``coupling_stability`` with the configuration's own unit loops: Tip/Tilt's filter on
     z^-d and the 127 Hz structure (when the frame rate samples it), the other modes' leaky
     integrator on z^-d; the verdict `loop run` gives at the end of a run and `rtc check` before
-    an upload."""
+    an upload.  A lost loop also counts the eigenmodes its gains leave unstable with the mirror
+    registered (gains run with --allow-unstable), so that the message does not blame the
+    mis-registration alone."""
     filters, ba = unit_loops(observation, structure, forgetting, observation.modes)
     rate = observation.frame_rate_hz
     tip_tilt = Loop(filters[0], Plant(delay_frames, 1.0, ba) if ba is not None else Plant(delay_frames), rate)
     other = Loop(filters[-1], Plant(delay_frames), rate)
-    return coupling_stability(coupling, gains_chi, tip_tilt, other)
+    verdict = coupling_stability(coupling, gains_chi, tip_tilt, other)
+    if verdict.stable:
+        return verdict
+    registered = coupling_stability(np.eye(len(gains_chi)), gains_chi, tip_tilt, other)
+    return replace(verdict, registered_unstable=registered.unstable)

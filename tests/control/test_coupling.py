@@ -127,3 +127,28 @@ def test_modes_at_gain_zero_are_not_in_the_loop():
     assert verdict.stable and verdict.eigenmodes == 2
     nothing = coupling_stability(np.eye(4), np.zeros(4), loop, loop)
     assert nothing.stable and nothing.eigenmodes == 0 and nothing.to_dict()["margin"] == "inf"
+
+
+def test_a_lost_loop_counts_the_modes_its_gains_lose_when_registered():
+    """`registration_verdict` (the call of `loop run` and `rtc check`): a 120-degree rotation of
+    two modes loses the loop at a third of the maximum stable gain; gains above the maximum on
+    three other modes (run with --allow-unstable) are unstable with the mirror registered too,
+    and the verdict says so instead of blaming the mis-registration alone."""
+    from soulctl.control.coupling import registration_verdict
+    from soulctl.control.gains import unit_loops
+    from soulctl.observation import observation_for_magnitude
+
+    obs = observation_for_magnitude(16.5)
+    filters, _ = unit_loops(obs, None, 0.99, obs.modes)
+    g_max = max_stable_gain(Loop(filters[-1], Plant(obs.delay_frames), obs.frame_rate_hz))
+    q = np.eye(obs.modes)
+    q[10:12, 10:12] = rotations(120.0, 1)
+    gains = np.full(obs.modes, g_max / 3)
+    lost = registration_verdict(obs, None, 0.99, q, gains, obs.delay_frames)
+    assert lost.unstable == 2 and lost.registered_unstable == 0 and "own doing" not in lost.unstable_text()
+    gains[40:43] = 1.5 * g_max
+    both = registration_verdict(obs, None, 0.99, q, gains, obs.delay_frames)
+    assert both.unstable == 5 and both.registered_unstable == 3 and "3 unstable with the mirror registered too" in both.unstable_text()
+    alone = registration_verdict(obs, None, 0.99, np.eye(obs.modes), gains, obs.delay_frames)  # registered: the gains' doing
+    assert alone.unstable == alone.registered_unstable == 3
+    assert json.loads(json.dumps(both.to_dict()))["registered_unstable"] == 3
