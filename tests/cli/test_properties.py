@@ -162,6 +162,7 @@ CASES = [
     ("telemetry identify", ["{record}"], "--delay-frames", NUMBERS, 60),
     *[("rtc check", ["{gains}", "--mag", "16.5"], o, NUMBERS, 30) for o in ["--modulus-margin", "--gain-margin", "--phase-margin"]],
     ("rtc check", ["{gains}"], "--mag", NUMBERS, 30),
+    ("rtc check", ["{gains}", "--mag", "16.5"], "--misregistration", LISTS, 120),
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
 GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
@@ -215,6 +216,7 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
         "optics calibrate",
         "optics gains",
         "telemetry identify",
+        "rtc check",
     )
 
     grid = tmp_path_factory.mktemp("grid") / "grid.toml"
