@@ -154,6 +154,8 @@ def main() -> None:
     p.add_argument("--only", default=None, help="comma list of R13, R16.5, ogtl, transient (default: all)")
     p.add_argument("--vibrations", default=None, help="the paper cases' vibrations: lbt, lbt-onsky or a file (default: the default)")
     a = p.parse_args()
+    if a.vibrations is not None and a.out == RESULTS / "faint_cases.json":  # not over the default level's results
+        a.out = RESULTS / f"faint_cases_vibrations_{Path(a.vibrations).stem}.json"
     cache = ArrayCache(default_cache_dir())
     seeds = [int(s) for s in a.seeds.split(",")]
     t0 = time.perf_counter()

@@ -125,11 +125,7 @@ def _render(result, console: Console) -> None:
         for label, text in aux_rows(result.telemetry):
             t.add_row(label, text)
     if result.coupling is not None:
-        c = result.coupling
-        t.add_row(
-            "mis-registration: unstable eigenmodes",
-            f"{c.unstable} of {c.eigenmodes} (largest pole |z| {c.largest_pole:.3f}, gain margin x{c.margin:.2f})",
-        )
+        t.add_row("mis-registration: unstable eigenmodes", result.coupling.figures_text())
     t.add_row("simulation speed", f"{m.frames / result.seconds:.0f} frames/s" if result.seconds > 0 else "n/a")
     console.print(t)
     for note in result.notes:

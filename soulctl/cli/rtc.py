@@ -16,7 +16,7 @@ from ..control.structure import sampled_structure
 from ..errors import InputError
 from ..files import input_file
 from ..identify.plant import read_plant
-from ..loop.run import calibration_for
+from ..loop.run import calibration_for, loop_calibration
 from ..optics.cache import ArrayCache
 from ..optics.calibration import moved_mirror_response
 from ..optics.optical_gains import read_optical_gain_table
@@ -127,29 +127,31 @@ def check_cmd(o: CheckOptions) -> int:
                 "criteria": criteria.__dict__,
                 "failed_modes": [c.mode for c in checks if not c.passed],
                 "rebuild_differences": None if comparison is None else comparison.differences,
-                "misregistration_stability": None if coupling is None else coupling.to_dict(),
+                "misregistration_stability": None if coupling is None else coupling.to_dict() | {"passed": coupled},
                 "modes": [c.to_dict() for c in checks],
             }
         )
     else:
-        _render(checks, states, delay, ok, comparison, coupling)
+        _render(checks, states, delay, ok, comparison, coupling, criteria)
     return 0 if ok else UNSAFE_EXIT
 
 
 def _coupling(description, gains_chi: np.ndarray, delay: float, cache: ArrayCache) -> CouplingStability | None:
-    """The coupled loop with the description's mis-registration (``control.coupling``): Q = R D'
-    of the configuration's modelled calibration (noiseless, cached as `loop run` caches it) and
+    """The coupled loop with the description's mis-registration (``control.coupling``): Q = R D',
+    R the reconstructor `loop run` would hold (the modelled calibration, measured with the
+    description's [calibration] noise when it has some), D' the moved mirror's response, and
     the gains times the check's chi_i; None when the mirror is registered."""
     registration = description.registration
     if registration.is_identity:
         return None
-    cal = calibration_for(description.request(), cache)
-    q = cal.reconstructor @ moved_mirror_response(cal, registration, cache)
+    request = description.request()
+    cal = calibration_for(request, cache)
+    q = loop_calibration(request, cal).reconstructor @ moved_mirror_response(cal, registration, cache)
     obs = description.observation
     return registration_verdict(obs, description.structure, description.controller.forgetting, q, gains_chi, delay)
 
 
-def _render(checks, states: int, delay: float, ok: bool, comparison, coupling: CouplingStability | None) -> None:
+def _render(checks, states: int, delay: float, ok: bool, comparison, coupling: CouplingStability | None, criteria: Criteria) -> None:
     worst = sorted(checks, key=lambda c: (c.passed, c.modulus_margin))[:WORST]
     t = quantity_table(f"worst modes by modulus margin (delay {delay:.3f} frames)")
     for c in worst:
@@ -168,9 +170,11 @@ def _render(checks, states: int, delay: float, ok: bool, comparison, coupling: C
             )
     lost = ""
     if coupling is not None:
-        figures = f"largest pole |z| {coupling.largest_pole:.3f}, gain margin x{coupling.margin:.2f}"
-        t.add_row("mis-registration: unstable eigenmodes", f"{coupling.unstable} of {coupling.eigenmodes} ({figures})")
-        lost = "" if coupling.stable else f", {coupling.unstable} eigenmode(s) unstable when mis-registered"
+        t.add_row("mis-registration: unstable eigenmodes", coupling.figures_text())
+        if not coupling.stable:
+            lost = f"; mis-registered, {coupling.unstable_text()}"
+        elif coupling.margin < criteria.gain_margin:
+            lost = f"; mis-registered, gain margin x{coupling.margin:.2f} below --gain-margin {criteria.gain_margin:g}"
     failed = sum(not c.passed for c in checks)
     t.add_row(
         "verdict",

@@ -38,7 +38,7 @@ class CouplingStability:
     largest_pole: float  # |z| of the least stable closed-loop pole
     margin: float
     largest_phase_deg: float  # |arg mu| of the most rotated eigenmode
-    registered_unstable: int = 0  # of those, unstable with the mirror registered too (Q = I): the gains' own doing
+    registered_unstable: int = 0  # modes the gains alone leave unstable (Q = I, the mirror registered); counted when lost
 
     @property
     def stable(self) -> bool:
@@ -50,8 +50,13 @@ class CouplingStability:
         pole = f"closed-loop pole at |z| = {self.largest_pole:.3f}"
         own = ""
         if self.registered_unstable:
-            own = f"; {self.registered_unstable} unstable with the mirror registered too: the gains' own doing"
+            own = f"; the gains alone leave {self.registered_unstable} modes unstable with the mirror registered"
         return f"{self.unstable} of its {self.eigenmodes} eigenmodes are unstable ({pole}; {cure}{own})"
+
+    def figures_text(self) -> str:
+        """'U of N (largest pole |z| ..., gain margin x...)' for the tables."""
+        margin = "unbounded" if math.isinf(self.margin) else f"x{self.margin:.2f}"
+        return f"{self.unstable} of {self.eigenmodes} (largest pole |z| {self.largest_pole:.3f}, gain margin {margin})"
 
     def to_dict(self) -> dict:
         """JSON-ready: an unbounded figure (a margin stable at every factor searched, a pole at
@@ -143,7 +148,12 @@ def registration_verdict(
     tip_tilt = Loop(filters[0], Plant(delay_frames, 1.0, ba) if ba is not None else Plant(delay_frames), rate)
     other = Loop(filters[-1], Plant(delay_frames), rate)
     verdict = coupling_stability(coupling, gains_chi, tip_tilt, other)
-    if verdict.stable:
-        return verdict
-    registered = coupling_stability(np.eye(len(gains_chi)), gains_chi, tip_tilt, other)
-    return replace(verdict, registered_unstable=registered.unstable)
+    return verdict if verdict.stable else replace(verdict, registered_unstable=unstable_alone(gains_chi, tip_tilt, other))
+
+
+def unstable_alone(gains_chi: np.ndarray, tip_tilt_unit: Loop, unit: Loop) -> int:
+    """Modes whose own loop is unstable at g_i chi_i: Q = I, the mirror registered."""
+    g = np.asarray(gains_chi, dtype=float)
+    n_tt = min(2, len(g))
+    radii = np.concatenate([pole_radii(loop, mu[mu != 0]) for loop, mu in ((tip_tilt_unit, g[:n_tt]), (unit, g[n_tt:]))])
+    return int(np.sum(radii >= 1.0))

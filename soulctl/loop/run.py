@@ -261,6 +261,14 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
     sink.describe(described, run_configuration(request, gains), {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M})
 
 
+def loop_calibration(request: RunRequest, cal: Calibration) -> Calibration:
+    """The calibration the loop's RTC holds: ``cal`` (noiseless), or with the request's
+    calibration noise the one measured in those conditions (seeded, so the same each time)."""
+    if request.calibration_noise is None:
+        return cal
+    return measured_calibration(cal, request.calibration_noise, L0_m=request.L0_m)
+
+
 def closed_loop_for(
     request: RunRequest, cal: Calibration, gains: LoopGains, structure, sink: Sink | None = None, duration_s: float | None = None
 ) -> ClosedLoop:
@@ -271,8 +279,7 @@ def closed_loop_for(
     and reconstructor are the measured ones (``cal``, noiseless, stays what the optical-gain
     tables and the checks use)."""
     pupil = cal.setup.pyramid.pupil
-    if request.calibration_noise is not None:
-        cal = measured_calibration(cal, request.calibration_noise, L0_m=request.L0_m)
+    cal = loop_calibration(request, cal)
     return ClosedLoop(
         request.observation,
         cal,

@@ -33,6 +33,7 @@ that an unaberrated frame holds a total of 1; multiply by the photons per frame.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -82,10 +83,14 @@ class PyramidConfig:
             raise InputError(f"valid sub-aperture threshold must be in (0, 1), got {self.valid_threshold}")
         if self.n_modulation is not None and not (1 <= self.n_modulation <= 1000):
             raise InputError(f"modulation points must be 1..1000, got {self.n_modulation}")
-        if len(self.band_nm) > MAX_BAND_WAVELENGTHS or not all(math.isfinite(w) and 300 <= w <= 3000 for w in self.band_nm):
-            raise InputError(f"WFS band must be 1..{MAX_BAND_WAVELENGTHS} wavelengths in 300..3000 nm, got {list(self.band_nm)}")
+        band = self.band_nm
+        if len(band) > MAX_BAND_WAVELENGTHS or not all(isinstance(w, numbers.Real) and math.isfinite(w) and 300 <= w <= 3000 for w in band):
+            raise InputError(f"WFS band must be 1..{MAX_BAND_WAVELENGTHS} wavelengths in 300..3000 nm, got {list(band)}")
+        object.__setattr__(self, "band_nm", tuple(sorted(float(w) for w in band)))  # one form (and cache key) per band
         for w in self.band_nm:
-            self.monochromatic(w)  # each wavelength's modulation in range
+            radius = self.modulation_lambda_over_d * self.wavelength_m / (w * 1e-9)
+            if radius > 20:
+                raise InputError(f"WFS band: at {w:g} nm the modulation is {radius:.3g} lambda/D, outside 0..20")
 
     def monochromatic(self, wavelength_nm: float) -> PyramidConfig:
         """This configuration at one wavelength of its band: the modulation at the same angle."""
@@ -196,6 +201,7 @@ class Pyramid:
         """Unnormalised binned intensity for a batch of OPD maps (batch, n_pup, n_pup); a
         band's: the mean of its wavelengths' normalised frames (equal photons)."""
         if self._parts:
+            self._share_pool()
             frames = np.stack([p._raw(opd_nm) * np.float32(p._norm) for p in self._parts])
             return frames.mean(axis=0, dtype=np.float32)
         c = self.config
@@ -237,6 +243,14 @@ class Pyramid:
             v = scipy.fft.ifft2(field, workers=1, overwrite_x=True).view(np.float32)
             sc.total += np.einsum("kij,kij->ij", v, v, out=sc.square)
         return sc.total
+
+    def _share_pool(self) -> None:
+        """A band's wavelengths run one after the other: one thread pool serves them all."""
+        size = max(len(p._shares) for p in self._parts)
+        if self._pool is None and size > 1:
+            self._pool = ThreadPoolExecutor(size, thread_name_prefix="pwfs")
+            for p in self._parts:
+                p._pool = self._pool
 
     def _map(self, task):
         if len(self._shares) == 1:

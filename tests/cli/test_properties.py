@@ -74,6 +74,11 @@ NUMBERS = st.one_of(
     st.text(max_size=6),
 )
 LISTS = st.lists(NUMBERS, min_size=1, max_size=4).map(",".join)
+# --misregistration: anything, or an accepted DX,DY,ROT,MAG (the verdict's JSON, inf margins included)
+REGISTRATIONS = st.one_of(
+    st.tuples(st.floats(-2, 2), st.floats(-2, 2), st.floats(-10, 10), st.floats(0.8, 1.2)).map(lambda t: ",".join(map(repr, t))),
+    LISTS,
+)
 
 
 def small(hi: float) -> st.SearchStrategy:
@@ -162,7 +167,7 @@ CASES = [
     ("telemetry identify", ["{record}"], "--delay-frames", NUMBERS, 60),
     *[("rtc check", ["{gains}", "--mag", "16.5"], o, NUMBERS, 30) for o in ["--modulus-margin", "--gain-margin", "--phase-margin"]],
     ("rtc check", ["{gains}"], "--mag", NUMBERS, 30),
-    ("rtc check", ["{gains}", "--mag", "16.5"], "--misregistration", LISTS, 120),
+    ("rtc check", ["{gains}", "--mag", "16.5"], "--misregistration", REGISTRATIONS, 120),
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
 GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"

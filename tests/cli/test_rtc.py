@@ -108,17 +108,19 @@ def test_rtc_description_missing_matrix_is_exit_2(tmp_path, capsys):
     assert status == 2 and "missing Sigma" in err
 
 
-def test_misregistration_verdict_before_an_upload_is_loop_runs(tmp_path, capsys, cache_dir):
+@pytest.mark.parametrize("noise", [{}, {"calibration.photons_per_frame": 50.0}], ids=["noiseless", "calibration noise"])
+def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, capsys, cache_dir):
     """`rtc check --misregistration` judges the coupled loop of the moved mirror as `loop run`
-    does at the end of a run: with the run's optical gains as the chi table, the same verdict
-    (two pitches of shift lose the default R16.5 gains, exit 3; half a pitch does not); the
-    [misregistration] of --config is read as the option is."""
+    does at the end of a run: with the run's optical gains as the chi table and the same
+    reconstructor (the measured one when the description has calibration noise), the same
+    verdict (noiseless: two pitches of shift lose the default R16.5 gains, exit 3; half a pitch
+    does not); the [misregistration] of --config is read as the option is."""
     from soulctl.cli.common import run_description
     from soulctl.loop.chi_model import optical_gain_table
     from soulctl.loop.run import calibration_for
     from soulctl.optics.cache import ArrayCache
 
-    description = run_description(None, "16.5", {"run.oversampling": 1})
+    description = run_description(None, "16.5", {"run.oversampling": 1, **noise})
     config, gains, table = tmp_path / "run.toml", tmp_path / "gains.toml", tmp_path / "chi.csv"
     config.write_text(description.to_toml())
     resolved = description.resolved()
@@ -127,29 +129,51 @@ def test_misregistration_verdict_before_an_upload_is_loop_runs(tmp_path, capsys,
     request = description.request()
     gamma = optical_gain_table(calibration_for(request, ArrayCache(cache_dir)), ArrayCache(cache_dir), request.seeing_arcsec)
     table.write_text("mode,optical_gain\n" + "".join(f"{i + 1},{x!r}\n" for i, x in enumerate(gamma.tolist())))
-    check = ["rtc", "check", str(gains), "--config", str(config), "--chi-table", str(table), "--cache-dir", str(cache_dir), "--json"]
+    check = ["rtc", "check", str(gains), "--config", str(config), "--chi-table", str(table), "--cache-dir", str(cache_dir)]
     run = ["loop", "run", "--config", str(config), "--duration", "0.3", "--no-ogtl", "--cache-dir", str(cache_dir), "--json"]
-    for shift, status_expected in (("2,0", 3), ("0.5,0", 0)):
-        status, out, err = _run([*check, "--misregistration", shift], capsys)
-        assert status == status_expected and "Traceback" not in err, err
+    statuses = []
+    for shift in ("2,0", "0.5,0"):
+        status, out, err = _run([*check, "--json", "--misregistration", shift], capsys)
+        assert status in (0, 3) and "Traceback" not in err, err
         verdict = json.loads(out)["misregistration_stability"]
-        assert json.loads(out)["passed"] is (status_expected == 0)
-        status, out, err = _run([*run, "--misregistration", shift], capsys)
-        assert status == status_expected, err
+        assert json.loads(out)["passed"] is verdict["passed"] is (status == 0)
+        run_status, out, err = _run([*run, "--misregistration", shift], capsys)
+        assert run_status == status, err
         in_run = json.loads(out)["misregistration_stability"]
         assert verdict["unstable"] == in_run["unstable"] and verdict["eigenmodes"] == in_run["eigenmodes"]
         for key in ("largest_pole", "margin", "largest_phase_deg"):
             assert verdict[key] == pytest.approx(in_run[key], rel=1e-9), key
-    status, out, err = _run([*check, "--misregistration", "0,0"], capsys)  # registered: no verdict, the per-mode checks only
-    assert status == 0 and json.loads(out)["misregistration_stability"] is None
-    moved = tmp_path / "moved.toml"
-    moved.write_text(description.with_values({"misregistration.shift_x_pitch": 2.0}).to_toml())
-    status, out, err = _run(["rtc", "check", str(gains), "--config", str(moved), "--chi-table", str(table), "--cache-dir", str(cache_dir)], capsys)
-    assert status == 3 and "mis-registration: unstable eigenmodes" in out and "NOT safe" in out
+        statuses.append(status)
+    if not noise:
+        assert statuses == [3, 0]
+        status, out, err = _run([*check, "--json", "--misregistration", "0,0"], capsys)  # registered: the per-mode checks only
+        assert status == 0 and json.loads(out)["misregistration_stability"] is None
+        moved = tmp_path / "moved.toml"
+        moved.write_text(description.with_values({"misregistration.shift_x_pitch": 2.0}).to_toml())
+        status, out, err = _run([*check[:4], str(moved), *check[5:]], capsys)
+        assert status == 3 and "mis-registration: unstable eigenmodes" in out and "NOT safe" in out
 
 
-def test_misregistration_option_refused_out_of_range(tmp_path, capsys):
+def test_a_coupled_gain_margin_below_the_criterion_is_named(tmp_path, capsys, cache_dir):
+    """A moved loop that is stable but with less common gain margin than --gain-margin fails
+    the check, and the verdict says why (the per-mode margins all pass)."""
+    gains = tmp_path / "gains.toml"
+    gains.write_text("gains = [" + ", ".join(["0.3"] * 90) + "]\n")
+    args = ["rtc", "check", str(gains), "--mag", "16.5", "--misregistration", "0.2,0", "--cache-dir", str(cache_dir)]
+    status, out, err = _run([*args, "--json"], capsys)
+    d = json.loads(out)
+    margin = d["misregistration_stability"]["margin"]
+    assert status == 0 and d["misregistration_stability"]["stable"] and 1 < margin < min(m["gain_margin"] for m in d["modes"])
+    status, out, err = _run([*args, "--json", "--gain-margin", f"{margin * 1.01:.6g}"], capsys)
+    d = json.loads(out)
+    assert status == 3 and d["failed_modes"] == [] and d["misregistration_stability"]["passed"] is False
+    status, out, err = _run([*args, "--gain-margin", f"{margin * 1.01:.6g}"], capsys)
+    assert status == 3 and "below --gain-margin" in " ".join(out.split())
+
+
+def test_misregistration_option_refused_with_one_line(tmp_path, capsys):
     gains = tmp_path / "gains.toml"
     gains.write_text("gains = [" + ", ".join(map(str, _gains(_observation()))) + "]\n")
-    status, out, err = _run(["rtc", "check", str(gains), "--mag", MAG, "--misregistration", "0.1"], capsys)
-    assert status == 2 and "--misregistration takes DX,DY" in err and out == ""
+    for value, message in (("0.1", "--misregistration takes DX,DY"), ("0.1,9", "--misregistration shift_y_pitch must be in")):
+        status, out, err = _run(["rtc", "check", str(gains), "--mag", MAG, "--misregistration", value], capsys)
+        assert status == 2 and message in err and err.count("\n") == 1 and out == "", err
