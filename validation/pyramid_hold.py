@@ -6,7 +6,7 @@ If the loop at 1.6" falls from the linear sensor's residual to the one it reache
 on the pyramid from a flat mirror, the pyramid cannot hold it, whatever the closing procedure.
 
     python validation/pyramid_hold.py [--seeings 1.0,1.6] [--linear-s 0.3] [--duration 1.5]
-        [--wavelengths 750] [--oversampling 2] [--out FILE]
+        [--wavelengths 750] [--oversampling 2] [--field-stop 0] [--out FILE]
 
 Residual RMS (nm, all pupil pixels) over spans before and after the switch, with the Marechal
 H-band Strehl ratio exp(-(2 pi sigma / 1650 nm)^2) as a rough scale; "og" rows divide every
@@ -59,26 +59,28 @@ def linear_until(loop, calibration, frames: int) -> None:
     sensor.pyramid.intensity, sensor.slopes_of_frame = pyramid, slopes
 
 
-def calibration_at(request, wavelengths_nm: tuple[float, ...], cache: ArrayCache):
+def calibration_at(request, wavelengths_nm: tuple[float, ...], cache: ArrayCache, field_stop: float = 0.0):
     """The request's calibration with the pyramid at ``wavelengths_nm`` (one: monochromatic;
     several: a band of equal photon weights, ``PyramidConfig.band_nm``), the modulation at the
-    same angle as the default's (3 lambda/D at 750 nm)."""
-    if wavelengths_nm == (WFS_WAVELENGTH_M * 1e9,):
+    same angle as the default's (3 lambda/D at 750 nm), and a field stop of radius
+    ``field_stop`` lambda/D at 750 nm (0: none)."""
+    if wavelengths_nm == (WFS_WAVELENGTH_M * 1e9,) and field_stop == 0:
         return calibration_for(request, cache)
     setup = calibration_setup(request)
+    pyramid = dataclasses.replace(setup.pyramid, field_stop_lambda_over_d=field_stop)
     if len(wavelengths_nm) == 1:
-        pyramid = setup.pyramid.monochromatic(wavelengths_nm[0])
+        pyramid = pyramid.monochromatic(wavelengths_nm[0])
     else:
-        pyramid = dataclasses.replace(setup.pyramid, band_nm=wavelengths_nm)
+        pyramid = dataclasses.replace(pyramid, band_nm=wavelengths_nm)
     return calibrate(dataclasses.replace(setup, pyramid=pyramid), cache)
 
 
-def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayCache, wavelengths_nm=(750.0,), oversampling=2) -> dict:
+def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayCache, wavelengths_nm=(750.0,), oversampling=2, stop=0.0):
     values = {"star.magnitude_r": 9.7, "run.band": "H", "ncpa.rms_nm": 0.0, "atmosphere.seeing_arcsec": seeing, "run.seed": 1}
     values |= {"run.oversampling": oversampling}
     request = RunConfig().with_values(values | {"run.duration_s": duration}).request()
     obs = request.observation
-    cal = calibration_at(request, wavelengths_nm, cache)
+    cal = calibration_at(request, wavelengths_nm, cache, stop)
     structure = sampled_structure(request.structure, obs.frame_rate_hz)
     gains = request.gains or default_gains(obs, structure)
     loop = closed_loop_for(request, cal, gains, structure)
@@ -95,7 +97,8 @@ def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayC
     for name, (a, b) in spans.items():
         sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
         out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
-    described = {"seeing": seeing, "wavelengths_nm": list(wavelengths_nm), "oversampling": oversampling, "og_compensated_at_switch": og}
+    described = {"seeing": seeing, "wavelengths_nm": list(wavelengths_nm), "oversampling": oversampling}
+    described |= {"field_stop_lambda_over_d": stop, "og_compensated_at_switch": og}
     return described | {"linear_s": linear_s, "duration_s": duration, "spans": out}
 
 
@@ -106,6 +109,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=1.5)
     p.add_argument("--wavelengths", default="750", help="nm, comma-separated; a band as 658+775+892")
     p.add_argument("--oversampling", type=int, default=2, help="simulation pixels per binning-1 detector pixel (pupil 40 o px)")
+    p.add_argument("--field-stop", type=float, default=0.0, help="field stop radius, lambda/D at 750 nm (SOUL's 2.1\" field: 56)")
     p.add_argument("--og", choices=("both", "no"), default="both", help='also the rows with gains / gamma_i above 1.0"')
     p.add_argument("--out", type=Path, default=OUT)
     a = p.parse_args()
@@ -114,7 +118,7 @@ def main() -> None:
     bands = [tuple(float(w) for w in band.split("+")) for band in a.wavelengths.split(",")]
     for seeing, nm in ((float(s), band) for s in a.seeings.split(",") for band in bands):
         for og in (False, True) if seeing > 1.0 and a.og == "both" else (False,):
-            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling)
+            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling, a.field_stop)
             print(json.dumps(row), flush=True)
             rows.append(row)
     atomic_write_text(a.out, json.dumps(rows, indent=1))

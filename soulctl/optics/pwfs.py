@@ -68,6 +68,7 @@ class PyramidConfig:
     obstruction: float = LBT_OBSTRUCTION
     n_modulation: int | None = None  # None: the 4 ceil(2 r) rule
     band_nm: tuple[float, ...] = ()  # a polychromatic beam's wavelengths (equal photons); () monochromatic
+    field_stop_lambda_over_d: float = 0.0  # radius of a field stop around the vertex, lambda/D at wavelength_m; 0: none
 
     def __post_init__(self):
         if self.binning not in (1, 2, 3, 4):
@@ -83,19 +84,33 @@ class PyramidConfig:
             raise InputError(f"valid sub-aperture threshold must be in (0, 1), got {self.valid_threshold}")
         if self.n_modulation is not None and not (1 <= self.n_modulation <= 1000):
             raise InputError(f"modulation points must be 1..1000, got {self.n_modulation}")
+        stop, field = self.field_stop_lambda_over_d, self.field_lambda_over_d
+        if not (math.isfinite(stop) and (stop == 0 or r < stop <= field)):
+            raise InputError(
+                f"field stop must be 0 (none) or above the modulation ({r:g}) up to the simulated field ({field:g} lambda/D at "
+                f"oversampling {self.oversampling}), got {stop}"
+            )
         band = self.band_nm
         if len(band) > MAX_BAND_WAVELENGTHS or not all(isinstance(w, numbers.Real) and math.isfinite(w) and 300 <= w <= 3000 for w in band):
             raise InputError(f"WFS band must be 1..{MAX_BAND_WAVELENGTHS} wavelengths in 300..3000 nm, got {list(band)}")
         object.__setattr__(self, "band_nm", tuple(sorted(float(w) for w in band)))  # one form (and cache key) per band
         for w in self.band_nm:
-            radius = self.modulation_lambda_over_d * self.wavelength_m / (w * 1e-9)
-            if radius > 20:
-                raise InputError(f"WFS band: at {w:g} nm the modulation is {radius:.3g} lambda/D, outside 0..20")
+            try:
+                self.monochromatic(w)  # the modulation and the stop in range at every wavelength
+            except InputError as e:
+                raise InputError(f"WFS band: at {w:g} nm, {e}") from None
 
     def monochromatic(self, wavelength_nm: float) -> PyramidConfig:
-        """This configuration at one wavelength of its band: the modulation at the same angle."""
-        radius = self.modulation_lambda_over_d * self.wavelength_m / (wavelength_nm * 1e-9)
-        return replace(self, wavelength_m=wavelength_nm * 1e-9, modulation_lambda_over_d=radius, band_nm=())
+        """This configuration at one wavelength of its band: the modulation and the field stop
+        at the same angle."""
+        scale = self.wavelength_m / (wavelength_nm * 1e-9)
+        radius, stop = self.modulation_lambda_over_d * scale, self.field_stop_lambda_over_d * scale
+        return replace(self, wavelength_m=wavelength_nm * 1e-9, modulation_lambda_over_d=radius, field_stop_lambda_over_d=stop, band_nm=())
+
+    @property
+    def field_lambda_over_d(self) -> float:
+        """Half-width of the simulated focal plane: N/2 pixels at 2.4 pixels per lambda/D."""
+        return self.fft_size / 2 / (self.fft_size / self.pupil.n_pixels)
 
     @property
     def pupil(self) -> Pupil:
@@ -192,6 +207,8 @@ class Pyramid:
             phase_u = -2 * np.pi * np.abs(u) * shift / N
             phase_v = -2 * np.pi * np.abs(v) * shift / N
             masks[k] = np.exp(1j * (phase_v[:, None] + phase_u[None, :]))
+            if c.field_stop_lambda_over_d > 0:  # the stop sits on the pyramid: it moves with it
+                masks[k] *= (u[None, :] ** 2 + v[:, None] ** 2) <= (c.field_stop_lambda_over_d * pixels_per_lambda_over_d) ** 2
         return masks
 
     def _raw_total(self) -> float:

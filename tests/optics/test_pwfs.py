@@ -225,3 +225,28 @@ def test_a_band_shares_one_thread_pool_and_travels_to_workers():
     copy = pickle.loads(pickle.dumps(band))
     np.testing.assert_array_equal(copy.intensity(opd), frame)
     assert copy._pool is not None and all(p._pool is copy._pool for p in copy._parts)
+
+
+def test_a_field_stop_removes_the_light_beyond_it_and_nothing_within():
+    """A field stop on the pyramid (moving with it under the modulation): an unaberrated beam,
+    whose light lies within a few lambda/D, keeps it all (the stop only rings the pupil images'
+    edges); a tilt that puts the PSF beyond the stop leaves the detector dark; the stop scales
+    with the wavelength as the modulation does."""
+    plain = Pyramid(PyramidConfig(binning=4, oversampling=2))
+    stopped = Pyramid(PyramidConfig(binning=4, oversampling=2, field_stop_lambda_over_d=20.0))
+    # frames are normalised to the unaberrated beam's flux; beyond 20 lambda/D lie only the Airy wings (~1/(pi^2 r))
+    assert 0.98 < plain._norm / stopped._norm < 1.0
+    p = plain.pupil
+    c = (np.arange(p.n_pixels) + 0.5 - p.n_pixels / 2) * p.pixel_scale_m
+    x, _ = np.meshgrid(c, c)
+    for angle, lit in ((10.0, True), (30.0, False)):  # the PSF at 10 and 30 lambda/D from the vertex
+        opd = (x * angle * LAMBDA_OVER_D_RAD * 1e9 * p.mask).astype(np.float32)
+        kept = stopped.intensity(opd).sum() / plain.intensity(opd).sum()
+        assert (kept > 0.9) if lit else (kept < 0.05), (angle, kept)
+    assert PyramidConfig(field_stop_lambda_over_d=30.0).monochromatic(900.0).field_stop_lambda_over_d == pytest.approx(25.0)
+    with pytest.raises(InputError, match="field stop"):
+        PyramidConfig(oversampling=2, field_stop_lambda_over_d=56.0)  # beyond the +-40 lambda/D of an 80-pixel pupil
+    with pytest.raises(InputError, match="field stop"):
+        PyramidConfig(field_stop_lambda_over_d=2.0)  # inside the modulation
+    with pytest.raises(InputError, match="WFS band: at 600 nm"):
+        PyramidConfig(oversampling=3, field_stop_lambda_over_d=56.0, band_nm=(600.0, 900.0))  # 70 lambda/D at 600 nm
