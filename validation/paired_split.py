@@ -1,0 +1,61 @@
+"""Which part of an optimisation's loss is the gains' and which is OGTL's k?  One grid point of
+`optimize_magnitudes.py` (same request), then the paired evaluation of the four combinations of
+{initial, optimised} gains x {k before, k after}: the grid compares only the two diagonal ones.
+Not in CI (~8 min for a 20x20 point on one core).
+
+Run:  python validation/paired_split.py --mag 11.9 --seeing 1.5 --seed 1 [--variant mgm+ogtl] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import default_gains
+from soulctl.control.structure import sampled_structure
+from soulctl.files import atomic_write_text
+from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
+from soulctl.loop.run import calibration_for
+from soulctl.observation import observation_for_magnitude
+from soulctl.optics.cache import ArrayCache
+
+sys.path.insert(0, str(Path(__file__).parent))
+from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mag", type=float, required=True)
+    p.add_argument("--seeing", type=float, required=True)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--variant", default="mgm+ogtl")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    method, ogtl = a.variant.split("+")[0], a.variant.endswith("+ogtl")
+    obs = observation_for_magnitude(a.mag)
+    windows = windows_for(obs.frame_rate_hz, WINDOWS)
+    duration = DURATION_PERIODS * default_period_s(obs)
+    run = _run(obs, a.seeing, a.seed)
+    request = OptimizeRequest(run, method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
+    cache = ArrayCache(default_cache_dir())
+    r = optimize(request, cache)
+    cal = calibration_for(request.run, cache)
+    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))  # as optimize's
+    (k0, k1), (o0, o1) = r.sensitivities, r.offsets
+    cells = {}
+    for gname, g in (("initial", r.initial_gains), ("optimised", r.gains)):
+        for kname, k, off in (("k_before", k0, o0), ("k_after", k1, o1)):
+            m = evaluate(request, cal, design, g, k, off)
+            cells[f"{gname} gains, {kname}"] = m.strehl
+            print(f"{gname} gains at {kname} = {k:.3f}: {m.strehl:.4f}", flush=True)
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "k": [k0, k1], "strehl": cells}
+    out["code"] = code_fingerprint()
+    if a.out is not None:
+        atomic_write_text(a.out, json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
