@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
+from soulctl.control.gains import default_gains, gain_groups
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
@@ -51,7 +51,9 @@ def main() -> None:
             m = evaluate(request, cal, design, g, k, off)
             cells[f"{gname} gains, {kname}"] = m.strehl
             print(f"{gname} gains at {kname} = {k:.3f}: {m.strehl:.4f}", flush=True)
-    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "k": [k0, k1], "strehl": cells}
+    groups = {name: [float(r.initial_gains[m].mean()), float(r.gains[m].mean())] for name, m in gain_groups(len(r.gains))}
+    print("group mean gains, initial -> optimised:", {n: f"{g[0]:.3f} -> {g[1]:.3f}" for n, g in groups.items()}, flush=True)
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "k": [k0, k1], "strehl": cells, "gain_groups": groups}
     out["code"] = code_fingerprint()
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
