@@ -100,13 +100,7 @@ def check_cmd(o: CheckOptions) -> int:
         gains = read_gain_file(o.params)
     if len(gains) != obs.modes:
         raise InputError(f"PARAMS {o.params} holds {len(gains)} gains; the configuration controls {obs.modes} modes (--config/--mag)")
-    plant = read_plant(o.plant) if o.plant is not None else None
-    if plant is not None and abs(plant.rate_hz - obs.frame_rate_hz) > 1e-6 * obs.frame_rate_hz:
-        raise InputError(f"--plant {o.plant} is at {plant.rate_hz:g} Hz; the configuration runs at {obs.frame_rate_hz:g} Hz")
-    chi = np.ones(obs.modes) if plant is None else plant.chi(obs.modes)
-    if o.chi_table is not None:
-        chi = read_optical_gain_table(o.chi_table, obs.modes)
-    delay = plant.delay.value if plant is not None else obs.delay_frames
+    chi, delay = _plant(o, obs)
     filters = mode_filters(obs, LoopGains.from_modes(gains, description.controller.forgetting), obs.modes)
     structure = sampled_structure(description.structure, obs.frame_rate_hz)
     ba = None if structure is None else structure.coefficients(obs.frame_rate_hz)
@@ -134,6 +128,18 @@ def check_cmd(o: CheckOptions) -> int:
     else:
         _render(checks, states, delay, ok, comparison, coupling, criteria)
     return 0 if ok else UNSAFE_EXIT
+
+
+def _plant(o: CheckOptions, obs) -> tuple[np.ndarray, float]:
+    """(chi_i, delay in frames) of the check: the identified plant's (--plant), chi from
+    --chi-table when given; without either chi = 1 and the configuration's delay."""
+    plant = read_plant(o.plant) if o.plant is not None else None
+    if plant is not None and abs(plant.rate_hz - obs.frame_rate_hz) > 1e-6 * obs.frame_rate_hz:
+        raise InputError(f"--plant {o.plant} is at {plant.rate_hz:g} Hz; the configuration runs at {obs.frame_rate_hz:g} Hz")
+    chi = np.ones(obs.modes) if plant is None else plant.chi(obs.modes)
+    if o.chi_table is not None:
+        chi = read_optical_gain_table(o.chi_table, obs.modes)
+    return chi, (plant.delay.value if plant is not None else obs.delay_frames)
 
 
 def _coupling(description, gains_chi: np.ndarray, delay: float, cache: ArrayCache) -> CouplingStability | None:
