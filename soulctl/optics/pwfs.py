@@ -109,8 +109,8 @@ class PyramidConfig:
 
     @property
     def field_lambda_over_d(self) -> float:
-        """Half-width of the simulated focal plane: N/2 pixels at 2.4 pixels per lambda/D."""
-        return self.fft_size / 2 / (self.fft_size / self.pupil.n_pixels)
+        """Half-width of the simulated focal plane: N/2 pixels at N / n_pup per lambda/D."""
+        return self.pupil.n_pixels / 2
 
     @property
     def pupil(self) -> Pupil:
