@@ -75,6 +75,13 @@ def test_rows_of_code_before_the_give_up_fixes_count_when_too_few_restores_for_a
     assert not grid.read_rows([a], {"abc"}) and len(grid.read_rows([a], {"old"}, before_give_up=frozenset({"old"}))) == 2
 
 
+def test_rows_without_ogtl_of_code_that_changed_only_ogtl_count(grid, tmp_path):
+    a = tmp_path / "a.jsonl"
+    a.write_text("\n".join(json.dumps(_row(v, 0.1, 0.2, code="old")) for v in ("mgm", "trial+ogtl", "mgm+ogtl")) + "\n")
+    assert [r["variant"] for r in grid.read_rows([a], {"abc"}, without_ogtl=frozenset({"old"}))] == ["mgm"]
+    assert not grid.read_rows([a], {"abc"}, without_ogtl=frozenset({"other"}))
+
+
 def test_the_fingerprint_changes_with_any_source_or_table_and_nothing_else(grid, tmp_path):
     package, tables = tmp_path / "soulctl", tmp_path / "tables"
     (package / "loop").mkdir(parents=True)
@@ -95,3 +102,15 @@ def test_the_fingerprint_changes_with_any_source_or_table_and_nothing_else(grid,
 
 def test_every_rate_gets_the_frames_of_six_windows_at_750_hz(grid):
     assert [grid.windows_for(r) for r in (1700, 750, 500, 250, 100)] == [6, 6, 9, 18, 45]
+
+
+def test_the_shared_evaluation_takes_what_evaluate_takes(grid):
+    """``SharedEvaluations`` stands in for ``optimize.evaluate``: the same parameters, or a
+    grid run fails at its first evaluation."""
+    import inspect
+
+    from soulctl.loop import optimize
+
+    with grid.SharedEvaluations():
+        wrapped = list(inspect.signature(optimize.evaluate).parameters)
+    assert wrapped == list(inspect.signature(optimize.evaluate).parameters)

@@ -30,9 +30,10 @@ Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6
 Table of several files' rows made with the current code (each row carries the fingerprint of
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
-      [--code-before-give-up HASH[,HASH...]]
-The last admits rows of code that differs from the current only in what follows the safety
-net's giving up, when they have fewer restores than a give-up needs (those runs were alike).
+      [--code-before-give-up HASH[,HASH...]] [--code-without-ogtl HASH[,HASH...]]
+The first of these admits rows of code that differs from the current only in what follows the
+safety net's giving up, when they have fewer restores than a give-up needs (those runs were
+alike); the second the rows without OGTL of code that differs only where OGTL runs.
 """
 
 from __future__ import annotations
@@ -52,9 +53,10 @@ from rich.table import Table
 
 import soulctl
 from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import gain_groups
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize, session_seconds
+from soulctl.loop.optimize import OGTL_SETTLING_PERIODS, OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
@@ -151,7 +153,9 @@ def run_case(
         "safety_restores": r.safety_events,
         "during_run": {k: v.strehl for k, v in r.during_run.items()},
         "sensitivities": list(r.sensitivities),
+        "sensitivities_evaluated": [m.sensitivity if m else None for m in (r.before, r.after)],
         "k": r.loop.rtc_parameters.sensitivity,
+        "gain_groups": {name: [float(r.initial_gains[m].mean()), float(r.gains[m].mean())] for name, m in gain_groups(len(r.gains))},
         "aux": summary(records),
         "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
@@ -164,8 +168,9 @@ class SharedEvaluations:
 
     MGM and trial-and-error on one magnitude, seeing, seed and OGTL setting share everything
     up to the optimisation (the screens are sized alike, ``session_seconds``), so their
-    *before* evaluation - the initial gains at the k of the end of *before* - is the same
-    loop, frame for frame.  Measuring it once saves a fifth of a point's time.  Wraps
+    *before* evaluation - the initial gains at the k of the end of *before*, or with OGTL from
+    k = 1 with a fresh task of the same settings and settling - is the same loop, frame for
+    frame.  Measuring it once saves a fifth of a point's time.  Wraps
     ``soulctl.loop.optimize.evaluate`` for the duration of a ``with`` block; a key holds
     everything the evaluation depends on besides the run itself (the block runs one point)."""
 
@@ -176,12 +181,14 @@ class SharedEvaluations:
     def __enter__(self):
         self._evaluate = optimize_module.evaluate
 
-        def shared(request, cal, design, gains, k, offsets=False, progress=None):
-            key = (session_seconds(request), request.windows, request.window, np.asarray(gains).tobytes(), float(k), bool(offsets))
+        def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None, ogtl_periods=OGTL_SETTLING_PERIODS):
+            task = None if ogtl is None else (ogtl.period_frames, ogtl.settings, ogtl.k_max, ogtl.amplitude_nm, ogtl_periods)
+            fixed = None if ogtl is not None else (float(k), bool(offsets))  # with OGTL the loop starts at k = 1
+            key = (session_seconds(request), request.windows, request.window, np.asarray(gains).tobytes(), fixed, task)
             if key in self.memo:
                 self.hits += 1
                 return copy.deepcopy(self.memo[key])
-            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress)
+            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress, ogtl, ogtl_periods)
             self.memo[key] = copy.deepcopy(metrics)
             return metrics
 
@@ -256,17 +263,25 @@ def render(rows: list[dict], console: Console) -> None:
     console.print(t)
 
 
-def read_rows(paths: list[Path], codes: set[str] | None, wanted: set | None = None, before_give_up: frozenset = frozenset()) -> list[dict]:
+def read_rows(
+    paths: list[Path],
+    codes: set[str] | None,
+    wanted: set | None = None,
+    before_give_up: frozenset = frozenset(),
+    without_ogtl: frozenset = frozenset(),
+) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
     (None: any), or with one of ``before_give_up`` and too few safety restores for the net to
     have given up (``FEWEST_RESTORES``: code that differs only in what follows a give-up ran
-    those rows alike), one per case (the first: a case run twice on one code gives the same
-    row), restricted to ``wanted`` cases if given."""
+    those rows alike), or with one of ``without_ogtl`` for a variant without OGTL (code that
+    differs only where OGTL runs ran those rows alike), one per case (the first: a case run
+    twice on one code gives the same row), restricted to ``wanted`` cases if given."""
     unique: dict = {}
     for path in paths:
         for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
             admitted = codes is None or r.get("code") in codes
             admitted |= r.get("code") in before_give_up and r["safety_restores"] < FEWEST_RESTORES
+            admitted |= r.get("code") in without_ogtl and not r["variant"].endswith("+ogtl")
             if admitted and (wanted is None or _key(r) in wanted):
                 unique.setdefault(_key(r), r)
     return list(unique.values())
@@ -356,11 +371,17 @@ def main() -> None:
         default="",
         help="with --table: also the rows of these fingerprints with fewer safety restores than a give-up needs (comma-separated)",
     )
+    p.add_argument(
+        "--code-without-ogtl",
+        default="",
+        help="with --table: also the rows without OGTL of these fingerprints (comma-separated)",
+    )
     a = p.parse_args()
     wanted = set(_cases(a))
     if a.table:
         codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
-        rows = read_rows(a.table, codes, wanted, frozenset(filter(None, a.code_before_give_up.split(","))))
+        extra = [frozenset(filter(None, x.split(","))) for x in (a.code_before_give_up, a.code_without_ogtl)]
+        rows = read_rows(a.table, codes, wanted, *extra)
         report(rows, Console(width=200))
         print(not_run(wanted, rows))
         return

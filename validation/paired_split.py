@@ -1,6 +1,7 @@
 """Which part of an optimisation's loss is the gains' and which is OGTL's k?  One grid point of
 `optimize_magnitudes.py` (same request), then the paired evaluation of the four combinations of
-{initial, optimised} gains x {k before, k after}: the grid compares only the two diagonal ones.
+{initial, optimised} gains x {k before, k after}, k frozen (the grid's rule before OGTL ran in
+its evaluation; now both gain sets start from k before with OGTL running: ``evaluate_pair``).
 Not in CI (~8 min for a 20x20 point on one core).
 
 Run:  python validation/paired_split.py --mag 11.9 --seeing 1.5 --seed 1 [--variant mgm+ogtl] [--out FILE]

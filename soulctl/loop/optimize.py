@@ -11,8 +11,10 @@ One continuous closed loop in phases:
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
-4. *evaluation*: the initial gains at k of the end of *before*, and the optimised gains at the
-   final k, each in a loop closed afresh on the run's own turbulence and noise (``evaluate``).
+4. *evaluation*: the initial and the optimised gains, each in a loop closed afresh on the run's
+   own turbulence and noise (``evaluate``): with OGTL closed as the run was, OGTL from k = 1
+   and running throughout (k is the loop's state, which OGTL keeps, not the optimiser's
+   output); without, at k = 1.
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
 result's *before* and *after*: a paired comparison, the two differing by the gains and k alone;
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -278,6 +281,7 @@ class PhaseMetrics:
     residual_nm: float
     tt_jitter_mas: float
     window_strehls: list[float] = field(default_factory=list)  # the paired evaluation's windows, in order
+    sensitivity: float | None = None  # the paired evaluation's k at its end (OGTL's, when it runs)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -571,25 +575,46 @@ def session_seconds(request: OptimizeRequest) -> float:
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     closing = closing_frames(rate) / rate
     live = closing + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
-    return max(live, closing + EVALUATION_SETTLE_S + request.windows * request.window)
+    return max(live, closing + evaluation_settle_s(request, OGTL_MAX_SETTLING_PERIODS) + request.windows * request.window)
+
+
+def evaluation_settle_s(request: OptimizeRequest, ogtl_periods: int = OGTL_SETTLING_PERIODS) -> float:
+    """The paired evaluation's settling after its closing: EVALUATION_SETTLE_S, and with OGTL at
+    least ``ogtl_periods`` of its updates (OGTL brings k from 1 as in the run's settling).  The
+    same for both gain sets, so that their windows are paired."""
+    if not request.ogtl:
+        return EVALUATION_SETTLE_S
+    return max(EVALUATION_SETTLE_S, ogtl_periods * request.period)
 
 
 def evaluate(
-    request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, offsets: bool = False, progress=None
+    request: OptimizeRequest,
+    cal: Calibration,
+    design: LoopGains,
+    gains: np.ndarray,
+    k: float,
+    offsets: bool = False,
+    progress=None,
+    ogtl: OgtlTask | None = None,
+    ogtl_periods: int = OGTL_SETTLING_PERIODS,
 ) -> PhaseMetrics:
-    """Metrics of ``gains`` at slope sensitivity ``k`` on the run's own turbulence and noise: a
-    loop closed afresh from t = 0 at k = 1 (``closing_frames``, as the run), k set and the NCPA
-    offsets applied if ``offsets`` (as they were in the run at that point), settled for
-    EVALUATION_SETTLE_S, measured over ``windows`` consecutive windows of ``window_s``; no
-    auxiliary loop.  The Strehl ratio is the mean of the windows' (each a long exposure);
-    residual and jitter are over all of them.  *before* and *after* so measured differ by the
-    gains and k alone - a paired comparison: measured in the run's own phases, 0.5 s apart in
-    time, they differ by the turbulence too, by up to +-0.05 in Strehl at 1.0"
-    (docs/physics.md).  Paired, one window still depends on what the turbulence does in it: at
-    R17.5-18.5, 0.6" the difference of two gain sets moves by 0.02-0.04 from one 1 s window to
-    the next, hence several windows and the standard error of their paired differences
-    (``OptimizeResult.strehl_difference``).  Raises LoopDiverged."""
-    loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress)
+    """Metrics of ``gains`` on the run's own turbulence and noise: a loop closed afresh from
+    t = 0 at k = 1 (``closing_frames``, as the run), settled (``evaluation_settle_s``),
+    measured over ``windows`` consecutive windows of ``window_s``.  Without ``ogtl`` k is then
+    set and fixed, the NCPA offsets applied with it if ``offsets``; with it (a fresh task) the
+    loop is closed as the run closes it: OGTL from k = 1 (``k`` unused) for ``ogtl_periods``
+    updates and on through the windows, applying the offsets itself.  k then belongs to the
+    loop, not to the gains: a k the run reached on other turbulence is not imposed, nor is k
+    raised at once on a loop still converging (docs/physics.md, "Over the magnitudes").  The
+    Strehl ratio is the mean of the windows' (each a long exposure); residual and jitter are
+    over all of them.  *before* and *after* so measured differ by the gains alone - a paired
+    comparison: measured in the run's own phases, 0.5 s apart in time, they differ by the
+    turbulence too, by up to +-0.05 in Strehl at 1.0" (docs/physics.md).  Paired, one window
+    still depends on what the turbulence does in it: at R17.5-18.5, 0.6" the difference of two
+    gain sets moves by 0.02-0.04 from one 1 s window to the next, hence several windows and the
+    standard error of their paired differences (``OptimizeResult.strehl_difference``).
+    Raises LoopDiverged."""
+    loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress, ogtl, ogtl_periods)
     n_window = request.frames(request.window)
     skip = min(n_window // 2, request.frames(0.05))
     wavelength = band_wavelength(request.run.band)
@@ -600,24 +625,37 @@ def evaluate(
         strehls.append(psf.strehl)
     metrics = _phase_metrics(loop, float(np.mean(strehls)), start + skip, loop.frame)
     metrics.window_strehls = strehls
+    metrics.sensitivity = loop.rtc_parameters.sensitivity
     return metrics
 
 
 def settled_evaluation_loop(
-    request: OptimizeRequest, cal: Calibration, design: LoopGains, gains: np.ndarray, k: float, offsets: bool = False, progress=None
+    request: OptimizeRequest,
+    cal: Calibration,
+    design: LoopGains,
+    gains: np.ndarray,
+    k: float,
+    offsets: bool = False,
+    progress=None,
+    ogtl: OgtlTask | None = None,
+    ogtl_periods: int = OGTL_SETTLING_PERIODS,
 ) -> ClosedLoop:
     """``evaluate``'s loop before its measurement: closed afresh at k = 1 on the run's own
-    turbulence and noise, k set and the NCPA offsets applied if ``offsets``, settled for
-    EVALUATION_SETTLE_S.  Raises LoopDiverged."""
+    turbulence and noise, then either k set and the NCPA offsets applied if ``offsets``, or
+    ``ogtl`` started from k = 1 (it applies them once k is calibrated); settled for
+    ``evaluation_settle_s``.  Raises LoopDiverged."""
     r = request.run
     loop = _new_loop(request, cal, design, sampled_structure(r.structure, r.observation.frame_rate_hz))
     loop.set_gains(gains)
     loop.rtc_parameters.hold_slope_offset()  # NCPA offsets once k is set, as OGTL applies them
     loop.run(closing_frames(r.observation.frame_rate_hz), progress=progress)
-    loop.rtc_parameters.set_sensitivity(k)
-    if offsets:
-        loop.rtc_parameters.apply_slope_offset()
-    loop.run(request.frames(EVALUATION_SETTLE_S), progress=progress)
+    if ogtl is not None:
+        loop.add_aux_loop(ogtl)
+    else:
+        loop.rtc_parameters.set_sensitivity(k)
+        if offsets:
+            loop.rtc_parameters.apply_slope_offset()
+    loop.run(request.frames(evaluation_settle_s(request, ogtl_periods)), progress=progress)
     return loop
 
 
@@ -687,6 +725,7 @@ class _Session:
     net: SafetyNet
     period: int  # frames per update
     frames: dict  # closing, settle (at most), measure, skip
+    new_ogtl: Callable[[], OgtlTask | None]  # a fresh OGTL task like the run's (None without OGTL), for the evaluation
 
 
 def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gains: LoopGains, chi: np.ndarray) -> _Session:
@@ -712,7 +751,12 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     n_close += (-(n_close + n_settle + n_measure)) % period
     skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
     frames = {"closing": n_close, "settle": n_settle, "measure": n_measure, "skip": skip}
-    return _Session(loop, aux, optimiser, n_opt, safety_net(obs.frame_rate_hz, aux + [optimiser]), period, frames)
+
+    def new_ogtl() -> OgtlTask | None:
+        return ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing) if request.ogtl else None
+
+    net = safety_net(obs.frame_rate_hz, aux + [optimiser])
+    return _Session(loop, aux, optimiser, n_opt, net, period, frames, new_ogtl)
 
 
 def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[PhaseMetrics, tuple[int, int]]:
@@ -751,6 +795,32 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
     result.offsets = (offsets_before, loop.rtc_parameters.slope_offset is not None)
 
 
+def evaluate_pair(
+    request: OptimizeRequest,
+    cal: Calibration,
+    design: LoopGains,
+    result: OptimizeResult,
+    new_ogtl: Callable[[], OgtlTask | None],
+    tick=None,
+) -> None:
+    """*before* and *after* of ``result``: the initial and the optimised gains in the paired
+    evaluation (``evaluate``).  With OGTL (a fresh task from ``new_ogtl`` for each) both loops
+    close as the run's did, OGTL from k = 1 settling for as many updates as the run's (its
+    ``settling`` phase); without, both at the fixed k and NCPA offsets of the end of *before*.
+    Judged so, an optimiser that returns the initial gains scores exactly zero, whatever k
+    did while it ran."""
+    k, offsets = result.sensitivities[0], result.offsets[0]
+    periods = OGTL_SETTLING_PERIODS
+    if "settling" in result.phases:
+        first, end = result.phases["settling"]
+        periods = max(periods, round((end - first) / request.frames(request.period)))
+    try:
+        result.before = evaluate(request, cal, design, result.initial_gains, k, offsets, tick, new_ogtl(), periods)
+        result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl(), periods)
+    except LoopDiverged as e:
+        result.diverged_at, result.diverged_in = e.frame, "evaluation"
+
+
 def optimize(
     request: OptimizeRequest, cache: ArrayCache = ArrayCache(None), progress=None, calibration: Calibration | None = None
 ) -> OptimizeResult:
@@ -768,7 +838,8 @@ def optimize(
     s = _session(request, cal, cache, gains, chi)
     f = s.frames
     n_window = request.frames(request.window)
-    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + request.frames(EVALUATION_SETTLE_S) + request.windows * n_window)
+    settle = request.frames(evaluation_settle_s(request, OGTL_MAX_SETTLING_PERIODS))  # at most
+    n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + settle + request.windows * n_window)
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     done = 0
 
@@ -787,11 +858,7 @@ def optimize(
         result.diverged_at = e.frame
         result.gains = s.loop.rtc_parameters.gains
     if result.diverged_at is None:
-        try:
-            result.before = evaluate(request, cal, gains, initial, result.sensitivities[0], result.offsets[0], tick)
-            result.after = evaluate(request, cal, gains, result.gains, result.sensitivities[1], result.offsets[1], tick)
-        except LoopDiverged as e:
-            result.diverged_at, result.diverged_in = e.frame, "evaluation"
+        evaluate_pair(request, cal, gains, result, s.new_ogtl, tick)
     result.safety_events = s.net.events
     if result.diverged_at is None:
         result.coupling = registration_stability(r, cal, s.loop, gains.forgetting, structure, cache)

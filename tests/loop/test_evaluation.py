@@ -1,14 +1,26 @@
 """`optimize`'s paired evaluation: before and after measured on the same turbulence and noise,
-so that they differ by the gains and k alone."""
+so that they differ by the gains alone (k fixed at 1, or OGTL's in both)."""
 
 import dataclasses
 
 import numpy as np
 import pytest
 
+from soulctl.control import ogtl as ogtl_model
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
-from soulctl.loop.optimize import OptimizeRequest, evaluate, session_seconds
+from soulctl.loop.auxloops import OgtlTask
+from soulctl.loop.optimize import (
+    EVALUATION_SETTLE_S,
+    OGTL_MAX_SETTLING_PERIODS,
+    OGTL_SETTLING_PERIODS,
+    OptimizeRequest,
+    OptimizeResult,
+    evaluate,
+    evaluate_pair,
+    evaluation_settle_s,
+    session_seconds,
+)
 from soulctl.loop.run import RunRequest
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.calibration import CalibrationSetup, calibrate
@@ -49,3 +61,39 @@ def test_mgm_and_trial_and_error_on_one_seed_see_the_same_turbulence(setup):
     assert session_seconds(trial) == session_seconds(request) > 10.0  # screens past the smallest squares
     g = design.per_mode(54)
     assert evaluate(request, cal, design, g, 1.0) == evaluate(trial, cal, design, g, 1.0)
+
+
+def _ogtl_request(request):
+    return dataclasses.replace(request, ogtl=True)
+
+
+def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
+    """With OGTL the evaluation closes each loop as the run did, OGTL from k = 1 (a fresh task
+    per loop): an optimiser that kept the initial gains scores exactly zero, however far k
+    moved while it ran.  Judged at the run's final k frozen, the same gains lost 0.113 in
+    Strehl at R11.9, 1.5", seed 2 (k 4.03 -> 4.71: docs/physics.md, "Over the magnitudes")."""
+    request, cal, design = setup
+    request = _ogtl_request(request)
+    g = design.per_mode(54)
+    period = request.frames(request.period)
+    result = OptimizeResult(request, g, g.copy(), None, None, None, None, sensitivities=(2.0, 3.0), offsets=(False, False))
+    evaluate_pair(request, cal, design, result, lambda: OgtlTask(period), None)
+    assert result.before is not None and result.after is not None
+    assert result.strehl_difference()[0] == 0.0 and result.before == result.after
+    frozen_after = evaluate(request, cal, design, g, 3.0)  # the former rule: the run's final k, frozen
+    assert frozen_after.strehl != result.after.strehl
+    assert result.before.sensitivity is not None and result.before.sensitivity > 1.0  # OGTL raised k from 1 in the evaluation's loop
+    assert result.before.sensitivity <= ogtl_model.SENSITIVITY_RANGE[1]
+
+
+def test_the_evaluation_settles_ogtl_for_the_runs_updates(setup):
+    """With OGTL the settling holds the run's OGTL settling updates (at least
+    OGTL_SETTLING_PERIODS, at least EVALUATION_SETTLE_S), and the screens are sized for the
+    most (``session_seconds``)."""
+    request, _, _ = setup
+    with_ogtl = _ogtl_request(request)
+    assert evaluation_settle_s(request) == EVALUATION_SETTLE_S
+    assert evaluation_settle_s(with_ogtl) == max(EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS * with_ogtl.period)
+    assert evaluation_settle_s(with_ogtl, 9) == 9 * with_ogtl.period
+    long = dataclasses.replace(with_ogtl, period_s=2.0, duration_s=2.0, windows=20)
+    assert session_seconds(long) >= evaluation_settle_s(long, OGTL_MAX_SETTLING_PERIODS) + long.windows * long.window
