@@ -184,7 +184,9 @@ class SharedEvaluations:
         def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None, ogtl_periods=OGTL_SETTLING_PERIODS):
             task = None if ogtl is None else (ogtl.period_frames, ogtl.settings, ogtl.k_max, ogtl.amplitude_nm, ogtl_periods)
             fixed = None if ogtl is not None else (float(k), bool(offsets))  # with OGTL the loop starts at k = 1
-            key = (session_seconds(request), request.windows, request.window, np.asarray(gains).tobytes(), fixed, task)
+            # gains to 12 decimals: trial-and-error's kept gains (best x shape) differ from the
+            # initial ones in the last bits, and are the same loop
+            key = (session_seconds(request), request.windows, request.window, np.round(gains, 12).tobytes(), fixed, task)
             if key in self.memo:
                 self.hits += 1
                 return copy.deepcopy(self.memo[key])

@@ -12,12 +12,15 @@ One continuous closed loop in phases:
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
 4. *evaluation*: the initial and the optimised gains, each in a loop closed afresh on the run's
-   own turbulence and noise (``evaluate``): with OGTL closed as the run was, OGTL from k = 1
-   and running throughout (k is the loop's state, which OGTL keeps, not the optimiser's
-   output); without, at k = 1.
+   own turbulence and noise (``evaluate``): with OGTL closed much as the run was (k = 1 for
+   ``closing_frames``, not stretched to an update boundary; then OGTL from k = 1 for at least
+   as many updates as the run's settling took and at least EVALUATION_SETTLE_S, and running
+   throughout: k is the loop's state, which OGTL keeps, not the optimiser's output); without,
+   at k = 1.
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
-result's *before* and *after*: a paired comparison, the two differing by the gains and k alone;
+result's *before* and *after*: a paired comparison, the two differing by the gains alone (and,
+with OGTL, by the k each loop's OGTL reaches with them);
 those of the run's own phases (``during_run``) differ by the turbulence of their time too.
 
 MGM's plant model takes chi_i from the optical-gain table of the calibration at the run's
@@ -575,14 +578,16 @@ def session_seconds(request: OptimizeRequest) -> float:
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     closing = closing_frames(rate) / rate
     live = closing + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
-    return max(live, closing + evaluation_settle_s(request, OGTL_MAX_SETTLING_PERIODS) + request.windows * request.window)
+    return max(live, closing + evaluation_settle_s(request, request.ogtl, OGTL_MAX_SETTLING_PERIODS) + request.windows * request.window)
 
 
-def evaluation_settle_s(request: OptimizeRequest, ogtl_periods: int = OGTL_SETTLING_PERIODS) -> float:
-    """The paired evaluation's settling after its closing: EVALUATION_SETTLE_S, and with OGTL at
-    least ``ogtl_periods`` of its updates (OGTL brings k from 1 as in the run's settling).  The
-    same for both gain sets, so that their windows are paired."""
-    if not request.ogtl:
+def evaluation_settle_s(request: OptimizeRequest, ogtl: bool, ogtl_periods: int = OGTL_SETTLING_PERIODS) -> float:
+    """The paired evaluation's settling after its closing: EVALUATION_SETTLE_S, and if the
+    evaluation's loop runs OGTL (``ogtl``) at least ``ogtl_periods`` of its updates (OGTL
+    brings k from 1 as in the run's settling).  The same for both gain sets, so that their
+    windows are paired.  Decided by the evaluation's loop, not by the request: a diagnostic
+    that evaluates an OGTL request at a fixed k settles as any fixed-k evaluation."""
+    if not ogtl:
         return EVALUATION_SETTLE_S
     return max(EVALUATION_SETTLE_S, ogtl_periods * request.period)
 
@@ -602,8 +607,10 @@ def evaluate(
     t = 0 at k = 1 (``closing_frames``, as the run), settled (``evaluation_settle_s``),
     measured over ``windows`` consecutive windows of ``window_s``.  Without ``ogtl`` k is then
     set and fixed, the NCPA offsets applied with it if ``offsets``; with it (a fresh task) the
-    loop is closed as the run closes it: OGTL from k = 1 (``k`` unused) for ``ogtl_periods``
-    updates and on through the windows, applying the offsets itself.  k then belongs to the
+    loop is closed much as the run closes it: OGTL from k = 1 (``k`` unused) for at least
+    ``ogtl_periods`` updates (``evaluation_settle_s``; the run's closing is stretched to an
+    update boundary, this one is not) and on through the windows, applying the offsets
+    itself.  k then belongs to the
     loop, not to the gains: a k the run reached on other turbulence is not imposed, nor is k
     raised at once on a loop still converging (docs/physics.md, "Over the magnitudes").  The
     Strehl ratio is the mean of the windows' (each a long exposure); residual and jitter are
@@ -655,7 +662,7 @@ def settled_evaluation_loop(
         loop.rtc_parameters.set_sensitivity(k)
         if offsets:
             loop.rtc_parameters.apply_slope_offset()
-    loop.run(request.frames(evaluation_settle_s(request, ogtl_periods)), progress=progress)
+    loop.run(request.frames(evaluation_settle_s(request, ogtl is not None, ogtl_periods)), progress=progress)
     return loop
 
 
@@ -838,7 +845,7 @@ def optimize(
     s = _session(request, cal, cache, gains, chi)
     f = s.frames
     n_window = request.frames(request.window)
-    settle = request.frames(evaluation_settle_s(request, OGTL_MAX_SETTLING_PERIODS))  # at most
+    settle = request.frames(evaluation_settle_s(request, request.ogtl, OGTL_MAX_SETTLING_PERIODS))  # at most
     n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + settle + request.windows * n_window)
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     done = 0

@@ -7,7 +7,7 @@ the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
 ``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
 settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after) and the paired evaluation (two loops, each closed,
-settled for 4 OGTL updates and measured for ``duration``); for ``trial`` the closing, the settling, twice
+settled for the longer of 1 s and 4 OGTL updates, and measured for ``duration``); for ``trial`` the closing, the settling, twice
 ``duration`` and the scan (8 gains and the initial one per group, 0.25 s or 100 frames each); the auxiliary loops' own cost
 (MGM, OGTL) is not counted.
 

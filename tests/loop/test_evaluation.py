@@ -20,8 +20,9 @@ from soulctl.loop.optimize import (
     evaluate_pair,
     evaluation_settle_s,
     session_seconds,
+    settled_evaluation_loop,
 )
-from soulctl.loop.run import RunRequest
+from soulctl.loop.run import RunRequest, closing_frames
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
@@ -92,8 +93,21 @@ def test_the_evaluation_settles_ogtl_for_the_runs_updates(setup):
     most (``session_seconds``)."""
     request, _, _ = setup
     with_ogtl = _ogtl_request(request)
-    assert evaluation_settle_s(request) == EVALUATION_SETTLE_S
-    assert evaluation_settle_s(with_ogtl) == max(EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS * with_ogtl.period)
-    assert evaluation_settle_s(with_ogtl, 9) == 9 * with_ogtl.period
+    assert evaluation_settle_s(request, False) == EVALUATION_SETTLE_S
+    assert evaluation_settle_s(with_ogtl, True) == max(EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS * with_ogtl.period)
+    assert evaluation_settle_s(with_ogtl, True, 9) == 9 * with_ogtl.period
     long = dataclasses.replace(with_ogtl, period_s=2.0, duration_s=2.0, windows=20)
-    assert session_seconds(long) >= evaluation_settle_s(long, OGTL_MAX_SETTLING_PERIODS) + long.windows * long.window
+    assert session_seconds(long) >= evaluation_settle_s(long, True, OGTL_MAX_SETTLING_PERIODS) + long.windows * long.window
+
+
+def test_a_fixed_k_evaluation_of_an_ogtl_request_settles_as_any_fixed_k(setup):
+    """The settling follows the evaluation's loop, not the request: diagnostics that evaluate
+    an OGTL request at a fixed k (validation/paired_split.py, r13_mgm_windows.py) settle for
+    EVALUATION_SETTLE_S, as before OGTL ran in the evaluation (docs/physics.md gives their
+    frame ranges), not for OGTL's settling updates."""
+    request, cal, design = setup
+    with_ogtl = dataclasses.replace(_ogtl_request(request), period_s=0.5)
+    assert OGTL_SETTLING_PERIODS * with_ogtl.period > EVALUATION_SETTLE_S  # the two rules differ here
+    loop = settled_evaluation_loop(with_ogtl, cal, design, design.per_mode(54), 2.0)
+    assert loop.frame == closing_frames(OBS.frame_rate_hz) + with_ogtl.frames(EVALUATION_SETTLE_S)
+    assert loop.rtc_parameters.sensitivity == 2.0
