@@ -172,7 +172,10 @@ class SharedEvaluations:
     k = 1 with a fresh task of the same settings and settling - is the same loop, frame for
     frame.  Measuring it once saves a fifth of a point's time.  Wraps
     ``soulctl.loop.optimize.evaluate`` for the duration of a ``with`` block; a key holds
-    everything the evaluation depends on besides the run itself (the block runs one point)."""
+    everything the evaluation depends on besides the run itself (the block runs one point),
+    the gains to 12 decimals: trial-and-error's kept gains reuse the *before* evaluation
+    (``shared_evaluations`` 2 from rows made after that change, 1 before; the RTC's float32
+    gains make the two evaluations the same loop either way)."""
 
     def __init__(self):
         self.memo: dict = {}

@@ -69,8 +69,8 @@ def _ogtl_request(request):
 
 
 def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
-    """With OGTL the evaluation closes each loop as the run did, OGTL from k = 1 (a fresh task
-    per loop): an optimiser that kept the initial gains scores exactly zero, however far k
+    """With OGTL the evaluation closes each loop much as the run did, OGTL from k = 1 (a fresh
+    task per loop): an optimiser that kept the initial gains scores exactly zero, however far k
     moved while it ran.  Judged at the run's final k frozen, the same gains lost 0.113 in
     Strehl at R11.9, 1.5", seed 2 (k 4.03 -> 4.71: docs/physics.md, "Over the magnitudes")."""
     request, cal, design = setup
