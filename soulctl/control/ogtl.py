@@ -39,6 +39,10 @@ OGTL knows when it does not know (``estimate``, ``next_sensitivity``):
   mode's chi within ``OFFSETS_CHI_TOLERANCE`` (20 %) of 1, as SOUL applies them once k is
   calibrated: at k = 1 they are over-applied by 1 / gamma (``optics.ncpa``), and at R9.7 with
   100 nm applied from the first frame the loop lost lock (H Strehl 0.08, residual 1.65 um).
+  In force, they are scaled by the latest estimate of chi = k gamma (``offset_scale``), so
+  that a k the rules hold below 1 / gamma does not over-apply them; and the spiral rule does
+  not compare the estimates on either side of their entry (the NCPA they put into the WFS
+  path lowers gamma by design, not because k was raised).
 Every update records its status (``STATUS``: why k moved less than the integrator asked).
 
 Probe defaults (``default_amplitude``, ``PROBE_FREQUENCY_PER_RATE``): at a quarter of the
@@ -201,6 +205,16 @@ def spiralling(k: float, chi: float, last: tuple[float, float] | None) -> bool:
     """True when k was raised by SPIRAL_RAISE or more since ``last`` = (k, chi_hat) of the last
     reliable estimate and chi_hat did not rise with it (see the module docstring)."""
     return last is not None and k >= SPIRAL_RAISE * last[0] and chi <= last[1]
+
+
+def offset_scale(chi_now: float) -> float:
+    """The NCPA offsets' scale: OGTL's latest estimate of k gamma of the probed mode, at most 1.
+    The loop settles where k gamma_i D a_wfs = -scale D a, so the mirror applies -a scale /
+    (k gamma_i): the aberration itself when the scale is k gamma, whatever k.  Unscaled, a k
+    held below 1 / gamma (by the spiral or growth rules, or a low-SNR hold) over-applies the
+    offsets by 1 / (k gamma); the larger residual lowers gamma and the loop runs away (R9.4,
+    1.33\": k held at 2.25 while k gamma fell from 0.52 to 0.21, diverged after 12 s)."""
+    return min(1.0, max(0.0, chi_now))
 
 
 def commands_growing(commands_rms: float, previous_rms: float | None, growth: float) -> bool:

@@ -79,8 +79,9 @@ class RtcParameters:
         self.sensitivity = float(sensitivity)
         self.probe: ModalProbe | None = None
         self.reset_requested = False  # the loop zeroes the RTC's state before the next frame
-        self.slope_offset = slope_offset  # in force: the RTC's input is k s - slope_offset
+        self.slope_offset = slope_offset  # in force: the RTC's input is k s - offset_scale slope_offset
         self.held_offset: np.ndarray | None = None  # loaded, not yet applied (``hold_slope_offset``)
+        self.offset_scale = 1.0  # OGTL's estimate of k gamma of its probed mode (``scale_slope_offset``)
 
     @property
     def gains(self) -> np.ndarray:
@@ -111,6 +112,14 @@ class RtcParameters:
             return False
         self.slope_offset, self.held_offset = self.held_offset, None
         return True
+
+    def scale_slope_offset(self, scale: float) -> None:
+        """Scale the offsets by OGTL's estimate of k gamma (``ogtl.offset_scale``): they ask the
+        pyramid for the slopes of the NCPA at its present optical gain, not at the one k was
+        last calibrated to."""
+        if not (math.isfinite(scale) and 0.0 <= scale <= 1.0):
+            raise InputError(f"slope offset scale must be in 0..1, got {scale!r}")
+        self.offset_scale = float(scale)
 
     def request_reset(self) -> None:
         """Open the loop and close it again from the next frame: the RTC's state zeta is set

@@ -98,8 +98,12 @@ class OgtlTask(AuxLoop):
         elif self.chi_now is not None:
             self.chi_now *= k / window.sensitivity
         rtc.set_sensitivity(k)
+        if self.chi_now is not None:
+            rtc.scale_slope_offset(ogtl.offset_scale(self.chi_now))
         calibrated = reliable and self.chi_now is not None and abs(self.chi_now - 1.0) <= ogtl.OFFSETS_CHI_TOLERANCE
         applied = calibrated and rtc.apply_slope_offset()
+        if applied:
+            self._last = None  # their NCPA lowers gamma by design: no spiral judged across their entry
         return {
             "chi": est.chi,
             "chi_sigma": est.sigma,
@@ -109,6 +113,7 @@ class OgtlTask(AuxLoop):
             "status": status,
             "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
             "offsets_applied": bool(applied),
+            "offset_scale": rtc.offset_scale,
             "mode": self.settings.mode,
             "amplitude_nm": self.amplitude_nm,
             "frequency_hz": self.frequency_hz,

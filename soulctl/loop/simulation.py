@@ -188,7 +188,8 @@ class ClosedLoop:
         if k_slopes != 1.0:
             slopes *= np.float32(k_slopes)
         if (offset := self.rtc_parameters.slope_offset) is not None:
-            slopes -= offset  # the RTC's input: k s - s_off (optics.ncpa)
+            scale = self.rtc_parameters.offset_scale  # the RTC's input: k s - chi s_off (optics.ncpa)
+            slopes -= offset if scale == 1.0 else np.float32(scale) * offset
         t5 = clock()
         commands = self.controller.commands(slopes, self.rtc_parameters.probe, k, self.rate_hz)
         self.delay.push(commands)

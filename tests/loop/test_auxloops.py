@@ -217,6 +217,39 @@ def test_ogtl_catches_a_true_spiral_again_each_time_after_twice_as_long(monkeypa
     assert np.diff(spirals)[:2].tolist() == [hold + 2, 2 * hold + 2], spirals
 
 
+def test_ogtl_scales_the_ncpa_offsets_by_k_gamma_and_judges_no_spiral_across_their_entry(monkeypatch):
+    """gamma = 0.4 until the offsets enter, then 0.32 (the NCPA they put into the WFS path
+    lowers it): the update after the entry sees k raised since the last estimate and chi_hat
+    fallen, which is not a spiral; k goes on up.  In force, the offsets are scaled by the
+    latest chi = k gamma (at most 1), so a k short of 1 / gamma does not over-apply them."""
+    from soulctl.control import ogtl
+
+    count = iter(range(100))
+    entered: list[int] = []
+
+    def chi(k, i):
+        return (0.32 if entered and i > entered[0] else 0.4) * k
+
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(chi(rtc.sensitivity, next(count)), 0.01, 100.0))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0, slope_offset=np.ones(80, dtype=np.float32))
+    rtc.hold_slope_offset()
+    z = np.zeros((frames, 40))
+    records = []
+    for i in range(12):
+        window = TelemetryWindow(0, 1000.0, 1.5, z, z, z, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        records.append(task.update(window, rtc))
+        if records[-1]["offsets_applied"]:
+            entered.append(i)
+    assert len(entered) == 1 and rtc.slope_offset is not None
+    after = records[entered[0] + 1]
+    assert after["status"] != ogtl.SPIRAL and after["sensitivity"] > records[entered[0]]["sensitivity"]
+    for r in records[entered[0] :]:
+        chi_now = (0.32 if r is not records[entered[0]] else 0.4) * r["sensitivity"]
+        assert r["offset_scale"] == pytest.approx(min(1.0, chi_now), rel=1e-9)
+    assert records[-1]["sensitivity"] == pytest.approx(1 / 0.32, rel=0.03)
+
+
 class _OgtlEstimate:
     """What MGM reads of OGTL: its latest reliable chi of the probed mode at the current k."""
 

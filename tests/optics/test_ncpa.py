@@ -54,14 +54,16 @@ def calibration(optics_cache):
     return calibration_for(BASE.request(), optics_cache)
 
 
-def _strehl(calibration, spec: NcpaSpec, k: float = 1.0, frames: int = 500) -> float | None:
+def _strehl(calibration, spec: NcpaSpec, k: float = 1.0, frames: int = 500, offset_scale: float = 1.0) -> float | None:
     """H Strehl of frames 150-500 of the base loop with ``spec``, default gains divided by k
-    (the same loop gain at every k), the slopes scaled by k; None if the loop diverged."""
+    (the same loop gain at every k), the slopes scaled by k, the offsets by ``offset_scale``;
+    None if the loop diverged."""
     request = dataclasses.replace(BASE, ncpa=spec).request()
     structure = sampled_structure(request.structure, OBS.frame_rate_hz)
     g = default_gains(OBS, structure)
     loop = closed_loop_for(request, calibration, LoopGains(g.tip_tilt / k, g.mid / k, g.high / k), structure)
     loop.rtc_parameters.set_sensitivity(k)
+    loop.rtc_parameters.scale_slope_offset(offset_scale)
     psf = loop.psf_accumulator(band_wavelength("H"))
     try:
         loop.run(frames, psf=psf, skip=150)
@@ -85,6 +87,16 @@ def test_offsets_need_the_optical_gain_compensated(calibration, optics_cache):
     k = 1.0 / optical_gain_table(calibration, optics_cache, 0.6)[29]
     off, on = (_strehl(calibration, NcpaSpec(rms_nm=100, compensated=c), k) for c in (False, True))
     assert on > off + 0.008, (off, on)
+
+
+def test_offsets_scaled_by_k_gamma_hold_the_loop_that_unscaled_offsets_lose(calibration, optics_cache):
+    """At k = 1 the unscaled offsets lose the loop (above); scaled by k gamma_30 (what OGTL's
+    estimate gives there, ``ogtl.offset_scale``) they ask for the aberration itself, and the
+    loop keeps lock and wins back part of the loss, as at k = 1 / gamma_30."""
+    gamma = optical_gain_table(calibration, optics_cache, 0.6)[29]
+    off = _strehl(calibration, NcpaSpec(rms_nm=100, compensated=False))
+    scaled = _strehl(calibration, NcpaSpec(rms_nm=100, compensated=True), offset_scale=gamma)
+    assert scaled is not None and scaled > off + 0.005, (off, scaled)
 
 
 def test_without_turbulence_the_offsets_cancel_the_controlled_part(calibration):
