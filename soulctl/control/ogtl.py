@@ -33,6 +33,11 @@ OGTL knows when it does not know (``estimate``, ``next_sensitivity``):
   k at 1.5 for a whole R16.5 run (at 4.3-4.9 in the other seeds) and below 1.95 at R17.5.  A
   true spiral comes back when the ceiling lifts and is caught again, each time after twice
   as long.  Near convergence the steps are small and the rule is idle, so it does not bias k.
+  Nor is a raise judged that leaves k at or below ``k_model``, 1 / gamma_probe of the optical
+  model at the plant model's seeing (from the task's builder): up to it every effective gain
+  stays at or below its design, which cannot over-drive the loop.  Judged there, one
+  low estimate after the first raise from 1 (R16.5, SNR near 5) held k at 1-1.5 for the run's
+  settling and MGM tuned its gains at k = 1, a fifth of the optical gain's compensation.
 * *Growth*: k is not raised while the commands' RMS grows by more than 30 % from one update to
   the next.
 * *NCPA offsets*: reference-slope offsets wait until a reliable estimate puts the probed
@@ -201,10 +206,10 @@ def next_sensitivity(k: float, est: Estimate, settings: OgtlSettings, k_max: flo
     return float(new), status
 
 
-def spiralling(k: float, chi: float, last: tuple[float, float] | None) -> bool:
+def spiralling(k: float, chi: float, last: tuple[float, float] | None, k_model: float = MIN_SENSITIVITY) -> bool:
     """True when k was raised by SPIRAL_RAISE or more since ``last`` = (k, chi_hat) of the last
-    reliable estimate and chi_hat did not rise with it (see the module docstring)."""
-    return last is not None and k >= SPIRAL_RAISE * last[0] and chi <= last[1]
+    reliable estimate, past ``k_model``, and chi_hat did not rise with it (see the module docstring)."""
+    return last is not None and k > k_model and k >= SPIRAL_RAISE * last[0] and chi <= last[1]
 
 
 def offset_scale(chi_now: float) -> float:

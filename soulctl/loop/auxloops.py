@@ -32,8 +32,9 @@ from .metrics import pseudo_open_loop
 class OgtlTask(AuxLoop):
     """OGTL (``control.ogtl``): the probe from ``start``, one k update per period with the
     reliability, bound, rate, spiral and growth rules; ``k_max`` the upper bound of k (1 /
-    gamma_probe at the worst seeing, from the task's builder); ``amplitude_nm`` the probe's
-    amplitude when the settings leave it to the operating point."""
+    gamma_probe at the worst seeing, from the task's builder); ``k_model`` the k up to which
+    no spiral is judged (1 / gamma_probe at the plant model's seeing); ``amplitude_nm`` the
+    probe's amplitude when the settings leave it to the operating point."""
 
     name = "ogtl"
 
@@ -43,10 +44,12 @@ class OgtlTask(AuxLoop):
         settings: ogtl.OgtlSettings = ogtl.OgtlSettings(),
         k_max: float = ogtl.SENSITIVITY_RANGE[1],
         amplitude_nm: float | None = None,
+        k_model: float = ogtl.MIN_SENSITIVITY,
     ):
         super().__init__(period_frames)
         self.settings = settings
         self.k_max = float(min(k_max, ogtl.SENSITIVITY_RANGE[1]))
+        self.k_model = float(min(k_model, self.k_max))
         self.amplitude_nm = settings.amplitude_nm or amplitude_nm or ogtl.PROBE_AMPLITUDE_NM
         self.frequency_hz = math.nan
         self.step_scale = 1.0  # the safety net halves it after a recovery
@@ -87,7 +90,7 @@ class OgtlTask(AuxLoop):
         )
         k, status = ogtl.next_sensitivity(window.sensitivity, est, settings, min(self.k_max, self.ceiling), growing)
         reliable = status not in (ogtl.LOW_SNR, ogtl.NO_ESTIMATE)
-        if reliable and self._last is not None and ogtl.spiralling(window.sensitivity, est.chi, self._last):
+        if reliable and self._last is not None and ogtl.spiralling(window.sensitivity, est.chi, self._last, self.k_model):
             k, status = self._last[0], ogtl.SPIRAL
             self._set_ceiling(k)
         elif reliable:
@@ -118,6 +121,7 @@ class OgtlTask(AuxLoop):
             "amplitude_nm": self.amplitude_nm,
             "frequency_hz": self.frequency_hz,
             "k_max": self.k_max,
+            "k_model": self.k_model,
             "k_ceiling": min(self.k_max, self.ceiling),
         }
 

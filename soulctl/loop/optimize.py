@@ -97,7 +97,7 @@ TRIAL_SPAN = 3.0  # the scan spans 1/TRIAL_SPAN to TRIAL_SPAN x the group's init
 INITIAL_GAIN_FRACTION = 0.5  # initial gains capped at this fraction of the plant model's g_max / chi
 OGTL_SETTLING_PERIODS = 4  # OGTL updates before the "before" measurement, at least ...
 OGTL_MAX_SETTLING_PERIODS = 12  # ... and at most, until k has settled (``_settled``)
-SETTLED_LOG_STEP = 0.1  # k has settled when its last update changed log k by less than this
+SETTLED_LOG_STEP = 0.1  # k has settled when its last update, a measured one, changed log k by less than this
 DEFAULT_PERIOD_S = 1.0  # the shortest default update period (``default_period_s``)
 SAFETY_CHECK_S = 0.1  # the safety net's check period (at least SAFETY_CHECK_MIN_FRAMES)
 SAFETY_CHECK_MIN_FRAMES = 10
@@ -539,16 +539,16 @@ def ogtl_task(
     chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
 ) -> OgtlTask:
     """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
-    (the optical model's table), the probe's amplitude from the settings or, by default, from
-    the probed mode's WFS noise (``noise``: ``sensor.modal_noise_nm``) and its table gamma at
-    the plant model's seeing (``ogtl_model.default_amplitude``)."""
+    (the optical model's table), no spiral judged up to 1 / gamma_probe at the plant model's
+    seeing, the probe's amplitude from the settings or, by default, from the probed mode's WFS
+    noise (``noise``: ``sensor.modal_noise_nm``) and that gamma (``ogtl_model.default_amplitude``)."""
     m = settings.mode - 1
     worst = optical_gain_table(calibration, cache, ogtl_model.WORST_SEEING_ARCSEC)[m]
+    gamma = float(optical_gain_table(calibration, cache, chi_seeing_arcsec)[m])
     amplitude = settings.amplitude_nm
     if amplitude is None:
-        gamma = optical_gain_table(calibration, cache, chi_seeing_arcsec)[m]
-        amplitude = ogtl_model.default_amplitude(float(noise[m]), float(gamma), period_frames, settings.min_snr)
-    return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude)
+        amplitude = ogtl_model.default_amplitude(float(noise[m]), gamma, period_frames, settings.min_snr)
+    return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude, k_model=1.0 / gamma)
 
 
 def safety_net(rate_hz: float, tasks) -> SafetyNet:
@@ -674,8 +674,12 @@ def _phase_metrics(loop: ClosedLoop, strehl: float, start: int, stop: int) -> Ph
 
 
 def _settled(records: list[dict]) -> bool:
-    """OGTL's k has settled: its last update moved log k by less than SETTLED_LOG_STEP."""
-    if not records:
+    """OGTL's k has settled: its last update applied the integrator's step unlimited and moved
+    log k by less than SETTLED_LOG_STEP.  A held update (probe SNR too low, commands growing,
+    no estimate) says nothing of k, nor does a bound (a spiral's ceiling is one): read as
+    settled, they ended R16.5's settling at k = 3.4 and at k = 1 of ~5, and the paired
+    evaluation, settling as long, judged MGM's gains mid-transient."""
+    if not records or records[-1]["status"] != ogtl_model.UPDATED:
         return False
     previous = records[-2]["sensitivity"] if len(records) > 1 else 1.0
     return abs(math.log(records[-1]["sensitivity"] / previous)) < SETTLED_LOG_STEP

@@ -15,7 +15,11 @@
   are Karhunen-Loeve modes of von Karman turbulence restricted to the mirror's space, all
   orthonormal on the pupil, piston-free, and ordered by decreasing turbulent variance (so by
   increasing spatial frequency): the double diagonalisation of Gendron (1995) done in the
-  whitened actuator space.  ``M`` maps modal coefficients to actuator commands and ``M_inv``
+  whitened actuator space.  An eigenvector's sign is arbitrary and LAPACK's choice depends
+  on the BLAS threads (a basis computed with one thread flipped 149 of 671 modes against
+  two), which changed what a seed gives (the probe, the NCPA in modal coefficients, the
+  calibration noise act in modal coordinates): each KL mode's sign is fixed by a seeded
+  generic actuator vector (``canonical_signs``).  ``M`` maps modal coefficients to actuator commands and ``M_inv``
   (``M^T G``, G the pupil Gram matrix of the influence functions) back.
 """
 
@@ -35,6 +39,7 @@ from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
 from .registration import Misregistration
 
 N_ACTUATORS = 672  # the LBT672 adaptive secondary
+SIGN_SEED = 20261128  # the generic actuator vector that fixes each KL mode's sign
 
 
 @dataclass(frozen=True)
@@ -205,6 +210,16 @@ def best_fitting_variance(space: MirrorSpace, n_modes: int) -> float:
     return space.turbulence - float(evals[:n_modes].sum())
 
 
+def canonical_signs(modes_w: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """``modes_w`` (whitened coordinates, one mode per column) with each sign chosen so that
+    the mode's actuator commands ``W m`` project positively on a seeded generic vector: a rule
+    that no symmetry of the mirror ties ("largest coefficient positive" does for modes whose
+    extremes are equal and opposite) and that roundoff cannot flip."""
+    generic = np.random.default_rng(SIGN_SEED).standard_normal(W.shape[0])
+    projection = generic @ (W @ modes_w)
+    return modes_w * np.where(projection < 0, -1.0, 1.0)
+
+
 def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
     """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
     if not (L0_m > 0 and np.isfinite(L0_m)):
@@ -217,7 +232,7 @@ def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, e
     P = np.eye(K.shape[0]) - Q @ Q.T
     evals, evecs = np.linalg.eigh(P @ K @ P)
     order = np.argsort(evals)[::-1][: K.shape[0] - 3]
-    kl = evecs[:, order]
+    kl = canonical_signs(evecs[:, order], W)
     modes_w = np.concatenate([Q[:, 1:3], kl], axis=1)
     variance = np.einsum("im,ij,jm->m", modes_w, K, modes_w)
     M = W @ modes_w

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_write, input_file
 
-MODEL_VERSION = 2  # 2: the pyramid sums its modulation points per thread (float32 rounding changed)
+MODEL_VERSION = 3  # 2: the pyramid sums its modulation points per thread (float32 rounding changed); 3: KL signs fixed
 CHECKSUM = "__sha256__"  # the array holding the checksum of the others
 MAX_ENTRY_BYTES = 2**30  # the largest entry loaded (the 671-mode basis is 7 MB)
 _HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}

@@ -392,3 +392,29 @@ def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration, seed):
     )
     loop.run(2000)
     assert net.events == 0 and np.all(np.isfinite(net.best))
+
+
+def test_ogtl_judges_no_spiral_below_the_models_k(monkeypatch):
+    """The false spiral of ``test_ogtl_lifts_a_spirals_ceiling_after_its_hold`` (one low
+    estimate after the first raise) with the model's k = 1 / 0.25 given to the task: a raise to
+    1.5, below it, leaves every effective gain under its design and is not judged; k goes on
+    up to 4 at once.  Above the model's k the rule acts as before."""
+    from soulctl.control import ogtl
+
+    def run(k_model):
+        count = iter(range(20))
+        monkeypatch.setattr(
+            ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(0.25 * rtc.sensitivity / (1.5 if next(count) == 1 else 1.0), 0.01, 100.0)
+        )
+        task, gains = OgtlTask(100, k_model=k_model), np.full(40, 0.3)
+        rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+        z = np.zeros((100, 40))
+        window = lambda: TelemetryWindow(0, 1000.0, 1.5, z, z, z, np.zeros((100, 4)), np.ones(100), gains, rtc.sensitivity)  # noqa: E731
+        return [task.update(window(), rtc) for _ in range(20)]
+
+    judged, model = run(1.0), run(4.0)
+    assert [r["status"] for r in judged].count(ogtl.SPIRAL) == 1
+    assert ogtl.SPIRAL not in [r["status"] for r in model] and model[0]["k_model"] == 4.0
+    first_at_4 = lambda rs: next(i for i, r in enumerate(rs) if abs(r["sensitivity"] / 4.0 - 1) < 0.05)  # noqa: E731
+    assert first_at_4(model) + ogtl.SPIRAL_HOLD <= first_at_4(judged)
+    assert ogtl.spiralling(4.5, 0.9, (3.0, 1.0), k_model=4.0) and not ogtl.spiralling(3.9, 0.9, (3.0, 1.0), k_model=4.0)

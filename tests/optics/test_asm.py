@@ -173,3 +173,41 @@ def test_sparse_influence_functions_match_the_dense_ones():
     sparse = g.sparse_influence_functions(pupil, floor=1e-4)
     assert np.abs(sparse.toarray() - dense).max() <= 1e-4
     assert sparse.nnz < 0.1 * dense.size  # ~40 actuators per pixel of 672
+
+
+_BASIS_SIGNS = """
+import sys, numpy as np
+from soulctl.optics.asm import AsmGeometry, kl_basis
+from soulctl.optics.pupil import Pupil
+np.save(sys.argv[1], kl_basis(AsmGeometry(), Pupil(40)).M)
+"""
+
+
+def test_the_basis_is_the_same_whatever_the_blas_threads(tmp_path):
+    """An eigenvector's sign is LAPACK's choice and depended on the BLAS threads (149 of 671
+    modes flipped between one thread and two): what a seed gives then depended on the machine.
+    Computed in processes with 1 and 2 threads, the bases agree mode by mode, sign included."""
+    import os
+    import subprocess
+    import sys
+
+    bases = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
+        path = tmp_path / f"M{threads}.npy"
+        subprocess.run([sys.executable, "-c", _BASIS_SIGNS, str(path)], env=env, check=True, timeout=300)
+        bases.append(np.load(path))
+    a, b = bases
+    cos = (a * b).sum(axis=0) / np.linalg.norm(a, axis=0) / np.linalg.norm(b, axis=0)
+    assert cos.min() > 1 - 1e-9
+
+
+def test_canonical_signs_undo_any_sign_flip():
+    """The rule depends on the mode, not on the sign LAPACK returned it with."""
+    from soulctl.optics.asm import canonical_signs
+
+    rng = np.random.default_rng(3)
+    W = rng.standard_normal((30, 12))
+    modes = np.linalg.qr(rng.standard_normal((12, 12)))[0]
+    flips = rng.choice([-1.0, 1.0], size=12)
+    assert np.array_equal(canonical_signs(modes, W), canonical_signs(modes * flips, W))
