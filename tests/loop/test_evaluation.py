@@ -113,18 +113,18 @@ def test_a_fixed_k_evaluation_of_an_ogtl_request_settles_as_any_fixed_k(setup):
     assert loop.rtc_parameters.sensitivity == 2.0
 
 
-def test_a_held_ogtl_update_is_not_a_settled_k():
-    """OGTL's settling ends on a measured update that moved k little, never on a hold: a held
-    k (probe SNR too low, commands growing) says nothing of the optical gain (R16.5's settling
-    ended at k = 3.4 of ~5 on one)."""
+def test_an_ogtl_update_without_an_estimate_is_not_a_settled_k():
+    """OGTL's settling ends on an update that had an estimate and moved k little, never on one
+    held for a low probe SNR (R16.5's settling ended at k = 3.4 of ~4.5 on one).  A hold while
+    the commands grow still ends it (settling on, OGTL raised k through the transient)."""
     from soulctl.loop.optimize import _settled
 
     def records(*pairs):
         return [{"sensitivity": k, "status": status} for k, status in pairs]
 
     assert not _settled(records((3.38, ogtl_model.STEP_LIMITED), (3.38, ogtl_model.LOW_SNR)))
-    assert not _settled(records((3.38, ogtl_model.LOW_SNR), (3.38, ogtl_model.GROWING)))
+    assert not _settled(records((3.38, ogtl_model.UPDATED), (3.38, ogtl_model.NO_ESTIMATE)))
     assert not _settled(records((3.38, ogtl_model.UPDATED), (3.92, ogtl_model.UPDATED)))
     assert _settled(records((4.93, ogtl_model.UPDATED), (4.88, ogtl_model.UPDATED)))
-    assert not _settled(records((1.5, ogtl_model.STEP_LIMITED), (1.0, ogtl_model.AT_BOUND)))
+    assert _settled(records((2.46, ogtl_model.UPDATED), (2.46, ogtl_model.GROWING)))
     assert not _settled([])
