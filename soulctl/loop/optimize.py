@@ -819,9 +819,9 @@ def evaluate_pair(
     """*before* and *after* of ``result``: the initial and the optimised gains in the paired
     evaluation (``evaluate``).  With OGTL (a fresh task from ``new_ogtl`` for each) both loops
     close much as the run's: OGTL from k = 1 settling for as many updates as the run's (its
-    ``settling`` phase), the closing not stretched to an update boundary; without, both at the fixed k and NCPA offsets of the end of *before*.
-    Judged so, an optimiser that returns the initial gains scores exactly zero, whatever k
-    did while it ran."""
+    ``settling`` phase), the closing not stretched to an update boundary; without, both at
+    the fixed k and NCPA offsets of the end of *before*.  Judged so, an optimiser that returns
+    the initial gains scores exactly zero, whatever k did while it ran."""
     k, offsets = result.sensitivities[0], result.offsets[0]
     periods = OGTL_SETTLING_PERIODS
     if "settling" in result.phases:
