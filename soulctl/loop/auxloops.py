@@ -33,7 +33,7 @@ class OgtlTask(AuxLoop):
     """OGTL (``control.ogtl``): the probe from ``start``, one k update per period with the
     reliability, bound, rate, spiral and growth rules; ``k_max`` the upper bound of k (1 /
     gamma_probe at the worst seeing, from the task's builder); ``k_model`` the k up to which
-    no spiral is judged (1 / gamma_probe at the plant model's seeing); ``amplitude_nm`` the
+    no spiral is judged (1 / gamma_probe at the seeing of MGM's plant model); ``amplitude_nm`` the
     probe's amplitude when the settings leave it to the operating point."""
 
     name = "ogtl"
@@ -49,7 +49,8 @@ class OgtlTask(AuxLoop):
         super().__init__(period_frames)
         self.settings = settings
         self.k_max = float(min(k_max, ogtl.SENSITIVITY_RANGE[1]))
-        self.k_model = float(min(k_model, self.k_max))
+        # a model without a finite k (gamma 0 or unknown) judges spirals from k = 1 on
+        self.k_model = float(min(k_model, self.k_max)) if math.isfinite(k_model) else ogtl.MIN_SENSITIVITY
         self.amplitude_nm = settings.amplitude_nm or amplitude_nm or ogtl.PROBE_AMPLITUDE_NM
         self.frequency_hz = math.nan
         self.step_scale = 1.0  # the safety net halves it after a recovery

@@ -27,7 +27,7 @@ MGM's plant model takes chi_i from the optical-gain table of the calibration at 
 seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
 calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1); without, gamma_i times
 the fixed sensitivity k = 1. OGTL starts from k = 1 once the loop is closed and settles (4 to
-12 updates, until one moves log k by less than 0.1) before anything is measured, so that
+12 updates, until one with an estimate moves log k by less than 0.1) before anything is measured, so that
 neither optimiser scans while k is still far from it. (Starting it at 1/gamma_30 of the table
 instead over-drove the loops whose real optical gain was higher than the table's - a 0.6" loop
 has a higher gamma than the 0.8" reference - and before the loop is closed the open-loop
@@ -539,8 +539,8 @@ def ogtl_task(
     chi_seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC,
 ) -> OgtlTask:
     """OGTL for this configuration: k bounded by 1 / gamma_probe at ``ogtl_model.WORST_SEEING_ARCSEC``
-    (the optical model's table), no spiral judged up to 1 / gamma_probe at the plant model's
-    seeing, the probe's amplitude from the settings or, by default, from the probed mode's WFS
+    (the optical model's table), no spiral judged up to 1 / gamma_probe at ``chi_seeing_arcsec``
+    (MGM's plant model's seeing), the probe's amplitude from the settings or, by default, from the probed mode's WFS
     noise (``noise``: ``sensor.modal_noise_nm``) and that gamma (``ogtl_model.default_amplitude``)."""
     m = settings.mode - 1
     worst = optical_gain_table(calibration, cache, ogtl_model.WORST_SEEING_ARCSEC)[m]
@@ -548,7 +548,8 @@ def ogtl_task(
     amplitude = settings.amplitude_nm
     if amplitude is None:
         amplitude = ogtl_model.default_amplitude(float(noise[m]), gamma, period_frames, settings.min_snr)
-    return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude, k_model=1.0 / gamma)
+    k_model = 1.0 / gamma if gamma > 0 else math.inf
+    return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude, k_model=k_model)
 
 
 def safety_net(rate_hz: float, tasks) -> SafetyNet:

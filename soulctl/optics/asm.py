@@ -17,10 +17,10 @@
   increasing spatial frequency): the double diagonalisation of Gendron (1995) done in the
   whitened actuator space.  An eigenvector's sign is arbitrary and LAPACK's choice depends
   on the BLAS threads (a basis computed with one thread flipped 149 of 671 modes against
-  two), which changed what a seed gives (the probe, the NCPA in modal coefficients, the
-  calibration noise act in modal coordinates): each KL mode's sign is fixed by a seeded
-  generic actuator vector (``canonical_signs``).  ``M`` maps modal coefficients to actuator commands and ``M_inv``
-  (``M^T G``, G the pupil Gram matrix of the influence functions) back.
+  two), which changed what a seed gives (OGTL's probe and the push-pull calibration's noise
+  act in modal coordinates): each KL mode's sign is fixed by a seeded generic actuator
+  vector (``canonical_signs``).  ``M`` maps modal coefficients to actuator commands and
+  ``M_inv`` (``M^T G``, G the pupil Gram matrix of the influence functions) back.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
 from .registration import Misregistration
 
 N_ACTUATORS = 672  # the LBT672 adaptive secondary
-SIGN_SEED = 20261128  # the generic actuator vector that fixes each KL mode's sign
+SIGN_SEED = 20261128  # the generic actuator vector that fixes each KL mode's sign (in the basis cache key)
 
 
 @dataclass(frozen=True)

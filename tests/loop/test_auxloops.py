@@ -418,3 +418,5 @@ def test_ogtl_judges_no_spiral_below_the_models_k(monkeypatch):
     first_at_4 = lambda rs: next(i for i, r in enumerate(rs) if abs(r["sensitivity"] / 4.0 - 1) < 0.05)  # noqa: E731
     assert first_at_4(model) + ogtl.SPIRAL_HOLD <= first_at_4(judged)
     assert ogtl.spiralling(4.5, 0.9, (3.0, 1.0), k_model=4.0) and not ogtl.spiralling(3.9, 0.9, (3.0, 1.0), k_model=4.0)
+    # a model without a finite k (gamma 0, or unknown) leaves the rule on from k = 1
+    assert all(OgtlTask(100, k_model=bad).k_model == ogtl.MIN_SENSITIVITY for bad in (math.nan, math.inf))

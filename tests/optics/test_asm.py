@@ -202,6 +202,18 @@ def test_the_basis_is_the_same_whatever_the_blas_threads(tmp_path):
     assert cos.min() > 1 - 1e-9
 
 
+def test_every_kl_mode_of_the_basis_follows_the_sign_rule():
+    """The rule itself, on the basis ``kl_basis`` builds (a machine whose BLAS keeps one thread
+    cannot fail the test above): each KL mode's commands project positively on the seeded
+    vector, well clear of roundoff."""
+    from soulctl.optics.asm import SIGN_SEED
+
+    M = kl_basis(AsmGeometry(), Pupil(40)).M
+    generic = np.random.default_rng(SIGN_SEED).standard_normal(M.shape[0])
+    relative = generic @ M[:, 2:] / np.linalg.norm(generic) / np.linalg.norm(M[:, 2:], axis=0)
+    assert relative.min() > 1e-8
+
+
 def test_canonical_signs_undo_any_sign_flip():
     """The rule depends on the mode, not on the sign LAPACK returned it with."""
     from soulctl.optics.asm import canonical_signs
