@@ -6,7 +6,8 @@ sub-aperture per frame, band, DIMM seeing range, wind from telemetry), the paper
 (MGM, or trial-and-error where it compared them), OGTL and the default NCPA (100 nm with
 offsets, as on sky); three seeds, seed i at the i-th of three seeings spanning the caption's
 range. The result is the paired evaluation's *after* (4 windows of 1 s, as
-`validation/faint_cases.py`), against the range of the night's LUCI images:
+`validation/faint_cases.py`; rows keep the windows, after - before with its standard error
+and the evaluation's k), against the range of the night's LUCI images:
 
   R9.4 MGM    1700 Hz 40x40, 25 ph, FeII, 1.16-1.50", 6-8 m/s:   0.47-0.64 (sim. 0.48-0.67)
   R10.9 MGM   1212 Hz 40x40, 5 ph, FeII, 0.95-1.07", 12-14 m/s:   0.65 +- 0.025 (sim. 0.73)
@@ -116,6 +117,9 @@ def run_night(key: str, seed: int, cache: ArrayCache) -> dict:
         "after": after.strehl if after else None,
         "after_tt_jitter_mas": after.tt_jitter_mas if after else None,
         "after_residual_nm": after.residual_nm if after else None,
+        "after_minus_before": r.strehl_difference(),  # paired windows' mean and its standard error
+        "window_strehls": {"before": r.before.window_strehls, "after": after.window_strehls} if r.before and after else None,
+        "k_evaluation": [r.before.sensitivity, after.sensitivity] if r.before and after else None,
         "during_run": {k: v.strehl for k, v in r.during_run.items()},
         "k": r.loop.rtc_parameters.sensitivity,
         "safety_restores": r.safety_events,
