@@ -6,7 +6,7 @@ If the loop at 1.6" falls from the linear sensor's residual to the one it reache
 on the pyramid from a flat mirror, the pyramid cannot hold it, whatever the closing procedure.
 
     python validation/pyramid_hold.py [--seeings 1.0,1.6] [--linear-s 0.3] [--duration 1.5]
-        [--wavelengths 750] [--oversampling 2] [--field-stop 0] [--out FILE]
+        [--wavelengths 750] [--oversampling 2] [--field-stop 0] [--twin GAIN] [--out FILE]
 
 Residual RMS (nm, all pupil pixels) over spans before and after the switch, with the Marechal
 H-band Strehl ratio exp(-(2 pi sigma / 1650 nm)^2) as a rough scale; "og" rows divide every
@@ -14,7 +14,9 @@ gain by its mode's optical gain at that seeing (``loop.chi_model.optical_gain_ta
 switch.  ``--wavelengths`` runs the pyramid (and its calibration) monochromatic at other
 wavelengths of SOUL's 600-950 nm band, or on a band of several (``658+775+892``), the
 modulation kept at the same angle (3 lambda/D at 750 nm): whether the band, whose red end
-sees the same OPD as less phase, holds the 1.6" loop the 750 nm model loses.  ~40 s per row on one core.
+sees the same OPD as less phase, holds the 1.6" loop the 750 nm model loses.  ``--twin G``
+runs the loop of ``oopao_hold.py`` (the same experiment in OOPAO): pure integrators of gain G,
+no error terms, no noise, no vibrations.  ~40 s per row on one core.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.cli.common import default_cache_dir
+from soulctl.cli.loop import IDEAL
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
@@ -75,9 +78,29 @@ def calibration_at(request, wavelengths_nm: tuple[float, ...], cache: ArrayCache
     return calibrate(dataclasses.replace(setup, pyramid=pyramid), cache)
 
 
-def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayCache, wavelengths_nm=(750.0,), oversampling=2, stop=0.0):
+def twin_values(gain: float) -> dict:
+    """The loop ``oopao_hold.py`` runs in OOPAO: every mode on a pure integrator of ``gain``, and
+    none of soulctl's error terms (``loop run --ideal``'s settings, no detector noise, no
+    vibrations, no structural resonance)."""
+    values = {"control.tt_control": "int", "control.gains": [gain] * 3, "control.forgetting": 1.0}
+    return values | IDEAL | {"detector.noise": False, "vibrations.enabled": False, "structure.enabled": False}
+
+
+def one(
+    seeing: float,
+    linear_s: float,
+    duration: float,
+    og: bool,
+    cache: ArrayCache,
+    wavelengths_nm=(750.0,),
+    oversampling=2,
+    stop=0.0,
+    twin=0.0,
+):
     values = {"star.magnitude_r": 9.7, "run.band": "H", "ncpa.rms_nm": 0.0, "atmosphere.seeing_arcsec": seeing, "run.seed": 1}
     values |= {"run.oversampling": oversampling}
+    if twin > 0:
+        values |= twin_values(twin)
     request = RunConfig().with_values(values | {"run.duration_s": duration}).request()
     obs = request.observation
     cal = calibration_at(request, wavelengths_nm, cache, stop)
@@ -98,7 +121,7 @@ def one(seeing: float, linear_s: float, duration: float, og: bool, cache: ArrayC
         sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
         out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
     described = {"seeing": seeing, "wavelengths_nm": list(wavelengths_nm), "oversampling": oversampling}
-    described |= {"field_stop_lambda_over_d": stop, "og_compensated_at_switch": og}
+    described |= {"field_stop_lambda_over_d": stop, "og_compensated_at_switch": og, "twin_gain": twin or None}
     return described | {"linear_s": linear_s, "duration_s": duration, "spans": out}
 
 
@@ -111,6 +134,7 @@ def main() -> None:
     p.add_argument("--oversampling", type=int, default=2, help="simulation pixels per binning-1 detector pixel (pupil 40 o px)")
     p.add_argument("--field-stop", type=float, default=0.0, help="field stop radius, lambda/D at 750 nm (SOUL's 2.1\" field: 56)")
     p.add_argument("--og", choices=("both", "no"), default="both", help='also the rows with gains / gamma_i above 1.0"')
+    p.add_argument("--twin", type=float, default=0.0, help="the loop of validation/oopao_hold.py at this integrator gain (0: the defaults)")
     p.add_argument("--out", type=Path, default=OUT)
     a = p.parse_args()
     cache = ArrayCache(default_cache_dir())
@@ -118,7 +142,7 @@ def main() -> None:
     bands = [tuple(float(w) for w in band.split("+")) for band in a.wavelengths.split(",")]
     for seeing, nm in ((float(s), band) for s in a.seeings.split(",") for band in bands):
         for og in (False, True) if seeing > 1.0 and a.og == "both" else (False,):
-            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling, a.field_stop)
+            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling, a.field_stop, a.twin)
             print(json.dumps(row), flush=True)
             rows.append(row)
     atomic_write_text(a.out, json.dumps(rows, indent=1))
