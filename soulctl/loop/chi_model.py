@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import blas
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
@@ -19,7 +20,8 @@ def optical_gain_table(
     hit = cache.load(key, EntrySpec({"gains": (calibration.basis.n_modes,)}))
     if hit is not None:
         return hit["gains"]
-    gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains
+    with blas.one_thread():
+        gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains
     cache.store(key, {"gains": gains})
     return gains
 

@@ -30,8 +30,8 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from .. import blas
 from ..control.gains import LoopGains, mode_filters
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSpectrum
@@ -242,10 +242,11 @@ class ClosedLoop:
         """``n_frames`` steps; the residual of the frames after the first ``skip`` goes into
         ``psf`` (a metrics.PsfAccumulator) when given; ``progress(frames_done)`` after each.
 
-        BLAS runs on one thread meanwhile: the loop's matrix-vector products are small, and
-        OpenBLAS threads spinning after each of them slowed scipy.fft's threads (the pyramid's
-        FFTs) by ~25 % (42 against 34 iterations/s at 40x40, 160-px pupil)."""
-        with threadpool_limits(limits=1, user_api="blas"):
+        BLAS runs on one thread meanwhile (``soulctl.blas``: the same numbers on every machine):
+        the loop's matrix-vector products are small, and OpenBLAS threads spinning after each
+        of them slowed scipy.fft's threads (the pyramid's FFTs) by ~25 % (42 against 34
+        iterations/s at 40x40, 160-px pupil)."""
+        with blas.one_thread():
             for i in range(n_frames):
                 residual = self.step()
                 if psf is not None and i >= skip:

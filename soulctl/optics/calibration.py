@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .. import defaults
+from .. import blas, defaults
 from ..errors import InputError
 from ..ranges import MODES
 from .asm import SIGN_SEED, AsmGeometry, ModalBasis, kl_basis
@@ -59,7 +59,8 @@ def modal_basis(setup: BasisSetup, cache: ArrayCache = ArrayCache(None), refresh
     if hit is not None:
         return ModalBasis(hit["M"], hit["M_inv"], hit["variance"], setup.asm, setup.L0_m)
     pupil = Pupil(setup.pixels, setup.asm.diameter_m, setup.asm.obstruction)
-    basis = kl_basis(setup.asm, pupil, setup.L0_m)
+    with blas.one_thread():  # the same basis on every machine (soulctl.blas)
+        basis = kl_basis(setup.asm, pupil, setup.L0_m)
     cache.store(key, {"M": basis.M, "M_inv": basis.M_inv, "variance": basis.variance})
     return basis
 
@@ -174,9 +175,10 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
             f"{setup.n_modes} modes cannot be calibrated from the {sensor.n_slopes} slopes of binning {setup.pyramid.binning} "
             f"(an under-determined interaction matrix): accepted at most {sensor.n_slopes} modes"
         )
-    maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
-    D = push_pull(sensor, maps, setup.push_nm)
-    R = np.linalg.pinv(D)
+    with blas.one_thread():  # the same D and R on every machine (soulctl.blas)
+        maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
+        D = push_pull(sensor, maps, setup.push_nm)
+        R = np.linalg.pinv(D)
     ref = sensor.reference_slopes.astype(np.float64)
     cache.store(key, {"D": D, "R": R, "reference": ref})
     return Calibration(setup, basis, D, R, ref, False, time.perf_counter() - t0)
@@ -194,7 +196,8 @@ def moved_mirror_response(calibration: Calibration, registration: Misregistratio
         return hit["D"]
     sensor = calibration_sensor(calibration.setup.pyramid)
     basis = calibration.basis
-    shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
-    D = push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
+    with blas.one_thread():
+        shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
+        D = push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
     cache.store(key, {"D": D})
     return D

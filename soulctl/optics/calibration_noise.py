@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import defaults
+from .. import blas, defaults
 from ..ranges import CALIBRATION_FRAMES, CALIBRATION_PHOTONS, SEED, SEEING_ARCSEC
 from .calibration import Calibration, calibration_sensor, mode_maps, push_pull
 from .detector import Detector
@@ -71,7 +71,13 @@ def measured_calibration(
 ) -> Calibration:
     """``calibration`` with D measured in ``conditions`` (finite flux and/or around a residual
     of outer scale ``L0_m``; see the module) and R = D^+ of it.  Around residuals, each of the
-    ``SCREENS`` realisations is measured with ``frames`` frames per push."""
+    ``SCREENS`` realisations is measured with ``frames`` frames per push.  BLAS on one thread
+    (``soulctl.blas``)."""
+    with blas.one_thread():
+        return _measured(calibration, conditions, detector, L0_m)
+
+
+def _measured(calibration: Calibration, conditions: CalibrationNoise, detector: Detector, L0_m: float) -> Calibration:
     pupil = calibration.setup.pyramid.pupil
     shapes = calibration.basis.shapes(pupil)
     maps = mode_maps(shapes, pupil)

@@ -18,7 +18,8 @@ Modulation: a circle of radius ``r`` lambda/D travelled during one frame, sample
 sampled alike; 24 points at 3 lambda/D, SPECULA's 2 round(4 r) there).  Moving the PSF over the
 pyramid is the same as moving the pyramid under the PSF, so each modulation point uses the
 mask translated by the opposite offset, evaluated analytically: one forward FFT per
-wavefront, then one inverse FFT per modulation point (batched, threaded, complex64).
+wavefront, then one inverse FFT per modulation point (batched, threaded, complex64), the
+points summed in fixed shares (``SUM_SHARES``) so that a frame does not depend on the threads.
 
 Sensing wavelength: 750 nm, the effective wavelength of SOUL's 600-950 nm WFS band (Arcetri
 semi-analytic error budget).  A polychromatic beam (``band_nm``: wavelengths of equal photon
@@ -142,17 +143,26 @@ def _available_cores() -> int:
         return os.cpu_count() or 1
 
 
+# The modulation points are summed in this many fixed shares (point k in share k mod SHARES),
+# each share's points in a fixed order and the shares' totals added in index order, whatever
+# the number of threads: float32 sums depend on their order, and a closed loop amplifies a
+# last-bit difference, so a frame must not depend on the machine's cores (same seed, same run).
+SUM_SHARES = 4  # at most 4 threads share the points; on two cores 2 and 4 shares run alike, 8 ~8 % slower (smaller FFT calls)
+_CHUNK_BYTES = 4 << 20
+
+
+def _chunk(n: int, points: int) -> int:
+    """Points per FFT call: a few MB of complex64 fields."""
+    return max(1, min(points, _CHUNK_BYTES // (8 * n * n)))
+
+
 class _Scratch:
-    """One propagation thread's buffers: a chunk of fields it transforms in place, |field|^2
-    summed over the chunk, and the thread's total."""
+    """One propagation thread's buffers: a chunk of fields it transforms in place and |field|^2
+    summed over the chunk."""
 
-    CHUNK_BYTES = 4 << 20
-
-    def __init__(self, n: int, points: int):
-        self.chunk = max(1, min(points, self.CHUNK_BYTES // (8 * n * n)))
-        self.field = np.empty((self.chunk, n, n), dtype=np.complex64)
+    def __init__(self, n: int, chunk: int):
+        self.field = np.empty((chunk, n, n), dtype=np.complex64)
         self.square = np.empty((n, 2 * n), dtype=np.float32)
-        self.total = np.empty((n, 2 * n), dtype=np.float32)
 
 
 class Pyramid:
@@ -183,10 +193,13 @@ class Pyramid:
         half = np.exp(-1j * np.pi * idx / N)
         self._amplitude = (np.outer(half, half) * self.pupil.mask).astype(np.complex64)
         self._masks = self._modulated_masks()
-        # Per thread: its share of the modulation points and its scratch buffers.
-        threads = min(self.workers, config.points)
-        self._shares = [range(t, config.points, threads) for t in range(threads)]
-        self._scratch = [_Scratch(N, len(share)) for share in self._shares]
+        # The fixed shares of the modulation points (SUM_SHARES), one total each; per thread
+        # its scratch buffers.  Thread t sums shares t, t + threads, ...
+        self._shares = [range(k, config.points, SUM_SHARES) for k in range(min(SUM_SHARES, config.points))]
+        self._chunk = _chunk(N, len(self._shares[0]))
+        self._totals = np.empty((len(self._shares), N, 2 * N), dtype=np.float32)
+        threads = min(self.workers, len(self._shares))
+        self._scratch = [_Scratch(N, self._chunk) for _ in range(threads)]
 
     def _modulated_masks(self) -> np.ndarray:
         """(points, N, N) complex64: the pyramid's transmission shifted by each modulation offset."""
@@ -233,10 +246,10 @@ class Pyramid:
         # by side (N, 2N): they are added together with the detector's binning, in one pass.
         out = np.empty((batch, N, 2 * N), dtype=np.float32)
         for b in range(batch):
-            sums = self._map(lambda t, fb=focal[b]: self._modulated_sum(fb, t))
-            out[b] = sums[0]
-            for s in sums[1:]:
-                out[b] += s
+            self._map(lambda t, fb=focal[b]: self._modulated_sums(fb, t))
+            out[b] = self._totals[0]
+            for total in self._totals[1:]:  # in share order
+                out[b] += total
         if self._grid_shift:
             out = np.roll(out, (-self._grid_shift, -2 * self._grid_shift), axis=(1, 2))
         p = c.detector_pixel
@@ -246,35 +259,36 @@ class Pyramid:
         columns = out.reshape(-1, 2 * p) @ np.ones(2 * p, dtype=np.float32)
         return columns.reshape(batch, n, p, n).sum(axis=2)
 
-    def _modulated_sum(self, focal: np.ndarray, thread: int) -> np.ndarray:
-        """One thread's share: sum over its modulation points k of |IFFT(focal * mask_k)|^2,
-        as (N, 2N) float32 with real and imaginary parts side by side.  The points go through
-        in chunks of a few MB (one FFT call each: few interpreter round trips, cache-sized)."""
+    def _modulated_sums(self, focal: np.ndarray, thread: int) -> None:
+        """One thread's shares: into each share's total, the sum over its modulation points k
+        of |IFFT(focal * mask_k)|^2, as (N, 2N) float32 with real and imaginary parts side by
+        side.  The points go through in chunks of a few MB (one FFT call each: few interpreter
+        round trips, cache-sized)."""
         sc = self._scratch[thread]
-        share = self._shares[thread]
-        sc.total.fill(0.0)
-        for start in range(0, len(share), sc.chunk):
-            points = share[start : start + sc.chunk]
-            field = sc.field[: len(points)]
-            np.multiply(focal, self._masks[points.start : points.stop : points.step], out=field)
-            v = scipy.fft.ifft2(field, workers=1, overwrite_x=True).view(np.float32)
-            sc.total += np.einsum("kij,kij->ij", v, v, out=sc.square)
-        return sc.total
+        for index in range(thread, len(self._shares), len(self._scratch)):
+            share, total = self._shares[index], self._totals[index]
+            total.fill(0.0)
+            for start in range(0, len(share), self._chunk):
+                points = share[start : start + self._chunk]
+                field = sc.field[: len(points)]
+                np.multiply(focal, self._masks[points.start : points.stop : points.step], out=field)
+                v = scipy.fft.ifft2(field, workers=1, overwrite_x=True).view(np.float32)
+                total += np.einsum("kij,kij->ij", v, v, out=sc.square)
 
     def _share_pool(self) -> None:
         """A band's wavelengths run one after the other: one thread pool serves them all."""
-        size = max(len(p._shares) for p in self._parts)
+        size = max(len(p._scratch) for p in self._parts)
         if self._pool is None and size > 1:
             self._pool = ThreadPoolExecutor(size, thread_name_prefix="pwfs")
             for p in self._parts:
                 p._pool = self._pool
 
     def _map(self, task):
-        if len(self._shares) == 1:
+        if len(self._scratch) == 1:
             return [task(0)]
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(len(self._shares), thread_name_prefix="pwfs")
-        return list(self._pool.map(task, range(len(self._shares))))
+            self._pool = ThreadPoolExecutor(len(self._scratch), thread_name_prefix="pwfs")
+        return list(self._pool.map(task, range(len(self._scratch))))
 
     def __getstate__(self):
         state = self.__dict__.copy()

@@ -41,6 +41,7 @@ import h5py
 import numpy as np
 from astropy.io import fits
 
+from .. import blas
 from ..errors import InputError
 from ..files import atomic_write, input_file
 from .schema import PER_FRAME, REQUIRED, TelemetryReader, check_slope_pairs, nested
@@ -255,7 +256,13 @@ def _time_arrays(arrays: dict, time) -> None:
 
 
 def _derived(arrays: dict) -> None:
-    """R s and M^-1 c from what the standard holds, when the file does not give them."""
+    """R s and M^-1 c from what the standard holds, when the file does not give them (BLAS on
+    one thread: the same modes on every machine, ``soulctl.blas``)."""
+    with blas.one_thread():
+        _derive(arrays)
+
+
+def _derive(arrays: dict) -> None:
     if "measured_modes" not in arrays and "slopes" in arrays and "reconstructor" in arrays:
         if arrays["reconstructor"].shape[1] == arrays["slopes"].shape[1]:
             arrays["measured_modes"] = arrays["slopes"] @ arrays["reconstructor"].T

@@ -77,11 +77,14 @@ def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
     request = _ogtl_request(request)
     g = design.per_mode(54)
     period = request.frames(request.period)
-    result = OptimizeResult(request, g, g.copy(), None, None, None, None, sensitivities=(2.0, 3.0), offsets=(False, False))
+    result = OptimizeResult(request, g, g.copy(), None, None, None, None, sensitivities=(1.5, 2.0), offsets=(False, False))
     evaluate_pair(request, cal, design, result, lambda: OgtlTask(period), None)
     assert result.before is not None and result.after is not None
     assert result.strehl_difference()[0] == 0.0 and result.before == result.after
-    frozen_after = evaluate(request, cal, design, g, 3.0)  # the former rule: the run's final k, frozen
+    # The former rule: the run's final k, frozen from the closing on.  (At k = 3 this small loop
+    # diverges at frame 1316 once the correction raises its optical gains; at 2.5 it reads
+    # 0.137 against OGTL's 0.192: a frozen k is what the evaluation must not impose.)
+    frozen_after = evaluate(request, cal, design, g, 2.0)
     assert frozen_after.strehl != result.after.strehl
     assert result.before.sensitivity is not None and result.before.sensitivity > 1.0  # OGTL raised k from 1 in the evaluation's loop
     assert result.before.sensitivity <= ogtl_model.SENSITIVITY_RANGE[1]
