@@ -159,7 +159,6 @@ def run_case(
         "aux": summary(records),
         "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
-        "code": code_fingerprint(),
     }
 
 
@@ -338,7 +337,10 @@ def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s:
     """Run the cases of ``todo`` that ``out`` has no row of this code for, appending their rows
     as points finish."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    have = {_key(r) for r in read_rows([out], {code_fingerprint()})} if out.exists() else set()
+    # The code the workers run is the one imported at launch: a package re-installed during a
+    # long grid must not relabel the rows that finish after it.
+    launched = code_fingerprint()
+    have = {_key(r) for r in read_rows([out], {launched})} if out.exists() else set()
     points: dict[tuple, list[str]] = {}  # (mag, seeing, seed) -> its variants to run
     for c in todo:
         if c not in have:
@@ -349,6 +351,7 @@ def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s:
         futures = [pool.submit(run_point, *p, points[p], cache, windows, window_s) for p in order]
         for fut in as_completed(futures):
             for row in fut.result():
+                row["code"] = launched
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(
