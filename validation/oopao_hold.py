@@ -45,6 +45,7 @@ from OOPAO.DeformableMirror import DeformableMirror
 from OOPAO.Pyramid import Pyramid
 from OOPAO.Source import Source
 from OOPAO.Telescope import Telescope
+from pyramid_hold import spans  # the same spans and Strehl scale as soulctl's run (this folder)
 
 from soulctl.control.delay import fractional_taps
 from soulctl.files import atomic_write_text
@@ -54,7 +55,6 @@ from soulctl.optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION
 from soulctl.optics.pwfs import WFS_WAVELENGTH_M
 
 OUT = Path(__file__).parent / "results" / "pyramid_hold_oopao.json"
-H_NM = 1650.0
 SUBAPERTURES, PIXELS_PER_SUBAPERTURE, MODES, MODULATION = 40, 2, 500, 3.0
 RAD_PER_ARCSEC = math.pi / 180 / 3600
 
@@ -126,14 +126,8 @@ def hold(system, seeing: float, gain: float, frames: int, linear: int, delay_fra
         measured = m2c @ (projector @ (opd - opd.mean())) if k < linear else reconstructor @ wfs.signal
         history = [history[0] - gain * measured] + history[:-1]
         dm.coefs = (1 - e) * history[n - 1] + e * history[n]  # during frame k + 1
-    spans = {"linear, last 200 frames": (linear - 200, linear), "pyramid, first 200": (linear, linear + 200)}
-    spans |= {"pyramid, next 600": (linear + 200, linear + 800), "pyramid, last 500": (frames - 500, frames)}
-    out = {}
-    for name, (a, b) in spans.items():
-        sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
-        out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
     described = {"simulator": "OOPAO 1.0.0", "seeing": seeing, "integrator_gain": gain, "delay_frames": delay_frames, "seed": seed}
-    return described | {"linear_frames": linear, "frames": frames, "seconds": round(time.time() - start, 1), "spans": out}
+    return described | {"linear_frames": linear, "frames": frames, "seconds": round(time.time() - start, 1), "spans": spans(rms, linear)}
 
 
 def main() -> None:

@@ -78,6 +78,19 @@ def calibration_at(request, wavelengths_nm: tuple[float, ...], cache: ArrayCache
     return calibrate(dataclasses.replace(setup, pyramid=pyramid), cache)
 
 
+def spans(rms: np.ndarray, switch: int) -> dict:
+    """Residual RMS (nm) and the Marechal H-band Strehl ratio over the spans around the switch
+    to the pyramid at frame ``switch`` (``rms``: one residual per frame); also the OOPAO twin's."""
+    n = len(rms)
+    edges = {"linear, last 200 frames": (switch - 200, switch), "pyramid, first 200": (switch, switch + 200)}
+    edges |= {"pyramid, next 600": (switch + 200, switch + 800), "pyramid, last 500": (n - 500, n)}
+    out = {}
+    for name, (a, b) in edges.items():
+        sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
+        out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
+    return out
+
+
 def twin_values(gain: float) -> dict:
     """The loop ``oopao_hold.py`` runs in OOPAO: every mode on a pure integrator of ``gain``, and
     none of soulctl's error terms (``loop run --ideal``'s settings, no detector noise, no
@@ -114,15 +127,9 @@ def one(
         if k == switch and og:
             loop.set_gains(gains.per_mode(obs.modes) / optical_gain_table(cal, cache, seeing))
         rms[k] = np.sqrt(np.mean(loop.step() ** 2))
-    spans = {"linear, last 200 frames": (switch - 200, switch), "pyramid, first 200": (switch, switch + 200)}
-    spans |= {"pyramid, next 600": (switch + 200, switch + 800), "pyramid, last 500": (n - 500, n)}
-    out = {}
-    for name, (a, b) in spans.items():
-        sigma = float(np.sqrt(np.mean(rms[a:b] ** 2)))
-        out[name] = {"frames": [a, b], "residual_nm": sigma, "marechal_h": float(np.exp(-((2 * np.pi * sigma / H_NM) ** 2)))}
     described = {"seeing": seeing, "wavelengths_nm": list(wavelengths_nm), "oversampling": oversampling}
     described |= {"field_stop_lambda_over_d": stop, "og_compensated_at_switch": og, "twin_gain": twin or None}
-    return described | {"linear_s": linear_s, "duration_s": duration, "spans": out}
+    return described | {"linear_s": linear_s, "duration_s": duration, "spans": spans(rms, switch)}
 
 
 def main() -> None:
