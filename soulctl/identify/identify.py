@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import blas
 from ..disturbance.vibrations import VibrationSpectrum
 from ..loop.metrics import pseudo_open_loop
 from ..loop.run import calibration_for
@@ -155,8 +154,7 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
         if hit is not None:
             table = hit["variances"]
         else:
-            with blas.one_thread():
-                table = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, L0s)
+            table = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, L0s)
             cache.store(key, {"variances": table})
     t = seeing.fit_turbulence(variance, table, L0s)
     r0 = r0_from_seeing(t.seeing_arcsec)

@@ -23,6 +23,7 @@ import math
 import numpy as np
 from scipy import special
 
+from .. import blas
 from ..disturbance.modal_psd import radial_order
 from ..optics.asm import ModalBasis, covariance_applied
 from ..optics.atmosphere import LAMBDA_REF_M
@@ -37,6 +38,7 @@ NM_PER_RAD = LAMBDA_REF_M * 1e9 / (2 * math.pi)
 NOLL = special.gamma(29 / 6) * 0.448 / (2 * special.gamma(1 / 6))  # fixes the Tip variance 0.448 (D/r0)^(5/3)
 
 
+@blas.on_one_thread
 def basis_variances(basis: ModalBasis, pupil: Pupil, L0_values) -> np.ndarray:
     """(len(L0_values), n_modes) V_i(L0), rad^2 at 500 nm for r0 = 1 m: s_i^T C s_i / n_p^2."""
     shapes = basis.shapes(pupil)  # (n_valid, n_modes)

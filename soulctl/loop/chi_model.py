@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import blas
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, SCREENS, CorrectionLevel, optical_gains
@@ -20,8 +19,7 @@ def optical_gain_table(
     hit = cache.load(key, EntrySpec({"gains": (calibration.basis.n_modes,)}))
     if hit is not None:
         return hit["gains"]
-    with blas.one_thread():
-        gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains
+    gains = optical_gains(calibration, CorrectionLevel(seeing_arcsec), screens, seed).gains
     cache.store(key, {"gains": gains})
     return gains
 

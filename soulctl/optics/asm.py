@@ -32,7 +32,7 @@ import scipy.fft
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from .. import defaults
+from .. import blas, defaults
 from ..errors import InputError
 from .atmosphere import phase_covariance
 from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
@@ -220,6 +220,7 @@ def canonical_signs(modes_w: np.ndarray, W: np.ndarray) -> np.ndarray:
     return modes_w * np.where(projection < 0, -1.0, 1.0)
 
 
+@blas.on_one_thread  # the same basis on every machine
 def kl_basis(geometry: AsmGeometry, pupil: Pupil, L0_m: float = defaults.L0_M, eigen_floor: float = 1e-6) -> ModalBasis:
     """Tip/Tilt + KL modes of the mirror on ``pupil`` (see the module docstring)."""
     if not (L0_m > 0 and np.isfinite(L0_m)):

@@ -59,8 +59,7 @@ def modal_basis(setup: BasisSetup, cache: ArrayCache = ArrayCache(None), refresh
     if hit is not None:
         return ModalBasis(hit["M"], hit["M_inv"], hit["variance"], setup.asm, setup.L0_m)
     pupil = Pupil(setup.pixels, setup.asm.diameter_m, setup.asm.obstruction)
-    with blas.one_thread():  # the same basis on every machine (soulctl.blas)
-        basis = kl_basis(setup.asm, pupil, setup.L0_m)
+    basis = kl_basis(setup.asm, pupil, setup.L0_m)
     cache.store(key, {"M": basis.M, "M_inv": basis.M_inv, "variance": basis.variance})
     return basis
 
@@ -155,6 +154,7 @@ def calibration_entry(setup: CalibrationSetup) -> EntrySpec:
     return EntrySpec({"D": ("slopes", n), "R": (n, "slopes"), "reference": ("slopes",)}, {"slopes": (2, MAX_SLOPES)})
 
 
+@blas.on_one_thread  # the same D and R on every machine
 def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> Calibration:
     """The interaction matrix, reconstructor and reference slopes of ``setup``, from the cache
     when there (see the module docstring)."""
@@ -175,15 +175,15 @@ def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> 
             f"{setup.n_modes} modes cannot be calibrated from the {sensor.n_slopes} slopes of binning {setup.pyramid.binning} "
             f"(an under-determined interaction matrix): accepted at most {sensor.n_slopes} modes"
         )
-    with blas.one_thread():  # the same D and R on every machine (soulctl.blas)
-        maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
-        D = push_pull(sensor, maps, setup.push_nm)
-        R = np.linalg.pinv(D)
+    maps = mode_maps(basis.shapes(sensor.pupil), sensor.pupil)
+    D = push_pull(sensor, maps, setup.push_nm)
+    R = np.linalg.pinv(D)
     ref = sensor.reference_slopes.astype(np.float64)
     cache.store(key, {"D": D, "R": R, "reference": ref})
     return Calibration(setup, basis, D, R, ref, False, time.perf_counter() - t0)
 
 
+@blas.on_one_thread
 def moved_mirror_response(calibration: Calibration, registration: Misregistration, cache: ArrayCache = ArrayCache(None)) -> np.ndarray:
     """(n_slopes, n_modes): D', the slopes per nm of the calibration's modes made by the mirror
     as ``registration`` moves it on the pyramid (push-pull as ``calibrate``; noiseless, the
@@ -196,8 +196,7 @@ def moved_mirror_response(calibration: Calibration, registration: Misregistratio
         return hit["D"]
     sensor = calibration_sensor(calibration.setup.pyramid)
     basis = calibration.basis
-    with blas.one_thread():
-        shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
-        D = push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
+    shapes = np.asarray(basis.geometry.sparse_influence_functions(sensor.pupil, registration=registration) @ basis.M)
+    D = push_pull(sensor, mode_maps(shapes, sensor.pupil), calibration.setup.push_nm)
     cache.store(key, {"D": D})
     return D

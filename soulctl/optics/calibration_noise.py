@@ -66,18 +66,13 @@ def averaged_slopes(sensor: WavefrontSensor, opd_nm: np.ndarray, frames: int, rn
     return out / frames
 
 
+@blas.on_one_thread
 def measured_calibration(
     calibration: Calibration, conditions: CalibrationNoise, detector: Detector = Detector(), L0_m: float = defaults.L0_M
 ) -> Calibration:
     """``calibration`` with D measured in ``conditions`` (finite flux and/or around a residual
     of outer scale ``L0_m``; see the module) and R = D^+ of it.  Around residuals, each of the
-    ``SCREENS`` realisations is measured with ``frames`` frames per push.  BLAS on one thread
-    (``soulctl.blas``)."""
-    with blas.one_thread():
-        return _measured(calibration, conditions, detector, L0_m)
-
-
-def _measured(calibration: Calibration, conditions: CalibrationNoise, detector: Detector, L0_m: float) -> Calibration:
+    ``SCREENS`` realisations is measured with ``frames`` frames per push."""
     pupil = calibration.setup.pyramid.pupil
     shapes = calibration.basis.shapes(pupil)
     maps = mode_maps(shapes, pupil)

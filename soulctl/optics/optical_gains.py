@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import defaults
+from .. import blas, defaults
 from ..errors import InputError
 from ..files import atomic_write_text, read_input_text
 from ..ranges import FRACTION, OPTICAL_GAIN, OUTER_SCALE_M, SEEING_ARCSEC
@@ -118,6 +118,7 @@ def read_optical_gains(path: str | Path) -> np.ndarray:
     return gains
 
 
+@blas.on_one_thread
 def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: int = SCREENS, seed: int = 1) -> OpticalGainTable:
     """The modal optical gains of ``calibration``'s sensor and modes at ``level`` (see the
     module docstring): ``2 n_modes n_screens`` noiseless PWFS frames."""

@@ -255,14 +255,9 @@ def _time_arrays(arrays: dict, time) -> None:
         arrays["frame_time_s"] = t - t[0]
 
 
+@blas.on_one_thread  # the same modes on every machine
 def _derived(arrays: dict) -> None:
-    """R s and M^-1 c from what the standard holds, when the file does not give them (BLAS on
-    one thread: the same modes on every machine, ``soulctl.blas``)."""
-    with blas.one_thread():
-        _derive(arrays)
-
-
-def _derive(arrays: dict) -> None:
+    """R s and M^-1 c from what the standard holds, when the file does not give them."""
     if "measured_modes" not in arrays and "slopes" in arrays and "reconstructor" in arrays:
         if arrays["reconstructor"].shape[1] == arrays["slopes"].shape[1]:
             arrays["measured_modes"] = arrays["slopes"] @ arrays["reconstructor"].T
