@@ -9,8 +9,8 @@ the calibrations, the optical-gain and variance tables, the sky-like calibration
 derived from a telemetry file) and the loop therefore run their BLAS on one thread: the same
 seed gives the same numbers on every machine, whichever path (CLI, sweep, re-run) computed
 them.  The cost is small: the loop's products are matrix-vector ones, and the basis builds in
-2.0 s on one thread against 2.6 s on two (80-pixel pupil).  scipy.fft's threads are not BLAS and keep the cores;
-the pyramid's sums are ordered apart (``optics.pwfs.SUM_SHARES``).
+2.0 s on one thread against 2.6 s on two (80-pixel pupil).  scipy.fft's threads are not BLAS
+and keep the cores; the pyramid's sums are ordered apart (``optics.pwfs.SUM_SHARES``).
 """
 
 from __future__ import annotations

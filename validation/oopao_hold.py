@@ -11,9 +11,8 @@ OOPAO brings its own parts: a 41x41 Cartesian mirror (1344 valid actuators, Gaus
 functions, coupling 0.35) and its KL basis (the first 500 modes), its pyramid (40
 sub-apertures on an 80-pixel pupil, 20 modulation points, a +-40 lambda/D focal field like
 soulctl's), slopes normalised by the incident flux, and its own phase screens (with
-subharmonics).  Every mode runs on a
-pure integrator of one gain (``pyramid_hold.py --twin GAIN`` runs soulctl alike, with every
-error term off).
+subharmonics).  Every mode runs on a pure integrator of one gain (``pyramid_hold.py --twin
+GAIN`` runs soulctl alike, with every error term off).
 
 The first ``--linear`` frames close the loop on a linear sensor (the least-squares
 projection of the true residual on the controlled modes: optical gain 1, no aliasing, no
@@ -33,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -52,18 +50,17 @@ from soulctl.files import atomic_write_text
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION
-from soulctl.optics.pwfs import WFS_WAVELENGTH_M
+from soulctl.optics.pwfs import SUBAPERTURES_BIN1, WFS_WAVELENGTH_M, PyramidConfig
 
 OUT = Path(__file__).parent / "results" / "pyramid_hold_oopao.json"
-SUBAPERTURES, PIXELS_PER_SUBAPERTURE, MODES, MODULATION = 40, 2, 500, 3.0
-RAD_PER_ARCSEC = math.pi / 180 / 3600
+PYRAMID = PyramidConfig()  # soulctl's default: 40 sub-apertures, oversampling 2, 3 lambda/D
 
 
-def optical_system(frame_rate_hz: float):
+def optical_system(frame_rate_hz: float, modes: int):
     """Telescope, source, mirror, pyramid, KL basis and the modal reconstructor (noise-free
     push-pull calibration around a flat wavefront)."""
     tel = Telescope(
-        resolution=SUBAPERTURES * PIXELS_PER_SUBAPERTURE,
+        resolution=PYRAMID.pupil.n_pixels,
         diameter=LBT_DIAMETER_M,
         samplingTime=1 / frame_rate_hz,
         centralObstruction=LBT_OBSTRUCTION,
@@ -73,17 +70,17 @@ def optical_system(frame_rate_hz: float):
     ngs = Source(optBand="I2", magnitude=0)
     assert abs(ngs.wavelength - WFS_WAVELENGTH_M) < 1e-12, "OOPAO's I2 band is soulctl's 750 nm"
     ngs * tel
-    dm = DeformableMirror(telescope=tel, nSubap=SUBAPERTURES, mechCoupling=0.35, print_dm_properties=False)
+    dm = DeformableMirror(telescope=tel, nSubap=SUBAPERTURES_BIN1, mechCoupling=0.35, print_dm_properties=False)
     wfs = Pyramid(
-        nSubap=SUBAPERTURES,
+        nSubap=SUBAPERTURES_BIN1,
         telescope=tel,
-        modulation=MODULATION,
+        modulation=PYRAMID.modulation_lambda_over_d,
         lightRatio=0.5,
         n_pix_separation=4,
         psfCentering=False,
         postProcessing="slopesMaps_incidence_flux",
     )
-    m2c = compute_KL_basis(tel, atmosphere(tel, 1.0, 1), dm, lim=1e-3)[:, :MODES]
+    m2c = compute_KL_basis(tel, atmosphere(tel, 1.0, 1), dm, lim=1e-3)[:, :modes]
     ngs**tel
     calib = InteractionMatrix(ngs=ngs, tel=tel, dm=dm, wfs=wfs, M2C=m2c, stroke=1e-9, nMeasurements=20, noise="off", print_time=False)
     modes_in_pupil = dm.modes[tel.pupil.ravel() > 0] @ m2c
@@ -140,7 +137,7 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=OUT)
     a = p.parse_args()
     r97 = observation_for_magnitude(9.7)
-    system = optical_system(r97.frame_rate_hz)
+    system = optical_system(r97.frame_rate_hz, r97.modes)
     rows = []
     for seeing in (float(s) for s in a.seeings.split(",")):
         row = hold(system, seeing, a.gain, a.frames, a.linear, r97.delay_frames, a.seed)
