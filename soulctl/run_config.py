@@ -28,6 +28,7 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [calibration] photons_per_frame, frames, seed, seeing_arcsec (the interaction matrix measured
                   at a finite flux, 0 photons: noiseless; around the residual of a seeing, 0: none;
                   ``optics.calibration_noise``)
+    [mirror]      influence ("gaussian", the default, or "thin-plate": ``optics.asm``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling
@@ -55,6 +56,7 @@ from .loop.metrics import BANDS
 from .loop.optimize import LiveOptimisers
 from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
+from .optics.asm import DEFAULT_INFLUENCE, check_influence
 from .optics.atmosphere import Layer, r0_from_seeing
 from .optics.calibration_noise import CalibrationNoise
 from .optics.ncpa import NcpaSpec
@@ -78,6 +80,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "misregistration": REGISTRATION_KEYS,
     "ncpa": ("rms_nm", "exponent", "compensated", "seed"),
     "calibration": ("photons_per_frame", "frames", "seed", "seeing_arcsec"),
+    "mirror": ("influence",),
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
     "run": ("duration_s", "band", "seed", "oversampling"),
@@ -195,6 +198,7 @@ class RunConfig:
     ncpa: NcpaSpec = NcpaSpec(rms_nm=defaults.NCPA_RMS_NM, compensated=None)  # sky-like; None: offsets with OGTL
     calibration: CalibrationNoise = CalibrationNoise()
     noise: bool = True
+    influence: str = DEFAULT_INFLUENCE  # the mirror's influence-function model
     controller: ControllerSpec = ControllerSpec()
     auxiliary: AuxiliarySpec = AuxiliarySpec()
     duration_s: float = defaults.DURATION_S
@@ -206,6 +210,7 @@ class RunConfig:
         DURATION_S.check(self.duration_s, "run.duration_s")
         SEED.check(self.seed, "run.seed")
         OVERSAMPLING.check(self.oversampling, "run.oversampling")
+        check_influence(self.influence)
         if self.band not in BANDS:
             raise InputError(f"run.band must be one of {', '.join(BANDS)}, got {self.band!r}")
         n = len(self.controller.mode_gains)
@@ -238,6 +243,7 @@ class RunConfig:
             None if self.registration.is_identity else self.registration,
             ncpa if ncpa.active else None,
             self.calibration if self.calibration.active else None,
+            self.influence,
         )
 
     def resolved(self) -> RunConfig:
@@ -336,6 +342,7 @@ def _to_dict(c: RunConfig) -> dict:
     d["misregistration"] = dataclasses.asdict(c.registration)
     d["ncpa"] = {k: v for k, v in dataclasses.asdict(c.ncpa).items() if v is not None}
     d["calibration"] = dataclasses.asdict(c.calibration)
+    d["mirror"] = {"influence": c.influence}
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
@@ -376,6 +383,7 @@ def _from_dict(data: dict) -> RunConfig:
             ncpa=_ncpa(data.get("ncpa", {})),
             calibration=_calibration(data.get("calibration", {})),
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),
+            influence=str(data.get("mirror", {}).get("influence", DEFAULT_INFLUENCE)),
             controller=ControllerSpec(
                 gains=tuple(_numbers(ctl.get("gains", []), "control.gains")),
                 mode_gains=tuple(_numbers(ctl.get("mode_gains", []), "control.mode_gains")),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,8 @@ import pytest
 from soulctl import defaults, tables
 from soulctl.errors import InputError
 from soulctl.observation import observation_for_magnitude
+from soulctl.optics.asm import SIGN_SEED
+from soulctl.optics.cache import cache_key
 from soulctl.run_config import RunConfig, read_run_config
 
 EXPLICIT = """
@@ -123,12 +126,29 @@ def test_partial_observation_takes_the_table_row_key_by_key():
         ({"run": {"seed": 1.5}}, "integer"),
         ({"structure": {"enabled": "yes"}}, "true or false"),
         ({"atmosphere": {"layer": [{"height": 0}]}}, "atmosphere.layer 1"),
+        ({"mirror": {"influence": "spline"}}, "mirror.influence must be one of gaussian, thin-plate"),
+        ({"mirror": {"coupling": 0.3}}, "unknown key 'coupling'"),
     ],
 )
 def test_bad_descriptions_name_the_field(data, words):
     with pytest.raises(InputError) as e:
         RunConfig.from_dict(data)
     assert words in str(e.value)
+
+
+def test_the_mirror_model_round_trips_and_reaches_the_calibration():
+    """[mirror] influence chooses the influence functions; the Gaussian mirror keeps the basis
+    cache key it had before the choice existed, the thin plate has its own."""
+    from soulctl.loop.run import calibration_setup
+
+    plate = RunConfig().with_values({"mirror.influence": "thin-plate"})
+    assert round_trip(plate) == plate and plate.request().influence == "thin-plate"
+    setups = [calibration_setup(c.request()) for c in (RunConfig(), plate)]
+    assert [s.basis.asm.influence for s in setups] == ["gaussian", "thin-plate"]
+    assert setups[0].key() != setups[1].key()
+    basis = setups[0].basis
+    former = {k: v for k, v in asdict(basis.asm).items() if k != "influence"}
+    assert basis.key() == cache_key("basis", {"asm": former, "L0_m": basis.L0_m, "pixels": basis.pixels, "sign_seed": SIGN_SEED})
 
 
 def test_with_values_overrides_dotted_fields():

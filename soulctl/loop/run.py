@@ -16,6 +16,7 @@ from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ
 from ..disturbance.vibrations import VibrationSpectrum
 from ..observation import Observation
+from ..optics.asm import DEFAULT_INFLUENCE, AsmGeometry, check_influence
 from ..optics.atmosphere import AtmosphereConfig, Layer
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, Calibration, CalibrationSetup, calibrate, check_sampling, moved_mirror_response
@@ -56,6 +57,7 @@ class RunRequest:
     registration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
     ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
     calibration_noise: CalibrationNoise | None = None  # the loop's D measured at a finite flux; None: noiseless
+    influence: str = DEFAULT_INFLUENCE  # the mirror's influence-function model (``optics.asm``)
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -66,6 +68,7 @@ class RunRequest:
         OVERSAMPLING.check(self.oversampling, "oversampling")
         band_wavelength(self.band)
         check_sampling(self.observation.modes, self.oversampling)
+        check_influence(self.influence)
 
     @property
     def frames(self) -> int:
@@ -193,10 +196,11 @@ def _metrics(request: RunRequest, tm: TelemetryRecorder, psf: PsfAccumulator, ma
 
 
 def calibration_setup(request: RunRequest) -> CalibrationSetup:
-    """What the request's calibration depends on (binning, modulation, sampling, modes)."""
+    """What the request's calibration depends on (binning, modulation, sampling, modes, the
+    mirror's influence functions)."""
     obs = request.observation
     config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=request.oversampling)
-    return CalibrationSetup(config, obs.modes, BasisSetup())
+    return CalibrationSetup(config, obs.modes, BasisSetup(AsmGeometry(influence=request.influence)))
 
 
 def calibration_for(request: RunRequest, cache: ArrayCache) -> Calibration:

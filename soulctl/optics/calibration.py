@@ -22,7 +22,7 @@ import numpy as np
 from .. import blas, defaults
 from ..errors import InputError
 from ..ranges import MODES
-from .asm import SIGN_SEED, AsmGeometry, ModalBasis, kl_basis
+from .asm import DEFAULT_INFLUENCE, SIGN_SEED, AsmGeometry, ModalBasis, kl_basis
 from .cache import ArrayCache, EntrySpec, cache_key
 from .detector import Detector
 from .pupil import Pupil
@@ -41,7 +41,10 @@ class BasisSetup:
     pixels: int = BASIS_PIXELS
 
     def key(self) -> str:
-        return cache_key("basis", {"asm": asdict(self.asm), "L0_m": self.L0_m, "pixels": self.pixels, "sign_seed": SIGN_SEED})
+        """The cache key; the Gaussian mirror keeps the key it had before the influence model
+        was a choice, so cached bases stay valid."""
+        asm = {k: v for k, v in asdict(self.asm).items() if k != "influence" or v != DEFAULT_INFLUENCE}
+        return cache_key("basis", {"asm": asm, "L0_m": self.L0_m, "pixels": self.pixels, "sign_seed": SIGN_SEED})
 
 
 def basis_entry(setup: BasisSetup) -> EntrySpec:

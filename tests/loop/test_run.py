@@ -58,3 +58,24 @@ def test_a_run_longer_than_its_screens_says_the_turbulence_repeats(optics_cache,
     monkeypatch.setattr(atmosphere, "MAX_SCREEN_PIXELS", 512**2)
     capped = run(base.request(), optics_cache)
     assert any("the turbulence repeats after" in n for n in capped.notes), capped.notes
+
+
+def test_the_thin_plate_mirror_reaches_the_loop(optics_cache):
+    """`[mirror] influence = "thin-plate"` reaches the calibration and the loop's mirror, and a
+    mis-registered thin-plate mirror moves with its own functions (thin-plate splines through
+    the moved actuators)."""
+    from soulctl.loop.run import calibration_for, closed_loop_for
+    from soulctl.optics.registration import Misregistration
+    from soulctl.run_config import RunConfig
+
+    obs = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
+    config = RunConfig(observation=obs, oversampling=1, duration_s=0.05).with_values({"mirror.influence": "thin-plate"})
+    request = dataclasses.replace(config.request(), registration=Misregistration(shift_x_pitch=0.2))
+    cal = calibration_for(request, optics_cache)
+    assert cal.basis.geometry.influence == "thin-plate"
+    loop = closed_loop_for(request, cal, default_gains(obs), None)
+    g, pupil = cal.basis.geometry, loop.mirror.pupil
+    moved = g.sparse_influence_functions(pupil, registration=request.registration)
+    assert abs(loop.mirror.influence - moved).max() == 0.0
+    assert abs(dataclasses.replace(g, influence="gaussian").sparse_influence_functions(pupil) - moved).max() > 0.1
+    loop.run(request.frames)
