@@ -9,7 +9,9 @@ projection leaves out the other groups' fluctuations and so scatters less betwee
 The minimum is taken from a parabola through the best sample and its two neighbours (not just
 the best sample), kept within those neighbours; at the ends of the scan, or where the three
 points are not convex, the best sample.  A scan around an operating point keeps the gain it
-started from unless another is better by more than the merit's own scatter (``chosen_gain``).
+started from unless another is better by more than the merit's own scatter (``chosen_gain``),
+both judged on the scan smoothed by a running median of three, so that one sequence's
+fluctuation cannot decide alone.
 """
 
 from __future__ import annotations
@@ -74,11 +76,26 @@ def merit_scatter(merits) -> float:
     return float(np.std(np.diff(m), ddof=1)) if m.size >= 3 else 0.0
 
 
+def running_median(merits) -> np.ndarray:
+    """The scan's merits (in gain order) smoothed by a running median of three (Tukey); the
+    two ends keep their own.  A failed gain's infinite merit counts as the worst."""
+    m = np.asarray(merits, dtype=float)
+    out = m.copy()
+    if m.size >= 3:
+        out[1:-1] = np.median(np.stack([m[:-2], m[1:-1], m[2:]]), axis=0)
+    return out
+
+
 def chosen_gain(gains, merits, incumbent: float | None = None) -> float:
     """``best_gain``, but the ``incumbent`` (a gain of the scan: the one the loop ran at)
-    when the best merit beats the incumbent's by no more than SIGNIFICANCE x ``merit_scatter``:
-    with 0.2 s sequences the merit of a Tip/Tilt scan at R14.5, 1.0" scattered by +-10 % with
-    no trend, and its minimum, a fluctuation, moved the gain from 0.51 to 0.28."""
+    when the best merit beats the incumbent's by no more than SIGNIFICANCE x ``merit_scatter``,
+    both merits read from the scan smoothed by ``running_median``.  Why: with 0.2 s sequences
+    the merit of a Tip/Tilt scan at R14.5, 1.0" scattered by +-10 % with no trend, and its
+    minimum, a fluctuation, moved the gain from 0.51 to 0.28 (hence the scatter); at seed 2
+    the incumbent's own sequence drew a merit 12 % above both its neighbours, and the
+    unsmoothed comparison moved the gain to 0.75, which lost 0.014 in Strehl (hence the
+    median).  On trendless scans of 9 gains with Gaussian noise the incumbent is replaced 3 %
+    of the time, against 10 % unsmoothed."""
     best = best_gain(gains, merits)
     if incumbent is None:
         return best
@@ -86,5 +103,8 @@ def chosen_gain(gains, merits, incumbent: float | None = None) -> float:
     at = np.flatnonzero(np.isclose(g, incumbent, rtol=1e-9, atol=0.0))
     if at.size == 0 or not np.isfinite(m[at[0]]):
         return best
-    gain_over_incumbent = m[at[0]] - np.min(np.where(np.isfinite(m), m, np.inf))
+    order = np.argsort(g, kind="stable")
+    smooth = np.empty_like(m)
+    smooth[order] = running_median(m[order])
+    gain_over_incumbent = smooth[at[0]] - np.min(np.where(np.isfinite(smooth), smooth, np.inf))
     return float(incumbent) if gain_over_incumbent <= SIGNIFICANCE * merit_scatter(m) else best
