@@ -10,6 +10,7 @@ frame rate, binning and modes, seeing on the line of sight, default gains (not o
   R13     980 Hz 20x20, seeing 1.0": FeII SR 0.61-0.67 on sky with MGM (simulations 0.58).
   R16.5   390 Hz 10x10, seeing 1.0": Ks SR 0.19-0.23.
 Run:  python validation/loop_operating_points.py [--duration 2] [--seeds 1] [--cases 0,3] [--vibrations lbt-onsky]
+      [--influence thin-plate]
       [--out validation/results.json]
 """
 
@@ -29,6 +30,7 @@ from soulctl.control.gains import default_gains
 from soulctl.files import atomic_write_text
 from soulctl.loop.run import run
 from soulctl.observation import observation_for_magnitude
+from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
 
@@ -54,14 +56,17 @@ def observation(mag, rate, binning, modes, tt):
     return obs
 
 
-def _run(obs, seeing: float, duration: float, gains, band: str, seed: int, vibrations: str | None) -> RunConfig:
+def _run(obs, seeing: float, duration: float, gains, band: str, seed: int, vibrations: str | None, influence: str) -> RunConfig:
     """A case's run description: its observation and gains, defaults elsewhere (OGTL and the
-    NCPA as `loop run` resolves them; ``vibrations`` a named profile instead of the default)."""
+    NCPA as `loop run` resolves them; ``vibrations`` a named profile instead of the default;
+    ``influence`` the mirror's model)."""
     controller = ControllerSpec(gains=(gains.tip_tilt, gains.mid, gains.high))
     atmosphere = AtmosphereSpec(seeing_arcsec=seeing)
     description = RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed)
     if vibrations is not None:
         description = description.with_values({"vibrations.file": vibrations})
+    if influence != DEFAULT_INFLUENCE:
+        description = description.with_values({"mirror.influence": influence})
     return description.resolved()
 
 
@@ -71,6 +76,7 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--cases", default="all", help="comma list of case indices (0-based) or 'all'")
     p.add_argument("--vibrations", default=None, help="a named vibration profile (e.g. lbt-onsky) instead of the default")
+    p.add_argument("--influence", default=DEFAULT_INFLUENCE, choices=INFLUENCES, help="the mirror's influence functions")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "loop_operating_points.json")
     args = p.parse_args()
     cache = ArrayCache(default_cache_dir())
@@ -84,13 +90,14 @@ def main() -> None:
             gains = dataclasses.replace(gains, tip_tilt=g_tt)
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
-            description = _run(obs, seeing, args.duration, gains, band, seed, args.vibrations)
+            description = _run(obs, seeing, args.duration, gains, band, seed, args.vibrations, args.influence)
             r = run(description.request(), cache, aux=description.auxiliary.live())
             m = r.metrics
             rows.append(
                 {
                     "case": label,
                     "seed": seed,
+                    "influence": args.influence,
                     "band": band,
                     "paper": paper,
                     "gains": dataclasses.asdict(gains),

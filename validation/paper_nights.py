@@ -88,17 +88,25 @@ NIGHTS = {
 }
 
 
-def run_night(key: str, seed: int, cache: ArrayCache) -> dict:
-    """One night and seed: `optimize gains` with its defaults in the night's conditions."""
+def night_request(key: str, seed: int) -> OptimizeRequest:
+    """`optimize gains` with its defaults in a night's conditions, seed ``seed`` at the
+    ``seed``-th of the night's seeings."""
     night = NIGHTS[key]
     seeing = night.seeings[(seed - 1) % len(night.seeings)]
     atmosphere = AtmosphereSpec(seeing_arcsec=seeing, **({} if night.wind_m_s is None else {"wind_m_s": night.wind_m_s}))
-    obs = night.obs()
-    config = RunConfig(observation=obs, atmosphere=atmosphere, band=night.band, seed=seed)
+    config = RunConfig(observation=night.obs(), atmosphere=atmosphere, band=night.band, seed=seed)
     # the NCPA offsets come with the optimiser's OGTL, as `optimize gains` decides them
     run = config.request(ogtl=OPTIMISER_OGTL)
+    return OptimizeRequest(run, night.method, ogtl=OPTIMISER_OGTL, measure_s=MEASURE_S)
+
+
+def run_night(key: str, seed: int, cache: ArrayCache) -> dict:
+    """One night and seed: `optimize gains` with its defaults in the night's conditions."""
+    night = NIGHTS[key]
+    request = night_request(key, seed)
+    run, obs, seeing = request.run, request.run.observation, request.run.seeing_arcsec
     t0 = time.perf_counter()
-    r = optimize(OptimizeRequest(run, night.method, ogtl=OPTIMISER_OGTL, measure_s=MEASURE_S), cache)
+    r = optimize(request, cache)
     after = r.after
     return {
         "night": key,
@@ -110,7 +118,7 @@ def run_night(key: str, seed: int, cache: ArrayCache) -> dict:
         "rate_hz": obs.frame_rate_hz,
         "ncpa": dataclasses.asdict(run.ncpa) if run.ncpa else None,
         "seeing": seeing,
-        "wind_m_s": atmosphere.wind_m_s,
+        "wind_m_s": run.wind_m_s,
         "photons_per_subaperture_per_frame": obs.photons_per_subaperture_per_frame,
         "diverged_at": r.diverged_at,
         "before": r.before.strehl if r.before else None,
