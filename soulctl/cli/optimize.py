@@ -289,7 +289,7 @@ class GainsOptions:
         "--sequence",
         metavar="S",
         parser=number(SEQUENCE_S),
-        help="Trial-and-error: one closed-loop sequence per gain (20 % settling; default 0.25 s, at least 100 frames).",
+        help="Trial-and-error: one closed-loop sequence per gain and pass, up and down (20 % settling; default 0.25 s, >= 100 frames).",
     )
     ogtl: bool = typer.Option(OPTIMISER_OGTL, "--ogtl/--no-ogtl", help="Run the optical gain tracking loop (slope sensitivity k).")
     probe_mode: int | None = PROBE_MODE

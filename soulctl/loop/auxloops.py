@@ -206,7 +206,8 @@ class MgmTask(AuxLoop):
 
 
 class TrialAndErrorTask(AuxLoop):
-    """Scans the groups in order; each sequence is ``settle`` frames (not scored, the loop
+    """Scans the groups in order, each up and down its scan (``trial.scan_order``: a gain's
+    merit is the mean of its two visits); each sequence is ``settle`` frames (not scored, the loop
     settling at the new gain) plus ``measure`` frames scored by the group's measured-mode RMS;
     an update whose window is shorter than a sequence (the task started between two updates, or
     OGTL changed k during it) scores nothing and the sequence runs again.  A group's
@@ -240,8 +241,10 @@ class TrialAndErrorTask(AuxLoop):
             [np.ones(m.stop - m.start) for _, m in self.groups] if shapes is None else [np.asarray(x, dtype=float) for x in shapes]
         )
         self.measure = measure
+        self.orders = [trial.scan_order(len(s)) for s in self.scans]  # up and down (``trial.scan_order``)
         self._group, self._index = 0, 0
-        self._merits: list[float] = []
+        self._visits: list[int] = []  # the gains (indices into the scan) scored so far in this group ...
+        self._merits: list[float] = []  # ... and their merits
         self._failed = False
         self.best: list[float] = []
 
@@ -251,12 +254,13 @@ class TrialAndErrorTask(AuxLoop):
 
     def damp(self) -> None:
         """The safety net restored the gains during this sequence: its gain and the scan's higher
-        ones score as the worst, and the group ends with the best of the others."""
+        ones score as the worst, and the group ends with the best of the others (each by the
+        visits it had)."""
         self._failed = True
 
     def _set_trial(self, rtc: RtcParameters) -> None:
         g = self._with_best(rtc.gains)
-        g[self.groups[self._group][1]] = self.scans[self._group][self._index] * self.shapes[self._group]
+        g[self.groups[self._group][1]] = self.scans[self._group][self.orders[self._group][self._index]] * self.shapes[self._group]
         rtc.set_gains(g)
 
     def _with_best(self, gains: np.ndarray) -> np.ndarray:
@@ -276,28 +280,31 @@ class TrialAndErrorTask(AuxLoop):
             return {}  # the window began after the sequence (the task started off its period, or k changed): run it again
         name, modes = self.groups[self._group]
         measured = window.measured_modes[-self.measure :, modes] / window.sensitivity  # gamma x residual, whatever k
-        scan = self.scans[self._group]
-        gain = float(scan[self._index])
+        scan, order = self.scans[self._group], self.orders[self._group]
+        at = int(order[self._index])
+        self._visits.append(at)
         if self._failed:  # this gain and the higher ones of the scan score as the worst: the group ends
-            self._merits += [math.inf] * (len(scan) - self._index)
-            self._index = len(scan)
+            self._visits += list(range(at + 1, len(scan)))
+            self._merits += [math.inf] * (len(scan) - at)
+            self._index = len(order)
         else:
             self._merits.append(float(np.sqrt(np.mean(np.sum(measured**2, axis=1)))))
             self._index += 1
         self._failed = False
-        record = {"group": self._group, "gain": gain, "merit": self._merits[-1], "best": math.nan}
-        if self._index == len(scan):
+        record = {"group": self._group, "gain": float(scan[at]), "merit": self._merits[-1], "best": math.nan}
+        if self._index == len(order):
+            merits = trial.merits_by_gain(self._visits, self._merits, len(scan))
             # no finite merit: every gain failed, the group keeps what the safety net restored
             best = (
-                trial.chosen_gain(scan, self._merits, self.incumbents[self._group])
-                if np.isfinite(self._merits).any()
+                trial.chosen_gain(scan, merits, self.incumbents[self._group])
+                if np.isfinite(merits).any()
                 else float(np.mean(rtc.gains[modes]))
             )
             self.best.append(best)
             record["best"] = best
             rtc.set_gains(self._with_best(rtc.gains))
-            self._group, self._index, self._merits = self._group + 1, 0, []
-        if not self.done and self._index < len(self.scans[self._group]):
+            self._group, self._index, self._visits, self._merits = self._group + 1, 0, [], []
+        if not self.done and self._index < len(self.orders[self._group]):
             self._set_trial(rtc)
         return record
 

@@ -712,7 +712,7 @@ def _optimiser(
     )
     # one sequence more: the task starts on an update boundary of OGTL's period, its first
     # update after a partial sequence waits for the next (``TrialAndErrorTask.update``)
-    return trial, sequence * (sum(len(s) for s in trial.scans) + 1)
+    return trial, sequence * (sum(len(order) for order in trial.orders) + 1)
 
 
 def _run_optimiser(loop: ClosedLoop, optimiser: MgmTask | TrialAndErrorTask, frames: int, tick) -> None:

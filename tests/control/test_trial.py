@@ -3,7 +3,16 @@
 import numpy as np
 import pytest
 
-from soulctl.control.trial import best_gain, chosen_gain, merit_scatter, running_median, scan_around, scan_gains
+from soulctl.control.trial import (
+    best_gain,
+    chosen_gain,
+    merit_scatter,
+    merits_by_gain,
+    running_median,
+    scan_around,
+    scan_gains,
+    scan_order,
+)
 from soulctl.errors import InputError
 
 
@@ -77,3 +86,26 @@ def test_one_sequences_fluctuation_does_not_move_the_gain():
     bowl = 80 + 200 * (scan - 1.1) ** 2 + rng.normal(0, 1.0, scan.size)
     assert chosen_gain(scan, bowl, 0.5) == best_gain(scan, bowl) > 0.8
     assert running_median([3.0, 1.0, 9.0, 2.0, np.inf]).tolist() == [3.0, 3.0, 2.0, 9.0, np.inf]
+
+
+def test_up_and_down_a_drift_of_the_turbulence_is_not_a_trend_with_the_gain():
+    """Scored once each, in order, the gains of a flat merit under a turbulence that drifts
+    linearly over the scan look better the later they come, and the top gain replaces the
+    incumbent (R14.5, 1.0", seed 3: merits 90 -> 74 up the scan, Strehl -0.024); scored up
+    and down, every gain's mean sees the same drift and the incumbent stays."""
+    g = scan_around(0.5, 2.0, 3.0, 8)
+    n = g.size
+    assert scan_order(4).tolist() == [0, 1, 2, 3, 3, 2, 1, 0] and scan_order(3, 1).tolist() == [0, 1, 2]
+    for passes, kept in ((1, False), (2, True)):
+        visits = scan_order(n, passes)
+        merits = 80.0 - 2.0 * np.arange(visits.size)  # the turbulence weakens over the scan; the gain does nothing
+        chosen = chosen_gain(g, merits_by_gain(visits, merits, n), 0.5)
+        assert (chosen == 0.5) == kept, (passes, chosen)
+
+
+def test_merits_by_gain_averages_the_visits_and_keeps_a_failure():
+    visits = [0, 1, 2, 2, 1, 0]
+    assert merits_by_gain(visits, [1.0, 2.0, 3.0, 5.0, 4.0, 3.0], 3).tolist() == [2.0, 3.0, 4.0]
+    failed = merits_by_gain([0, 1, 2, 2, 1], [1.0, 2.0, 3.0, np.inf, 4.0], 3)  # the top gain failed on its second visit
+    assert failed.tolist() == [1.0, 3.0, np.inf]
+    assert merits_by_gain([0], [1.0], 2).tolist() == [1.0, np.inf]  # a gain never scored

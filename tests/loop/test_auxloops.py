@@ -115,10 +115,10 @@ def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_cali
     loop = ClosedLoop(
         OBS, small_calibration, AtmosphereConfig.lbt_default(0.8), LoopGains(0.3, 0.3, 0.3), noise=True, seed=1, aux_loops=[task]
     )
-    tm = loop.run(900)
+    tm = loop.run(1700)
     rec = tm.aux_arrays("trial")
-    assert rec["group"].tolist() == [0] * 4 + [1] * 4 and task.done
-    np.testing.assert_allclose(rec["gain"], np.concatenate(scans))
+    assert rec["group"].tolist() == [0] * 8 + [1] * 8 and task.done
+    np.testing.assert_allclose(rec["gain"], np.concatenate([np.concatenate([s, s[::-1]]) for s in scans]))  # up and down
     final = loop.rtc_parameters.gains
     assert final[0] == final[1] == task.best[0] and np.all(final[2:] == task.best[1])
     # Tip/Tilt at the lowest scanned gain leaves the turbulence's Tip/Tilt nearly unrejected
