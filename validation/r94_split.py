@@ -98,6 +98,7 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=RESULTS / "r94_split.json")
     a = p.parse_args()
     cache = ArrayCache(default_cache_dir())
+    code = code_fingerprint()  # the code this run imports, not what the files hold when it ends
     request = night_request(a.night, a.seed)
     t0 = time.perf_counter()
     result = optimize(request, cache)
@@ -112,7 +113,7 @@ def main() -> None:
         "safety_restores": result.safety_events,
         "gains": {"before": result.initial_gains.tolist(), "after": result.gains.tolist()},
         "evaluations": split(request, cache, result),
-        "code": code_fingerprint(),
+        "code": code,
     }
     row["seconds"] = time.perf_counter() - t0
     a.out.write_text(json.dumps(row, default=float, indent=1) + "\n")
