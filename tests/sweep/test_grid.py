@@ -54,3 +54,11 @@ def test_case_ids_depend_on_the_parameters_only():
 def test_bad_grids_name_the_problem(grid, message):
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.")):
         parse_grid(grid)
+
+
+def test_the_mirror_model_is_an_axis():
+    """A sweep compares the two influence-function models by their run description field."""
+    cases = parse_grid({"magnitude": 16.5, "mirror.influence": ["gaussian", "thin-plate"]})
+    assert [c["mirror.influence"] for c in cases] == ["gaussian", "thin-plate"]
+    with pytest.raises(InputError, match="mirror.influence must be one of gaussian, thin-plate"):
+        parse_grid({"magnitude": 16.5, "mirror.influence": ["gaussian", "bessel"]})
