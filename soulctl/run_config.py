@@ -28,7 +28,7 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [calibration] photons_per_frame, frames, seed, seeing_arcsec (the interaction matrix measured
                   at a finite flux, 0 photons: noiseless; around the residual of a seeing, 0: none;
                   ``optics.calibration_noise``)
-    [mirror]      influence ("gaussian", the default, or "thin-plate": ``optics.asm``)
+    [mirror]      influence ("thin-plate", the default, or "gaussian": ``optics.asm``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling

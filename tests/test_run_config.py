@@ -137,16 +137,18 @@ def test_bad_descriptions_name_the_field(data, words):
 
 
 def test_the_mirror_model_round_trips_and_reaches_the_calibration():
-    """[mirror] influence chooses the influence functions; the Gaussian mirror keeps the basis
-    cache key it had before the choice existed, the thin plate has its own."""
+    """[mirror] influence chooses the influence functions, the thin plate by default; the
+    Gaussian mirror keeps the basis cache key it had before the choice existed (so its cached
+    bases stay valid), the thin plate has its own."""
     from soulctl.loop.run import calibration_setup
 
-    plate = RunConfig().with_values({"mirror.influence": "thin-plate"})
-    assert round_trip(plate) == plate and plate.request().influence == "thin-plate"
-    setups = [calibration_setup(c.request()) for c in (RunConfig(), plate)]
-    assert [s.basis.asm.influence for s in setups] == ["gaussian", "thin-plate"]
+    gauss = RunConfig().with_values({"mirror.influence": "gaussian"})
+    assert round_trip(gauss) == gauss and gauss.request().influence == "gaussian"
+    assert RunConfig().influence == "thin-plate" and round_trip(RunConfig()).influence == "thin-plate"
+    setups = [calibration_setup(c.request()) for c in (RunConfig(), gauss)]
+    assert [s.basis.asm.influence for s in setups] == ["thin-plate", "gaussian"]
     assert setups[0].key() != setups[1].key()
-    basis = setups[0].basis
+    basis = setups[1].basis
     former = {k: v for k, v in asdict(basis.asm).items() if k != "influence"}
     assert basis.key() == cache_key("basis", {"asm": former, "L0_m": basis.L0_m, "pixels": basis.pixels, "sign_seed": SIGN_SEED})
 

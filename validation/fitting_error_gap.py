@@ -101,7 +101,8 @@ def main() -> None:
     pupil_kl = pupil_kl_variances(pupil, max(MODES))
     nm = 500.0 / (2.0 * math.pi) * r0_from_seeing(SEEING) ** (-5 / 6)  # rad at r0 = 1 m -> nm at the seeing
     tables = {model: fitting_table(AsmGeometry(influence=model), pupil, pupil_kl, nm) for model in INFLUENCES}
-    couplings = {c: nm * math.sqrt(best_fitting_variance(mirror_space(AsmGeometry(coupling=c), pupil, L0_M), 500)) for c in COUPLINGS}
+    gaussians = {c: AsmGeometry(coupling=c, influence="gaussian") for c in COUPLINGS}
+    couplings = {c: nm * math.sqrt(best_fitting_variance(mirror_space(g, pupil, L0_M), 500)) for c, g in gaussians.items()}
     screens = {model: screen_fitting_nm(AsmGeometry(influence=model), pupil) for model in INFLUENCES}
     result = {
         "pixels": a.pixels,

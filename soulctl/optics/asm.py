@@ -7,10 +7,10 @@
   layout of the shell is not public in machine-readable form: this is a proposal with the
   right count, rings and pitch.
 * Influence functions (``AsmGeometry.influence``), two models:
-  - ``"gaussian"`` (the default): ``exp(ln(c) (r/p)^2)`` with ``p`` the mean pitch and the
-    coupling ``c = 0.15`` at one pitch (a proposal in the range of thin-shell ASMs, where the
-    force actuators and the shell's stiffness give broad, smooth responses);
-  - ``"thin-plate"``: the shell as a thin plate whose every actuator holds its position (the
+  - ``"gaussian"``: ``exp(ln(c) (r/p)^2)`` with ``p`` the mean pitch and the coupling
+    ``c = 0.15`` at one pitch (a proposal in the range of thin-shell ASMs, where the force
+    actuators and the shell's stiffness give broad, smooth responses);
+  - ``"thin-plate"`` (the default): the shell as a thin plate whose every actuator holds its position (the
     LBT672's local position loops): an influence function is the surface of least bending
     energy that is 1 at its own actuator and 0 at all others, the thin-plate spline's
     cardinal function (kernel r^2 ln r, the biharmonic Green's function of an unbounded
@@ -49,7 +49,7 @@ from .registration import Misregistration
 
 N_ACTUATORS = 672  # the LBT672 adaptive secondary
 INFLUENCES = ("gaussian", "thin-plate")  # influence-function models (the module docstring)
-DEFAULT_INFLUENCE = "gaussian"
+DEFAULT_INFLUENCE = "thin-plate"
 SIGN_SEED = 20261128  # the generic actuator vector that fixes each KL mode's sign (in the basis cache key)
 
 
@@ -101,10 +101,11 @@ class AsmGeometry:
 
     def sparse_influence_functions(self, pupil: Pupil, floor: float = 1e-4, registration: Misregistration | None = None):
         """The same as a CSR matrix, responses below ``floor`` (of the peak, 1) dropped: for
-        the Gaussian beyond sqrt(ln(floor) / ln(c)) pitches (2.2 for c = 0.15), ~40 actuators
+        the Gaussian beyond sqrt(ln(floor) / ln(c)) pitches (2.2 for c = 0.15), ~14 actuators
         per pixel instead of 672; the thin-plate functions keep ~62 (their modes move by at
-        most 0.2 % RMS).  For the per-frame mirror shape and modal projections of the
-        closed loop; ``registration``: the mirror as a mis-registered pyramid sees it
+        most 0.2 % RMS; a loop frame costs 3-7 % more, ``bench/bench_influence.py``).  For
+        the per-frame mirror shape and modal projections of the closed loop;
+        ``registration``: the mirror as a mis-registered pyramid sees it
         (``optics.registration``)."""
         x, y = pupil.coordinates()
         p, pitch = self.positions(), self.pitch_m

@@ -22,7 +22,7 @@ import numpy as np
 from .. import blas, defaults
 from ..errors import InputError
 from ..ranges import MODES
-from .asm import DEFAULT_INFLUENCE, SIGN_SEED, AsmGeometry, ModalBasis, kl_basis
+from .asm import SIGN_SEED, AsmGeometry, ModalBasis, kl_basis
 from .cache import ArrayCache, EntrySpec, cache_key
 from .detector import Detector
 from .pupil import Pupil
@@ -30,6 +30,7 @@ from .pwfs import SUBAPERTURES_BIN1, Pyramid, PyramidConfig
 from .registration import Misregistration
 from .sensor import WavefrontSensor
 
+UNKEYED_INFLUENCE = "gaussian"  # the model whose cache key predates the choice (BasisSetup.key)
 BASIS_PIXELS = 80  # pupil sampling on which the KL modes are computed (~3.5 pixels per actuator)
 MAX_SLOPES = 2 * SUBAPERTURES_BIN1**2  # sx and sy of every sub-aperture at binning 1
 
@@ -42,8 +43,8 @@ class BasisSetup:
 
     def key(self) -> str:
         """The cache key; the Gaussian mirror keeps the key it had before the influence model
-        was a choice, so cached bases stay valid."""
-        asm = {k: v for k, v in asdict(self.asm).items() if k != "influence" or v != DEFAULT_INFLUENCE}
+        was a choice, so cached bases stay valid (whatever the default model)."""
+        asm = {k: v for k, v in asdict(self.asm).items() if k != "influence" or v != UNKEYED_INFLUENCE}
         return cache_key("basis", {"asm": asm, "L0_m": self.L0_m, "pixels": self.pixels, "sign_seed": SIGN_SEED})
 
 

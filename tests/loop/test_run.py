@@ -61,9 +61,9 @@ def test_a_run_longer_than_its_screens_says_the_turbulence_repeats(optics_cache,
 
 
 def test_the_thin_plate_mirror_reaches_the_loop(optics_cache):
-    """`[mirror] influence = "thin-plate"` reaches the calibration and the loop's mirror, and a
-    mis-registered thin-plate mirror moves with its own functions (thin-plate splines through
-    the moved actuators)."""
+    """`[mirror] influence = "thin-plate"` (the default) reaches the calibration and the loop's
+    mirror, and a mis-registered thin-plate mirror moves with its own functions (thin-plate
+    splines through the moved actuators)."""
     from soulctl.loop.run import calibration_for, closed_loop_for
     from soulctl.optics.registration import Misregistration
     from soulctl.run_config import RunConfig

@@ -118,7 +118,11 @@ def test_without_turbulence_the_offsets_cancel_the_controlled_part(calibration):
 def test_ogtl_applies_the_offsets_once_k_is_calibrated(optics_cache):
     """With OGTL the offsets wait until the probed mode's chi is within 20 % of 1 (k ~ 1 /
     gamma_30 ~ 2.7 here), then enter once; the loop keeps lock and gains over the same run
-    without them (measured 0.373 against 0.341 over 5 s, the offsets in force from 2.25 s)."""
+    without them.  Theory: the aberration's controlled part is 74 nm of its 100, whose full
+    compensation multiplies the H Strehl ratio by exp((2 pi 74 / 1650)^2) = 1.083, +0.022 here
+    had it held over the whole run; the offsets enter after OGTL's first calibrations, near
+    the middle of the 5 s (measured 0.274 against 0.260 with the thin-plate mirror; 0.373
+    against 0.341 with the Gaussian, whose run drifted to a 0.7-1.4 um residual)."""
     base = BASE.with_values({"run.duration_s": 5.0, "auxiliary.ogtl": True, "auxiliary.period_s": 0.75, "ncpa.rms_nm": 100.0})
     result = {}
     for compensated in (False, True):
@@ -130,4 +134,4 @@ def test_ogtl_applies_the_offsets_once_k_is_calibrated(optics_cache):
     i = applied[0]
     assert abs(ogtl["chi"][i] * ogtl["sensitivity"][i] / ogtl["sensitivity"][i - 1] - 1) <= 0.2
     assert not result[False].telemetry.aux_arrays("ogtl")["offsets_applied"].any()
-    assert result[True].metrics.strehl > result[False].metrics.strehl + 0.015
+    assert result[True].metrics.strehl > result[False].metrics.strehl + 0.01

@@ -12,7 +12,7 @@ from soulctl.errors import InputError
 from soulctl.loop.run import run
 from soulctl.loop.stages import Mirror
 from soulctl.observation import observation_for_magnitude
-from soulctl.optics.asm import AsmGeometry
+from soulctl.optics.asm import INFLUENCES, AsmGeometry, thin_plate_cardinals
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import CalibrationSetup, calibrate, moved_mirror_response
 from soulctl.optics.pupil import Pupil
@@ -42,9 +42,10 @@ def test_out_of_range_values_are_refused_naming_the_field(field, value):
 
 
 def test_the_influence_functions_move_where_the_transform_puts_the_actuators():
-    """Centroids of the influence functions of actuators well inside the pupil (2.5 pitches
-    from both edges) against the transformed positions: within 1 % of a pitch."""
-    geometry, pupil = AsmGeometry(), Pupil(80)
+    """Centroids of the (Gaussian, symmetric) influence functions of actuators well inside the
+    pupil (2.5 pitches from both edges) against the transformed positions: within 1 % of a
+    pitch."""
+    geometry, pupil = AsmGeometry(influence="gaussian"), Pupil(80)
     moved = Misregistration(shift_x_pitch=0.37, shift_y_pitch=-0.21, rotation_deg=3.0, magnification=1.02)
     F = geometry.sparse_influence_functions(pupil, registration=moved).toarray()
     x, y = pupil.coordinates()
@@ -58,6 +59,32 @@ def test_the_influence_functions_move_where_the_transform_puts_the_actuators():
     assert np.max(np.hypot(*(centroid - target[inside]).T)) < 0.01 * pitch
     nominal = geometry.sparse_influence_functions(pupil).toarray()
     assert np.abs(F - nominal).max() > 0.5  # the functions did move
+
+
+def _nominal_functions_at(geometry: AsmGeometry, points: np.ndarray) -> np.ndarray:
+    """The unmoved mirror's influence functions at arbitrary points (m)."""
+    p, pitch = geometry.positions(), geometry.pitch_m
+    if geometry.influence == "thin-plate":
+        return thin_plate_cardinals(points, p, pitch)
+    d2 = ((points[:, None, :] - p[None, :, :]) ** 2).sum(axis=2)
+    return np.exp(np.log(geometry.coupling) * d2 / pitch**2)
+
+
+@pytest.mark.parametrize("influence", INFLUENCES)
+def test_a_moved_mirror_is_the_nominal_one_carried_by_the_transform(influence):
+    """F'(T x) = F(x) for both influence models: the moved functions at a pixel are the nominal
+    ones at the pixel's inverse-transformed position (to the sparse matrix's 1e-4 floor); the
+    thin-plate cardinals are invariant under a similarity transform, and the Gaussian's width
+    scales with the magnification."""
+    geometry, pupil = AsmGeometry(influence=influence), Pupil(40)
+    moved = Misregistration(shift_x_pitch=0.37, shift_y_pitch=-0.21, rotation_deg=3.0, magnification=1.02)
+    F = geometry.sparse_influence_functions(pupil, registration=moved).toarray()
+    x, y = pupil.coordinates()
+    a = np.deg2rad(moved.rotation_deg)
+    shift = np.array([moved.shift_x_pitch, moved.shift_y_pitch]) * geometry.pitch_m
+    back = (np.stack([x, y], axis=1) - shift) @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) / moved.magnification
+    assert np.abs(F - _nominal_functions_at(geometry, back)).max() <= 1.01e-4
+    assert np.abs(F - geometry.sparse_influence_functions(pupil).toarray()).max() > 0.5
 
 
 @pytest.fixture(scope="module")
