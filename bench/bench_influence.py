@@ -16,22 +16,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from results_file import save
 from rich.console import Console
 from rich.table import Table
 from threadpoolctl import threadpool_limits
 
-from soulctl import __version__
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.disturbance.vibrations import VibrationSpectrum
-from soulctl.files import atomic_write_text
 from soulctl.loop.simulation import ClosedLoop
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import INFLUENCES, AsmGeometry
@@ -120,20 +117,10 @@ def main() -> None:
             f"{g['nnz_per_pixel']:.0f} / {tp['nnz_per_pixel']:.0f}",
             f"{g['build_s']:.2f} / {tp['build_s']:.2f}",
         )
-    Console(width=160).print(t)
-    result = {
-        "benchmark": "influence",
-        "soulctl": __version__,
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
-        "numpy": np.__version__,
-        "frames": args.frames,
-        "repeats": args.repeats,
-        "rows": rows,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
-    print(f"written {args.out}")
+    console = Console(width=160)
+    console.print(t)
+    payload = {"benchmark": "influence", "numpy": np.__version__, "frames": args.frames, "repeats": args.repeats, "rows": rows}
+    save(args.out, payload, console)
 
 
 if __name__ == "__main__":
