@@ -21,18 +21,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_loop import benchmark_loop
 from results_file import save
 from rich.console import Console
 from rich.table import Table
 from threadpoolctl import threadpool_limits
 
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import StructuralResonance, sampled_structure
-from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.loop.simulation import ClosedLoop
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import INFLUENCES, AsmGeometry
-from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
@@ -44,16 +41,7 @@ def build(label: str, binning: int, modes: int, rate: float, influence: str, cac
     obs = dataclasses.replace(observation_for_magnitude(9.7), binning=binning, modes=modes, frame_rate_hz=rate)
     setup = CalibrationSetup(PyramidConfig(binning=binning, oversampling=2), modes, BasisSetup(AsmGeometry(influence=influence)))
     cal = calibrate(setup, cache)
-    structure = sampled_structure(StructuralResonance(), rate)
-    loop = ClosedLoop(
-        obs,
-        cal,
-        AtmosphereConfig.lbt_default(1.0),
-        default_gains(obs, structure),
-        vibrations=VibrationSpectrum.lbt_default(),
-        seed=1,
-        structure=structure,
-    )
+    loop = benchmark_loop(obs, cal)
     t0 = time.process_time()
     matrix = cal.basis.geometry.sparse_influence_functions(loop.pupil)
     info = {"nnz_per_pixel": matrix.nnz / matrix.shape[0], "build_s": time.process_time() - t0}
