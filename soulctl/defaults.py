@@ -16,6 +16,11 @@ OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
 # Tip/Tilt results table), compensated on sky by reference-slope offsets once OGTL has
 # calibrated k (Sec. 2.4, Modal Gain Machine).
 NCPA_RMS_NM = 100.0
+# The fraction of the NCPA's offsets the RTC applies (``optics.ncpa``): in full, the R10.9
+# on-sky-like loop (1212 Hz, 40x40, 1.0", 13 m/s) folded into a false lock of the pyramid in
+# 3 of 4 seeds within 10 s; at half, none did, and half wins back 3/4 of the NCPA's variance
+# on the controlled modes (docs/physics.md, "Non-common-path aberrations").
+NCPA_OFFSET_FRACTION = 0.5
 MEASURE_S = 0.5  # `optimize gains`: before and after
 # `optimize gains`'s paired evaluation: before and after each measured over this many
 # consecutive windows of MEASURE_S; their mean and the standard error of the paired difference

@@ -103,6 +103,7 @@ MAGNIFICATION = Range(0.8, 1.2)
 # non-common-path aberrations (optics.ncpa): on-sky instruments carry 10-300 nm
 NCPA_RMS_NM = Range(0.0, 1000.0, "nm")
 NCPA_EXPONENT = Range(0.0, 4.0)  # of the PSD's power law
+NCPA_OFFSET_FRACTION = Range(0.0, 1.0)  # of the offsets the RTC applies
 # the interaction matrix measured at a finite flux (optics.calibration_noise)
 CALIBRATION_PHOTONS = Range(1.0, 1e12, "photons per frame")
 CALIBRATION_FRAMES = Range(1, 10_000, integer=True)

@@ -22,9 +22,10 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [structure]   enabled, frequency_hz, damping, coupling (the 127 Hz resonance)
     [misregistration]  shift_x_pitch, shift_y_pitch, rotation_deg, magnification (the mirror
                   on the pyramid against the calibration; ``optics.registration``)
-    [ncpa]        rms_nm, exponent, compensated, seed (the science path's static aberration and
-                  its reference-slope offsets; ``optics.ncpa``; default 100 nm, LUCI1's, with
-                  offsets when OGTL runs: ``defaults.NCPA_RMS_NM``)
+    [ncpa]        rms_nm, exponent, compensated, seed, offset_fraction (the science path's static
+                  aberration and its reference-slope offsets; ``optics.ncpa``; default 100 nm,
+                  LUCI1's, with half its offsets when OGTL runs: ``defaults.NCPA_RMS_NM``,
+                  ``defaults.NCPA_OFFSET_FRACTION``)
     [calibration] photons_per_frame, frames, seed, seeing_arcsec (the interaction matrix measured
                   at a finite flux, 0 photons: noiseless; around the residual of a seeing, 0: none;
                   ``optics.calibration_noise``)
@@ -78,7 +79,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "vibrations": ("enabled", "file", "scale", "source", "line"),
     "structure": ("enabled", "frequency_hz", "damping", "coupling"),
     "misregistration": REGISTRATION_KEYS,
-    "ncpa": ("rms_nm", "exponent", "compensated", "seed"),
+    "ncpa": ("rms_nm", "exponent", "compensated", "seed", "offset_fraction"),
     "calibration": ("photons_per_frame", "frames", "seed", "seeing_arcsec"),
     "mirror": ("influence",),
     "detector": ("noise",),
@@ -457,6 +458,7 @@ def _ncpa(n: dict) -> NcpaSpec:
         exponent=_number(n.get("exponent", 2.0), "ncpa.exponent"),
         compensated=_bool(n, "compensated", False, "ncpa") if "compensated" in n else None,
         seed=_integer(n.get("seed", 1), "ncpa.seed"),
+        offset_fraction=_number(n.get("offset_fraction", defaults.NCPA_OFFSET_FRACTION), "ncpa.offset_fraction"),
     )
 
 

@@ -221,6 +221,18 @@ def test_the_sky_default_carries_luci1s_ncpa_compensated_where_ogtl_runs():
     assert RunConfig.from_dict({}).ncpa == RunConfig().ncpa  # a section left out is the default
 
 
+def test_the_offsets_fraction_defaults_to_half_round_trips_and_reaches_the_request():
+    """``ncpa.offset_fraction`` (``defaults.NCPA_OFFSET_FRACTION``, 0.5): stored with the run,
+    refused outside 0..1 naming the field, and in the request (test_ncpa: what it does)."""
+    assert RunConfig().ncpa.offset_fraction == defaults.NCPA_OFFSET_FRACTION == 0.5
+    c = RunConfig(duration_s=3.0).with_values({"ncpa.offset_fraction": 0.8})
+    assert round_trip(c).request().ncpa.offset_fraction == 0.8
+    assert RunConfig.from_dict({"ncpa": {"rms_nm": 50.0}}).ncpa.offset_fraction == 0.5
+    for bad in (-0.1, 1.5, "half"):
+        with pytest.raises(InputError, match="ncpa.offset_fraction"):
+            RunConfig().with_values({"ncpa.offset_fraction": bad})
+
+
 def test_ideal_turns_ogtl_and_the_error_terms_off(capsys):
     from soulctl.cli.app import main
 

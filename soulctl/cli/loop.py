@@ -18,7 +18,7 @@ from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
-from ..ranges import DURATION_S, NCPA_RMS_NM, TELEMETRY_EVERY
+from ..ranges import DURATION_S, NCPA_OFFSET_FRACTION, NCPA_RMS_NM, TELEMETRY_EVERY
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
@@ -184,6 +184,14 @@ class RunOptions:
         show_default="with OGTL, once it has calibrated k",
         help="Compensate the NCPA's controlled part with reference-slope offsets (scaled by k as LBT does).",
     )
+    ncpa_offset_fraction: float | None = typer.Option(
+        None,
+        "--ncpa-offset-fraction",
+        parser=number(NCPA_OFFSET_FRACTION),
+        metavar="F",
+        show_default=f"{defaults.NCPA_OFFSET_FRACTION:g}: in full they tipped the pyramid into a false lock",
+        help="Fraction of the NCPA offsets applied (0..1); the science path keeps 1 - F of the controlled part.",
+    )
     allow_unstable: bool = typer.Option(False, "--allow-unstable", help="Run gains the analysis calls unstable.")
     mgm: bool = typer.Option(False, "--mgm", help="Run the Modal Gain Machine beside the loop (from the initial gains, every --period).")
     ogtl: bool | None = typer.Option(
@@ -285,6 +293,8 @@ def _checked_overrides(o: RunOptions) -> dict:
     TELEMETRY_EVERY.check(o.telemetry_every, "--telemetry-every")
     if o.ncpa is not None:
         NCPA_RMS_NM.check(o.ncpa, "--ncpa")
+    if o.ncpa_offset_fraction is not None:
+        NCPA_OFFSET_FRACTION.check(o.ncpa_offset_fraction, "--ncpa-offset-fraction")
     telemetry_fields(o.telemetry_fields)
     overrides = loop_overrides(o)
     twin = plant_overrides(read_plant(o.plant)) if o.plant is not None else {}
@@ -303,6 +313,7 @@ def _run_overrides(o: RunOptions) -> dict:
         "auxiliary.period_s": o.period,
         "ncpa.rms_nm": o.ncpa,
         "ncpa.compensated": o.ncpa_offsets,
+        "ncpa.offset_fraction": o.ncpa_offset_fraction,
     }
     given = {k: v for k, v in values.items() if v is not None} | common.misregistration_overrides(o.misregistration)
     return _ideal(o, given) | given | probe_overrides(o.probe_mode, o.probe_amplitude, o.probe_frequency)

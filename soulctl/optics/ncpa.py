@@ -14,6 +14,12 @@ pyramid does not.
   over-applied (gamma = 0.6 leaves -0.67 a: no better than none); OGTL, holding k gamma = 1 on
   its probed mode, makes them right there and near it.  What lies outside the controlled modes
   stays whole.
+* Partial offsets (``offset_fraction`` f, ``defaults.NCPA_OFFSET_FRACTION``): the RTC applies
+  f s_off, and the science path keeps (1 - f) a on the controlled modes ((1 - f)^2 of their
+  variance).  The pyramid is not linear: in full, the offsets hold its operating point at -a,
+  and a turbulent excursion can tip the loop into a false lock, a large static low-order
+  shape (~300 nm at R10.9, 1.0") to which the pyramid's response has folded to ~0 and which
+  the RTC cannot see (docs/physics.md).  Half the offsets kept every seed tried out of it.
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..ranges import NCPA_EXPONENT, NCPA_RMS_NM, SEED
+from ..defaults import NCPA_OFFSET_FRACTION as OFFSET_FRACTION
+from ..ranges import NCPA_EXPONENT, NCPA_OFFSET_FRACTION, NCPA_RMS_NM, SEED
 from .pupil import Pupil
 
 
@@ -32,10 +39,12 @@ class NcpaSpec:
     exponent: float = 2.0  # PSD ~ |f|^-exponent
     compensated: bool | None = False  # reference-slope offsets for the controlled modes' part; None: with OGTL (run_config)
     seed: int = 1  # the instrument's draw
+    offset_fraction: float = OFFSET_FRACTION  # of the offsets the RTC applies
 
     def __post_init__(self):
         NCPA_RMS_NM.check(self.rms_nm, "ncpa.rms_nm")
         NCPA_EXPONENT.check(self.exponent, "ncpa.exponent")
+        NCPA_OFFSET_FRACTION.check(self.offset_fraction, "ncpa.offset_fraction")
         SEED.check(self.seed, "ncpa.seed")
 
     @property
@@ -68,10 +77,11 @@ class NonCommonPath:
 
 
 def non_common_path(spec: NcpaSpec, pupil: Pupil, shapes: np.ndarray, interaction_matrix: np.ndarray) -> NonCommonPath:
-    """The aberration of ``spec`` on ``pupil`` and, when compensated, its offsets for the
-    calibration's controlled modes ``shapes`` and interaction matrix."""
+    """The aberration of ``spec`` on ``pupil`` and, when compensated, the offsets the RTC
+    applies: ``spec.offset_fraction`` of those for the calibration's controlled modes
+    ``shapes`` and interaction matrix."""
     opd = ncpa_opd(spec, pupil)
-    offset = slope_offsets(opd, shapes, interaction_matrix).astype(np.float32) if spec.compensated else None
+    offset = (spec.offset_fraction * slope_offsets(opd, shapes, interaction_matrix)).astype(np.float32) if spec.compensated else None
     return NonCommonPath(opd, offset)
 
 

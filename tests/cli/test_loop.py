@@ -116,6 +116,9 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--misregistration", "0,0,0,x"], "--misregistration magnification must be a number in 0.8..1.2"),
         (["--ncpa", "-5"], "--ncpa must be in 0..1000 nm"),
         (["--ncpa", "nan"], "--ncpa must be"),
+        (["--ncpa-offset-fraction", "1.5"], "--ncpa-offset-fraction must be in 0..1"),
+        (["--ncpa-offset-fraction", "half"], "--ncpa-offset-fraction': must be a number in 0..1"),
+        (["--ideal", "--ncpa-offset-fraction", "0.3"], "--ideal turns OGTL and the error terms off"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message, capsys, cache_dir):

@@ -145,6 +145,7 @@ CASES = [
             ("--gains", LISTS),
             ("--misregistration", LISTS),
             ("--ncpa", NUMBERS),
+            ("--ncpa-offset-fraction", NUMBERS),
         ]
     ],
     *[("loop run", OGTL_LOOP, o, NUMBERS, 120) for o in ["--period", "--probe-mode", "--probe-amplitude", "--probe-frequency"]],
