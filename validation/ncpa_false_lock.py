@@ -1,10 +1,11 @@
 """The NCPA offsets and the pyramid's false lock (fidelity issue, items 3 and 7): the paper's
 on-sky-like R10.9 loop (1212 Hz, 40x40, 500 modes, 1.0", 13 m/s, FeII, 100 nm of NCPA, OGTL
-applying the offsets once k is calibrated) run for 10 s per seed at each fraction of the
+applying the offsets once k is calibrated; ``--case R9.7``: a plain `loop run`, every
+default, H band) run for 10 s per seed at each fraction of the
 offsets (``ncpa.offset_fraction``), the residual of the WFS path per second, and the pyramid's
 large-signal response along the static shape of a run that locked falsely.
 
-Per run: FeII Strehl, residual per second, the RMS of each second's mean residual in modes
+Per run: the Strehl ratio, residual per second, the RMS of each second's mean residual in modes
 3-30 (the static shape the mirror holds), OGTL's k and the frame the offsets entered.  A run
 *locked falsely* when a second's static shape exceeds 3x the aberration's controlled part in
 modes 3-30 (the offsets' target: ~65 nm).
@@ -16,7 +17,7 @@ along u (chi/k (-a . u)) meets the falling branch where the loop sits (a false e
 integrator on a falling response pushes away from the right one); at half the target, the
 falling branch's trough is above it and the loop comes back.
 
-    python validation/ncpa_false_lock.py [--seeds 1,2,3,4] [--fractions 1,0.5] [--duration 10] [--out FILE]
+    python validation/ncpa_false_lock.py [--case R10.9|R9.7] [--seeds 1,2,3,4] [--fractions 1,0.5] [--duration 10] [--out FILE]
 
 ~2.3 min per run on one core; appends rows to ``--out`` (JSON lines) and skips those present.
 """
@@ -34,6 +35,7 @@ import h5py
 import numpy as np
 
 from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
 from soulctl.loop.run import calibration_for, closed_loop_for
 from soulctl.optics.cache import ArrayCache
@@ -46,11 +48,19 @@ FALSE_LOCK = 3.0  # a second's static shape in modes 3-30 above this x the contr
 LOW = slice(2, 30)  # modes 3-30
 
 
-def command(seed: int, fraction: float, duration: float, telemetry: Path) -> list[str]:
-    """The `loop run` of one row: the example's description, every other option at its default."""
+# the runs: R10.9, the paper's on-sky-like loop; R9.7, a plain `loop run` (every default:
+# 1700 Hz, 40x40, 1.0", 8 m/s, H band, OGTL and 100 nm of NCPA with offsets)
+CASES = {
+    "R10.9": ["--config", str(CONFIG), "--wind", "13", "--ncpa", "100", "--ncpa-offsets", "--ogtl"],
+    "R9.7": [],
+}
+
+
+def command(case: str, seed: int, fraction: float, duration: float, telemetry: Path) -> list[str]:
+    """The `loop run` of one row: the case's options, every other option at its default."""
     return [
-        "soulctl", "loop", "run", "--config", str(CONFIG), "--wind", "13", "--duration", f"{duration:g}", "--seed", str(seed),
-        "--ncpa", "100", "--ncpa-offsets", "--ogtl", "--ncpa-offset-fraction", f"{fraction:g}", "--telemetry", str(telemetry), "--json",
+        "soulctl", "loop", "run", *CASES[case], "--duration", f"{duration:g}", "--seed", str(seed),
+        "--ncpa-offset-fraction", f"{fraction:g}", "--telemetry", str(telemetry), "--json",
     ]  # fmt: skip
 
 
@@ -72,9 +82,9 @@ def per_second(path: Path, rate: float) -> tuple[list[float], list[float], np.nd
     return rms, [float(np.linalg.norm(m[LOW])) for m in means], means[-1]
 
 
-def one(seed: int, fraction: float, duration: float, cache, keep: Path) -> dict:
+def one(case: str, seed: int, fraction: float, duration: float, cache, keep: Path) -> dict:
     t0 = time.perf_counter()
-    out = json.loads(subprocess.run(command(seed, fraction, duration, keep), check=True, capture_output=True, text=True).stdout)
+    out = json.loads(subprocess.run(command(case, seed, fraction, duration, keep), check=True, capture_output=True, text=True).stdout)
     request = read_run_config(keep).request()
     rms, static, _ = per_second(keep, request.observation.frame_rate_hz)
     target = float(np.linalg.norm(controlled_part(request, cache)[LOW]))
@@ -82,10 +92,11 @@ def one(seed: int, fraction: float, duration: float, cache, keep: Path) -> dict:
         frames, applied, k = (f[f"aux/ogtl/{name}"][:] for name in ("frame", "offsets_applied", "sensitivity"))
     entered = np.flatnonzero(applied)
     return {
+        "case": case,
         "seed": seed,
         "fraction": fraction,
         "duration_s": duration,
-        "strehl_feii": out["metrics"]["strehl"],
+        "strehl": out["metrics"]["strehl"],
         "residual_per_second_nm": rms,
         "static_3_30_per_second_nm": static,
         "controlled_3_30_nm": target,
@@ -101,7 +112,7 @@ def response_curve(path: Path, cache, amplitudes=(0, 25, 50, 100, 150, 200, 300,
     cfg = read_run_config(path)
     request = cfg.request()
     cal = calibration_for(request, cache)
-    loop = closed_loop_for(request, cal, request.gains, None, duration_s=0.1)
+    loop = closed_loop_for(request, cal, LoopGains(0.3, 0.3, 0.3), None, duration_s=0.1)  # its sensor only
     pupil, rate = loop.pupil, request.observation.frame_rate_hz
     shapes, reconstructor = cal.basis.shapes(pupil), cal.reconstructor.astype(np.float64)
     _, _, last = per_second(path, rate)
@@ -129,6 +140,7 @@ def response_curve(path: Path, cache, amplitudes=(0, 25, 50, 100, 150, 200, 300,
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--case", default="R10.9", choices=sorted(CASES))
     p.add_argument("--seeds", default="1,2,3,4")
     p.add_argument("--fractions", default="1,0.5")
     p.add_argument("--duration", type=float, default=10.0)
@@ -136,14 +148,14 @@ def main() -> None:
     args = p.parse_args()
     cache = ArrayCache(default_cache_dir())
     done = [json.loads(x) for x in args.out.read_text().splitlines()] if args.out.exists() else []
-    have = {(d.get("seed"), d.get("fraction")) for d in done if "seed" in d}
+    have = {(d.get("case", "R10.9"), d["seed"], d["fraction"]) for d in done}
     with tempfile.TemporaryDirectory() as tmp:
         for fraction in (float(x) for x in args.fractions.split(",")):
             for seed in (int(s) for s in args.seeds.split(",")):
-                if (seed, fraction) in have:
+                if (args.case, seed, fraction) in have:
                     continue
                 keep = Path(tmp) / f"f{fraction}_s{seed}.h5"
-                row = one(seed, fraction, args.duration, cache, keep)
+                row = one(args.case, seed, fraction, args.duration, cache, keep)
                 if row["false_lock"] and not any("response_curve" in d for d in done):
                     row["response_curve"] = response_curve(keep, cache)
                 print(json.dumps(row), flush=True)
