@@ -39,7 +39,7 @@ from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
 from soulctl.loop.run import calibration_for, closed_loop_for
 from soulctl.optics.cache import ArrayCache
-from soulctl.optics.ncpa import ncpa_opd
+from soulctl.optics.ncpa import controlled_part, ncpa_opd
 from soulctl.run_config import read_run_config
 
 OUT = Path(__file__).parent / "results" / "ncpa_false_lock.jsonl"
@@ -64,12 +64,11 @@ def command(case: str, seed: int, fraction: float, duration: float, telemetry: P
     ]  # fmt: skip
 
 
-def controlled_part(request, cache) -> np.ndarray:
-    """a: the NCPA's projection on the controlled modes (nm)."""
+def ncpa_controlled(request, cache) -> np.ndarray:
+    """a: the request's NCPA on its controlled modes (nm; ``optics.ncpa.controlled_part``)."""
     cal = calibration_for(request, cache)
     pupil = cal.setup.pyramid.pupil
-    shapes = cal.basis.shapes(pupil)
-    return shapes.T @ ncpa_opd(request.ncpa, pupil) / shapes.shape[0]
+    return controlled_part(ncpa_opd(request.ncpa, pupil), cal.basis.shapes(pupil))
 
 
 def per_second(path: Path, rate: float) -> tuple[list[float], list[float], np.ndarray]:
@@ -87,7 +86,7 @@ def one(case: str, seed: int, fraction: float, duration: float, cache, keep: Pat
     out = json.loads(subprocess.run(command(case, seed, fraction, duration, keep), check=True, capture_output=True, text=True).stdout)
     request = read_run_config(keep).request()
     rms, static, _ = per_second(keep, request.observation.frame_rate_hz)
-    target = float(np.linalg.norm(controlled_part(request, cache)[LOW]))
+    target = float(np.linalg.norm(ncpa_controlled(request, cache)[LOW]))
     with h5py.File(keep) as f:
         frames, applied, k = (f[f"aux/ogtl/{name}"][:] for name in ("frame", "offsets_applied", "sensitivity"))
     entered = np.flatnonzero(applied)
@@ -127,7 +126,7 @@ def response_curve(path: Path, cache, amplitudes=(0, 25, 50, 100, 150, 200, 300,
 
     with h5py.File(path) as f:
         gamma = float(f["aux/ogtl/optical_gain"][-1])  # chi / k of the probed mode
-    along = float(-controlled_part(request, cache) @ u)
+    along = float(-ncpa_controlled(request, cache) @ u)
     return {
         "static_norm_nm": float(np.linalg.norm(last)),
         "amplitudes_nm": list(amplitudes),

@@ -85,8 +85,13 @@ def non_common_path(spec: NcpaSpec, pupil: Pupil, shapes: np.ndarray, interactio
     return NonCommonPath(opd, offset)
 
 
+def controlled_part(opd: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """a = S^T opd / n_valid: the coefficients (nm) of ``opd`` (n_valid,) on the controlled
+    modes ``shapes`` (n_valid, n_modes, orthonormal on the pupil)."""
+    return shapes.T @ opd / shapes.shape[0]
+
+
 def slope_offsets(opd: np.ndarray, shapes: np.ndarray, interaction_matrix: np.ndarray) -> np.ndarray:
-    """s_off = D (-a): the reference-slope offsets that compensate ``opd`` (n_valid,) on the
-    controlled modes ``shapes`` (n_valid, n_modes, orthonormal: a = S^T opd / n_valid)."""
-    a = shapes.T @ opd / shapes.shape[0]
-    return interaction_matrix @ (-a)
+    """s_off = D (-a): the reference-slope offsets that compensate ``opd`` on the controlled
+    modes ``shapes`` (a: ``controlled_part``)."""
+    return interaction_matrix @ (-controlled_part(opd, shapes))

@@ -17,7 +17,7 @@ from soulctl.loop.metrics import band_wavelength
 from soulctl.loop.run import calibration_for, closed_loop_for, run
 from soulctl.loop.simulation import ClosedLoop, LoopDiverged
 from soulctl.observation import observation_for_magnitude
-from soulctl.optics.ncpa import NcpaSpec, ncpa_opd, non_common_path
+from soulctl.optics.ncpa import NcpaSpec, controlled_part, ncpa_opd, non_common_path
 from soulctl.optics.pupil import Pupil
 from soulctl.run_config import RunConfig
 
@@ -109,7 +109,7 @@ def test_without_turbulence_the_offsets_cancel_their_fraction_of_the_controlled_
     spec = NcpaSpec(rms_nm=30, compensated=True, offset_fraction=fraction)
     ncpa = non_common_path(spec, pupil, calibration.basis.shapes(pupil), calibration.interaction_matrix)
     shapes = calibration.basis.shapes(pupil)
-    controlled = shapes @ (shapes.T @ ncpa.opd / shapes.shape[0])
+    controlled = shapes @ controlled_part(ncpa.opd, shapes)
     outside = ncpa.opd - controlled
     loop = ClosedLoop(OBS, calibration, None, LoopGains(0.3, 0.3, 0.3), noise=False, structure=None, ncpa=ncpa)
     for _ in range(200):
@@ -156,7 +156,7 @@ def test_the_pyramid_folds_so_offsets_narrow_the_loops_capture_range(calibration
     loop settles there (a false lock, validation/ncpa_false_lock.py)."""
     pupil = calibration.setup.pyramid.pupil
     shapes = calibration.basis.shapes(pupil)
-    a = shapes.T @ ncpa_opd(NcpaSpec(rms_nm=100), pupil) / shapes.shape[0]
+    a = controlled_part(ncpa_opd(NcpaSpec(rms_nm=100), pupil), shapes)
     u = a / np.linalg.norm(a)
     sensor = ClosedLoop(OBS, calibration, None, LoopGains(0.3, 0.3, 0.3), noise=False, structure=None).sensor
     amplitudes = np.arange(0.0, 1501.0, 50.0)
