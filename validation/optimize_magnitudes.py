@@ -26,7 +26,7 @@ the summary table is printed at the end.
 
 Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
       [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--windows 6] [--window 1.0]
-      [--workers 2] [--out FILE]
+      [--influence gaussian|thin-plate] [--workers 2] [--out FILE]
 Table of several files' rows made with the current code (each row carries the fingerprint of
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
@@ -58,6 +58,7 @@ from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
 from soulctl.loop.optimize import OGTL_SETTLING_PERIODS, OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
+from soulctl.optics.asm import DEFAULT_INFLUENCE
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
@@ -90,10 +91,11 @@ def code_fingerprint(package: Path | None = None, tables: Path | None = None) ->
     return h.hexdigest()[:12]
 
 
-def _run(obs, seeing: float, seed: int):
-    """The run of a point: the look-up table's observation, defaults elsewhere."""
+def _run(obs, seeing: float, seed: int, influence: str = DEFAULT_INFLUENCE):
+    """The run of a point: the look-up table's observation, defaults elsewhere (the mirror's
+    influence functions as asked: the grid ran on the Gaussian mirror, the default then)."""
     return RunConfig(
-        observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing), seed=seed, ncpa=NcpaSpec()
+        observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing), seed=seed, ncpa=NcpaSpec(), influence=influence
     ).request()  # no NCPA, as the grid's first rows
 
 
@@ -126,7 +128,14 @@ def windows_for(rate_hz: float, windows: int = WINDOWS) -> int:
 
 
 def run_case(
-    mag: float, seeing: float, seed: int, variant: str, cache_dir: str, windows: int = WINDOWS, window_s: float = WINDOW_S
+    mag: float,
+    seeing: float,
+    seed: int,
+    variant: str,
+    cache_dir: str,
+    windows: int = WINDOWS,
+    window_s: float = WINDOW_S,
+    influence: str = DEFAULT_INFLUENCE,
 ) -> dict:
     """One `optimize gains` point; the row of the results."""
     method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
@@ -135,7 +144,7 @@ def run_case(
     duration = DURATION_PERIODS * default_period_s(obs)
     windows = windows_for(obs.frame_rate_hz, windows)
     request = OptimizeRequest(
-        _run(obs, seeing, seed), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
+        _run(obs, seeing, seed, influence), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
     )
     cache = ArrayCache(cache_dir)
     r = optimize(request, cache)
@@ -145,6 +154,7 @@ def run_case(
         "seeing": seeing,
         "seed": seed,
         "variant": variant,
+        "influence": influence,
         "period_s": request.period_s,
         "diverged_at": r.diverged_at,
         "diverged_in": r.diverged_in,
@@ -204,7 +214,14 @@ class SharedEvaluations:
 
 
 def run_point(
-    mag: float, seeing: float, seed: int, variants: list[str], cache_dir: str, windows: int = WINDOWS, window_s: float = WINDOW_S
+    mag: float,
+    seeing: float,
+    seed: int,
+    variants: list[str],
+    cache_dir: str,
+    windows: int = WINDOWS,
+    window_s: float = WINDOW_S,
+    influence: str = DEFAULT_INFLUENCE,
 ) -> list[dict]:
     """The variants of one magnitude, seeing and seed, run one after the other in one process
     so that those with the same OGTL setting share their *before* evaluation."""
@@ -212,7 +229,7 @@ def run_point(
     for ogtl in (True, False):
         with SharedEvaluations() as shared:
             for v in (v for v in variants if v.endswith("+ogtl") == ogtl):
-                row = run_case(mag, seeing, seed, v, cache_dir, windows, window_s)
+                row = run_case(mag, seeing, seed, v, cache_dir, windows, window_s, influence)
                 row["shared_evaluations"] = shared.hits
                 rows.append(row)
     return rows
@@ -333,7 +350,7 @@ def _cases(a) -> list[tuple]:
     ]
 
 
-def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s: float) -> None:
+def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s: float, influence: str = DEFAULT_INFLUENCE) -> None:
     """Run the cases of ``todo`` that ``out`` has no row of this code for, appending their rows
     as points finish."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -348,7 +365,7 @@ def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s:
     order = sorted(points, key=lambda p: -p[0])  # the faint (fast) points first
     cache = str(default_cache_dir())
     with ProcessPoolExecutor(workers) as pool, out.open("a") as f:
-        futures = [pool.submit(run_point, *p, points[p], cache, windows, window_s) for p in order]
+        futures = [pool.submit(run_point, *p, points[p], cache, windows, window_s, influence) for p in order]
         for fut in as_completed(futures):
             for row in fut.result():
                 row["code"] = launched
@@ -370,6 +387,7 @@ def main() -> None:
     p.add_argument("--variants", default=",".join(VARIANTS))
     p.add_argument("--windows", type=int, default=WINDOWS)
     p.add_argument("--window", type=float, default=WINDOW_S)
+    p.add_argument("--influence", default=DEFAULT_INFLUENCE, help="the mirror's influence functions (the grid ran on 'gaussian')")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--table", type=Path, nargs="+", help="run nothing: the table of these files' rows made with this code")
@@ -393,7 +411,7 @@ def main() -> None:
         report(rows, Console(width=200))
         print(not_run(wanted, rows))
         return
-    run_grid(sorted(wanted), a.out, a.workers, a.windows, a.window)
+    run_grid(sorted(wanted), a.out, a.workers, a.windows, a.window, a.influence)
     report(read_rows([a.out], {code_fingerprint()}, wanted), Console(width=200))
 
 
