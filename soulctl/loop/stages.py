@@ -25,6 +25,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.signal import lfilter
 
+from .. import blas
 from ..control.rtc import build_rtc
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
@@ -89,6 +90,18 @@ class Disturbance:
         return phi + self.tip_tilt_mas(k) @ self.tilt_opd_per_mas
 
 
+SPARSE_COST = 4.0  # one sparse multiply-add against one dense (BLAS) one, measured here (docs/performance.md)
+
+
+def projection_is_dense(M_t: np.ndarray, influence) -> bool:
+    """Whether the modal projection S^T r is cheaper with the dense S^T (n_modes x n_valid)
+    than through the sparse F^T and the dense M^T: n_modes n_valid multiply-adds against
+    SPARSE_COST nnz(F) + n_modes n_actuators.  Dense at 10x10 (54 modes) on either mirror and
+    at 20x20 (250) on the thin plate; sparse at 40x40 (500)."""
+    n_modes, n_actuators = M_t.shape
+    return n_modes * influence.shape[0] < SPARSE_COST * influence.nnz + n_modes * n_actuators
+
+
 class Mirror:
     """The adaptive secondary with its structure, and the modal projections of pupil OPDs."""
 
@@ -111,6 +124,13 @@ class Mirror:
         self.influence = basis.geometry.sparse_influence_functions(pupil, registration=registration) if moved else nominal
         self._influence_t = nominal.T.tocsr()
         self._M_t = np.ascontiguousarray(basis.M.T)
+        # S^T as one dense matrix where that is cheaper (few modes, or the thin plate's wide
+        # influence functions): ``projection_is_dense``; built on one BLAS thread, so that its
+        # last bits, and the loop's, do not follow the machine (``soulctl.blas``).
+        self._S_t = None
+        if projection_is_dense(self._M_t, nominal):
+            with blas.one_thread():
+                self._S_t = np.ascontiguousarray(self._M_t @ self._influence_t.toarray())
         self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
         # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the
         # projection is linear, so P d = P r + (P F) c + (P shapes_tt) y + piston P 1, with
@@ -140,6 +160,8 @@ class Mirror:
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
         are orthonormal on the pupil)."""
+        if self._S_t is not None:
+            return self._S_t @ opd / self.pupil.n_valid
         return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
 
     def disturbance_modes(self, residual_modes: np.ndarray, applied: np.ndarray, y: np.ndarray, piston: float) -> np.ndarray:
