@@ -90,16 +90,20 @@ class Disturbance:
         return phi + self.tip_tilt_mas(k) @ self.tilt_opd_per_mas
 
 
-SPARSE_COST = 4.0  # one sparse multiply-add against one dense (BLAS) one, measured here (docs/performance.md)
+SPARSE_BYTES_PER_NONZERO = 12  # a CSR entry: a float64 value and an int32 column index
 
 
 def projection_is_dense(M_t: np.ndarray, influence) -> bool:
-    """Whether the modal projection S^T r is cheaper with the dense S^T (n_modes x n_valid)
-    than through the sparse F^T and the dense M^T: n_modes n_valid multiply-adds against
-    SPARSE_COST nnz(F) + n_modes n_actuators.  Dense at 10x10 (54 modes) on either mirror and
-    at 20x20 (250) on the thin plate; sparse at 40x40 (500)."""
+    """Whether the modal projection S^T r costs less with the dense S^T (n_modes x n_valid,
+    float64) than through the sparse F^T and the dense M^T, counted in bytes read: between
+    two projections the pyramid's FFTs evict the matrices from the caches, so in the loop
+    both forms are memory-bound (measured at 20x20 on the thin plate: dense 0.16 ms warm but
+    0.77 ms per frame in the loop's telemetry stage, sparse 0.27 and 0.70).  Dense at 10x10
+    (54 modes) on the thin plate only; sparse elsewhere."""
     n_modes, n_actuators = M_t.shape
-    return n_modes * influence.shape[0] < SPARSE_COST * influence.nnz + n_modes * n_actuators
+    dense = 8 * n_modes * influence.shape[0]
+    sparse = SPARSE_BYTES_PER_NONZERO * influence.nnz + 8 * n_modes * n_actuators
+    return dense < sparse
 
 
 class Mirror:
