@@ -23,19 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from results_file import save
 from rich.console import Console
 from rich.table import Table
 
-from soulctl import __version__
 from soulctl.cli.common import default_cache_dir
 from soulctl.cli.loop import IDEAL
-from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import LiveOptimisers
 from soulctl.loop.run import calibration_for, run
 from soulctl.optics.cache import ArrayCache
@@ -118,18 +115,9 @@ def main() -> None:
             f"{r['ratio']:.3f}",
             " / ".join(f"{x['strehl']:.3f}" if x["strehl"] is not None else "-" for x in rs),
         )
-    Console(width=200).print(t)
-    result = {
-        "benchmark": "default_loop",
-        "soulctl": __version__,
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
-        "numpy": np.__version__,
-        "rows": rows,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
-    print(f"written {args.out}")
+    console = Console(width=200)
+    console.print(t)
+    save(args.out, {"benchmark": "default_loop", "numpy": np.__version__, "rows": rows}, console)
 
 
 if __name__ == "__main__":
