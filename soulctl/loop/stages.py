@@ -120,7 +120,8 @@ class Mirror:
         basis = calibration.basis
         self.basis, self.pupil, self.structure = basis, pupil, structure
         # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
-        # F c and a modal projection S^T r = M^T (F^T r), never the dense S = F M per frame.
+        # F c and a modal projection S^T r = M^T (F^T r), or the dense S^T r where that reads
+        # fewer bytes (``projection_is_dense``).
         # With a mis-registration the shape is the moved mirror's, F' c, while the modes that
         # measure the disturbance and residual stay the calibration's (S = F M).
         nominal = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
@@ -128,7 +129,7 @@ class Mirror:
         self.influence = basis.geometry.sparse_influence_functions(pupil, registration=registration) if moved else nominal
         self._influence_t = nominal.T.tocsr()
         self._M_t = np.ascontiguousarray(basis.M.T)
-        # S^T as one dense matrix where that is cheaper (few modes, or the thin plate's wide
+        # S^T as one dense matrix where that is cheaper (few modes on the thin plate's wide
         # influence functions): ``projection_is_dense``; built on one BLAS thread, so that its
         # last bits, and the loop's, do not follow the machine (``soulctl.blas``).
         self._S_t = None
