@@ -32,22 +32,22 @@ from .case import DEFAULTS, observation_for, optimisation_period_s
 
 SOURCE = "bench/results/frame_cost.json (bench/bench_frame_cost.py)"
 # (binning, oversampling): (CPU ms per frame, CPU s per case, CPU s per calibration, cold), measured
-# by bench/bench_frame_cost.py (bench/results/frame_cost.json); oversampling 1 only up to 90 modes.
+# by bench/bench_frame_cost.py (bench/results/frame_cost.json: the thin-plate mirror); oversampling 1 only up to 90 modes.
 _MEASURED = {
-    (3, 1): (1.8, 0.11, 3.2),
-    (4, 1): (1.8, 0.09, 3.2),
-    (1, 2): (8.8, 0.36, 8.4),
-    (2, 2): (5.9, 0.36, 5.3),
-    (3, 2): (6.3, 0.30, 4.3),
-    (4, 2): (6.7, 0.34, 3.2),
-    (1, 3): (16.0, 2.7, 18.0),
-    (2, 3): (16.0, 1.5, 10.0),
-    (3, 3): (15.0, 2.0, 4.8),
-    (4, 3): (16.0, 1.3, 3.8),
-    (1, 4): (32.0, 1.2, 31.0),
-    (2, 4): (27.0, 2.4, 16.0),
-    (3, 4): (25.0, 2.2, 9.1),
-    (4, 4): (28.0, 2.2, 7.4),
+    (3, 1): (2.8, 0.26, 2.9),
+    (4, 1): (2.3, 0.25, 2.6),
+    (1, 2): (9.6, 0.89, 8.1),
+    (2, 2): (8.1, 0.93, 4.9),
+    (3, 2): (7.5, 1.1, 3.3),
+    (4, 2): (6.9, 1.1, 3.0),
+    (1, 3): (20.0, 3.6, 17.0),
+    (2, 3): (16.0, 3.6, 8.4),
+    (3, 3): (19.0, 2.3, 4.2),
+    (4, 3): (14.0, 4.0, 3.1),
+    (1, 4): (31.0, 4.3, 24.0),
+    (2, 4): (27.0, 4.8, 14.0),
+    (3, 4): (29.0, 4.1, 6.4),
+    (4, 4): (26.0, 4.6, 5.3),
 }
 FRAME_MS = {k: v[0] for k, v in _MEASURED.items()}
 CASE_FIXED_S = {k: v[1] for k, v in _MEASURED.items()}
