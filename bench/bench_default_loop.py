@@ -11,8 +11,8 @@ seeing 1") in three variants, timed alternately, ``--repeats`` times each:
   half the NCPA's reference-slope offsets once k is calibrated, the thin-plate mirror.
 
 The run is long enough for OGTL to act (the loop closes, then two updates, + 0.3 s).  Per
-frame: the loop's wall time (closing and run, not the calibration, which comes from the cache
-after a first untimed run) over its frames, and the median and 99th percentile of the single
+frame: the loop's wall time (closing and run, not the calibration, which is computed into the
+cache before the timed runs) over its frames, and the median and 99th percentile of the single
 frames.  The ratio is the median over repeats of the variant's ms per frame over the
 ``ideal, gaussian`` one's.
 Run:  python bench/bench_default_loop.py [--cases R9.7,R13,R16.5] [--repeats 2] [--out bench/results/default_loop.json]
@@ -75,7 +75,7 @@ def timed(description, cache: ArrayCache) -> dict:
 
 
 def bench_case(case: str, repeats: int, cache: ArrayCache) -> list[dict]:
-    """The variants of one case, timed alternately (a first untimed run of each fills the cache)."""
+    """The variants of one case, timed alternately (each variant's calibration computed into the cache first)."""
     ds = descriptions(case)
     for d in ds.values():
         calibration_for(d.request(), cache)

@@ -58,7 +58,7 @@ from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
 from soulctl.loop.optimize import OGTL_SETTLING_PERIODS, OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
-from soulctl.optics.asm import DEFAULT_INFLUENCE
+from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
@@ -387,7 +387,9 @@ def main() -> None:
     p.add_argument("--variants", default=",".join(VARIANTS))
     p.add_argument("--windows", type=int, default=WINDOWS)
     p.add_argument("--window", type=float, default=WINDOW_S)
-    p.add_argument("--influence", default=DEFAULT_INFLUENCE, help="the mirror's influence functions (the grid ran on 'gaussian')")
+    p.add_argument(
+        "--influence", default=DEFAULT_INFLUENCE, choices=INFLUENCES, help="the mirror's influence functions (the grid ran on 'gaussian')"
+    )
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=OUT)
     p.add_argument("--table", type=Path, nargs="+", help="run nothing: the table of these files' rows made with this code")
