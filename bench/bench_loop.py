@@ -8,8 +8,10 @@ Cases (R9.7-like photometry, seeing 1", LBT vibrations, 127 Hz resonance, noise 
   it/s at 160 px with 20 points and 336^2 FFTs; 36 it/s at 80 px).
   A last case at o = 4 uses the peer's 20 modulation points instead of soulctl's 24.
 BLAS is limited to one thread inside ClosedLoop.run (threadpoolctl).
-Stages: atmosphere, mirror (delay line, F c, structure), wfs_optics (pyramid propagation),
-detector, slopes (C++), rtc (C++), telemetry (modal projections), metrics (PSF).
+Stages: atmosphere, mirror (delay line, structure, F c and the disturbance's F^T d in one C++
+pass, the disturbance's modes), wfs_optics (pyramid propagation), detector, slopes (C++), rtc
+(C++), telemetry (the residual's modes from the disturbance's, the measured, command and
+mirror modes, the recorder), metrics (PSF).
 Calibration: modal basis + interaction matrix with an empty cache (cold), then from the cache.
 
 Per frame: the median and 99th percentile of the wall time of one iteration.

@@ -169,7 +169,7 @@ class ClosedLoop:
         disturbance = self.disturbance.opd(k)
         t1 = clock()
         applied = self.delay.applied()
-        mirror, y = self.mirror.shape(applied)
+        mirror, y, disturbance_modes = self.mirror.shape_and_modes(applied, disturbance)
         residual = disturbance - mirror
         piston = residual.mean()
         residual -= piston
@@ -194,11 +194,10 @@ class ClosedLoop:
         commands = self.controller.commands(slopes, self.rtc_parameters.probe, k, self.rate_hz)
         self.delay.push(commands)
         t6 = clock()
-        residual_modes = self.mirror.project(residual)
         rms = float(np.sqrt(np.mean(residual**2)))
         self.telemetry.append_frame(
-            residual_modes=residual_modes,
-            disturbance_modes=self.mirror.disturbance_modes(residual_modes, applied, y, piston),
+            residual_modes=self.mirror.residual_modes(disturbance_modes, applied, y, piston),
+            disturbance_modes=disturbance_modes,
             slopes=slopes,
             commands=commands.copy(),
             measured_modes=self._reconstructor32 @ slopes,

@@ -25,7 +25,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.signal import lfilter
 
-from .. import blas
+from .. import _core
 from ..control.rtc import build_rtc
 from ..control.structure import StructuralResonance
 from ..disturbance.vibrations import VibrationSource, VibrationSpectrum
@@ -90,20 +90,9 @@ class Disturbance:
         return phi + self.tip_tilt_mas(k) @ self.tilt_opd_per_mas
 
 
-SPARSE_BYTES_PER_NONZERO = 12  # a CSR entry: a float64 value and an int32 column index
-
-
-def projection_is_dense(M_t: np.ndarray, influence) -> bool:
-    """Whether the modal projection S^T r costs less with the dense S^T (n_modes x n_valid,
-    float64) than through the sparse F^T and the dense M^T, counted in bytes read: between
-    two projections the pyramid's FFTs evict the matrices from the caches, so in the loop
-    both forms are memory-bound (measured at 20x20 on the thin plate: dense 0.16 ms warm but
-    0.77 ms per frame in the loop's telemetry stage, sparse 0.27 and 0.70).  Dense at 10x10
-    (54 modes) on the thin plate only; sparse elsewhere."""
-    n_modes, n_actuators = M_t.shape
-    dense = 8 * n_modes * influence.shape[0]
-    sparse = SPARSE_BYTES_PER_NONZERO * influence.nnz + 8 * n_modes * n_actuators
-    return dense < sparse
+def core_influence(F) -> _core.InfluenceFunctions:
+    """The C++ core's copy of a CSR matrix of influence functions (``_core.InfluenceFunctions``)."""
+    return _core.InfluenceFunctions(F.indptr, F.indices, F.data, F.shape[1])
 
 
 class Mirror:
@@ -119,39 +108,33 @@ class Mirror:
     ):
         basis = calibration.basis
         self.basis, self.pupil, self.structure = basis, pupil, structure
-        # Influence functions as a sparse matrix (responses < 1e-4 dropped): the mirror shape is
-        # F c and a modal projection S^T r = M^T (F^T r), or the dense S^T r where that reads
-        # fewer bytes (``projection_is_dense``).
+        # Influence functions as a sparse matrix F (responses < 1e-4 dropped): the mirror shape
+        # is F c and a modal projection S^T r = M^T (F^T r).  The C++ core computes F c and the
+        # disturbance's F^T phi in one pass over F (``shape``): both are memory-bound in the
+        # loop, and F is read once instead of twice.
         # With a mis-registration the shape is the moved mirror's, F' c, while the modes that
         # measure the disturbance and residual stay the calibration's (S = F M).
         nominal = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
-        moved = registration is not None and not registration.is_identity
-        self.influence = basis.geometry.sparse_influence_functions(pupil, registration=registration) if moved else nominal
-        self._influence_t = nominal.T.tocsr()
+        self.moved = registration is not None and not registration.is_identity
+        self.influence = basis.geometry.sparse_influence_functions(pupil, registration=registration) if self.moved else nominal
+        self._nominal = core_influence(nominal)
+        self._influence = core_influence(self.influence) if self.moved else self._nominal
         self._M_t = np.ascontiguousarray(basis.M.T)
-        # S^T as one dense matrix where that is cheaper (few modes on the thin plate's wide
-        # influence functions): ``projection_is_dense``; built on one BLAS thread, so that its
-        # last bits, and the loop's, do not follow the machine (``soulctl.blas``).
-        self._S_t = None
-        if projection_is_dense(self._M_t, nominal):
-            with blas.one_thread():
-                self._S_t = np.ascontiguousarray(self._M_t @ self._influence_t.toarray())
         self.shapes_tt = self.influence @ basis.M[:, :2]  # Tip/Tilt shapes (n_valid, 2)
-        # The disturbance's modes follow from the residual's: d = r + mirror + piston, and the
-        # projection is linear, so P d = P r + (P F) c + (P shapes_tt) y + piston P 1, with
+        # The residual's modes follow from the disturbance's: r = d - mirror - piston, and the
+        # projection is linear, so P r = P d - (P F) c - (P shapes_tt) y - piston P 1, with
         # small dense matrices instead of a second projection of all pupil pixels per frame.
         n_valid = pupil.n_valid
-        self._project_mirror = self._M_t @ (self._influence_t @ self.influence).toarray() / n_valid
-        self._project_tt = self._M_t @ (self._influence_t @ self.shapes_tt) / n_valid
+        nominal_t = nominal.T.tocsr()
+        self._project_mirror = self._M_t @ (nominal_t @ self.influence).toarray() / n_valid
+        self._project_tt = self._M_t @ (nominal_t @ self.shapes_tt) / n_valid
         self._project_piston = self.project(np.ones(n_valid))
         if structure is not None:
             self._structure_ba = structure.coefficients(rate_hz)
             self._structure_state = np.zeros((2, 2))  # lfilter state per axis (order 2)
 
-    def shape(self, applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(the mirror's OPD on the pupil pixels, the structure's Tip/Tilt in nm) for the
-        applied commands; the structure's state advances one frame."""
-        mirror = self.influence @ applied
+    def _structure_tt(self, applied: np.ndarray) -> np.ndarray:
+        """The structure's Tip/Tilt (nm) this frame, excited by the mirror's; its state advances."""
         y = np.zeros(2)
         if self.structure is not None:
             b, a = self._structure_ba
@@ -159,19 +142,35 @@ class Mirror:
             for axis in range(2):
                 out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
                 y[axis] = out[0]
-            mirror = mirror + self.shapes_tt @ y
-        return mirror, y
+        return y
+
+    def _with_structure(self, mirror: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return mirror + self.shapes_tt @ y if self.structure is not None else mirror
+
+    def shape(self, applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the mirror's OPD on the pupil pixels, the structure's Tip/Tilt in nm) for the
+        applied commands; the structure's state advances one frame."""
+        y = self._structure_tt(applied)
+        return self._with_structure(self._influence.shape(applied), y), y
+
+    def shape_and_modes(self, applied: np.ndarray, disturbance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``shape`` and the disturbance's modes S^T d / n_valid, F c and F^T d from one pass
+        over F (two with a mis-registration: F' c shapes the mirror, F^T d projects)."""
+        y = self._structure_tt(applied)
+        if self.moved:
+            mirror, seen = self._influence.shape(applied), self._nominal.adjoint(disturbance)
+        else:
+            mirror, seen = self._influence.shape_and_adjoint(applied, disturbance)
+        return self._with_structure(mirror, y), y, self._M_t @ seen / self.pupil.n_valid
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
         are orthonormal on the pupil)."""
-        if self._S_t is not None:
-            return self._S_t @ opd / self.pupil.n_valid
-        return self._M_t @ (self._influence_t @ opd) / self.pupil.n_valid
+        return self._M_t @ self._nominal.adjoint(np.asarray(opd, dtype=np.float64)) / self.pupil.n_valid
 
-    def disturbance_modes(self, residual_modes: np.ndarray, applied: np.ndarray, y: np.ndarray, piston: float) -> np.ndarray:
-        """The disturbance's modes from the residual's (see ``__init__``)."""
-        return residual_modes + self._project_mirror @ applied + self._project_tt @ y + piston * self._project_piston
+    def residual_modes(self, disturbance_modes: np.ndarray, applied: np.ndarray, y: np.ndarray, piston: float) -> np.ndarray:
+        """The residual's modes from the disturbance's (see ``__init__``)."""
+        return disturbance_modes - self._project_mirror @ applied - self._project_tt @ y - piston * self._project_piston
 
 
 class Controller:

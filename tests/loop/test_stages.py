@@ -12,9 +12,10 @@ from soulctl.control.filters import Filter
 from soulctl.control.structure import StructuralResonance
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
 from soulctl.loop.auxloop import AuxLoop, RtcParameters
-from soulctl.loop.stages import AuxScheduler, Controller, Disturbance, Mirror, projection_is_dense
+from soulctl.loop.stages import AuxScheduler, Controller, Disturbance, Mirror
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
+from soulctl.optics.registration import Misregistration
 
 RATE_HZ = 1000.0
 
@@ -48,18 +49,27 @@ def test_disturbance_without_turbulence_or_vibrations_is_zero(pupil):
     assert not d.opd(17).any() and d.notes == ()
 
 
-def test_the_dense_and_the_sparse_projection_are_one_projection(calibration, pupil):
-    """S^T r through the dense S^T and through the sparse F^T and M^T agree to rounding; the
-    choice follows the bytes each form reads (dense only for few modes on wide functions)."""
-    mirror = Mirror(calibration, pupil, None, RATE_HZ)
-    r = np.random.default_rng(3).standard_normal(pupil.n_valid) * 100.0
-    sparse = mirror._M_t @ (mirror._influence_t @ r) / pupil.n_valid
-    mirror._S_t = np.ascontiguousarray(mirror._M_t @ mirror._influence_t.toarray())
-    np.testing.assert_allclose(mirror.project(r), sparse, rtol=0, atol=1e-12 * np.abs(sparse).max())
-    wide = SimpleNamespace(shape=(4964, 672), nnz=62 * 4964)  # the thin plate's 62 responses per pixel
-    narrow = SimpleNamespace(shape=(4964, 672), nnz=14 * 4964)  # the Gaussian's 14
-    assert projection_is_dense(np.zeros((54, 672)), wide) and not projection_is_dense(np.zeros((54, 672)), narrow)
-    assert not projection_is_dense(np.zeros((250, 672)), wide) and not projection_is_dense(np.zeros((500, 672)), wide)
+@pytest.mark.parametrize("registration", [None, Misregistration(shift_x_pitch=0.3, rotation_deg=1.0)])
+@pytest.mark.parametrize("structure", [None, StructuralResonance()])
+def test_the_modes_from_one_pass_are_the_direct_projections(calibration, pupil, registration, structure):
+    """The mirror's shape and the disturbance's modes come from one pass over F, the residual's
+    modes from the disturbance's by linearity: both equal the projections of the OPDs
+    themselves, with and without a mis-registration (F' c shapes the mirror, S^T still projects)
+    and the structure (its Tip/Tilt in the shape)."""
+    rng = np.random.default_rng(3)
+    mirror = Mirror(calibration, pupil, structure, RATE_HZ, registration)
+    applied = calibration.basis.M @ (rng.standard_normal(calibration.basis.n_modes) * 50.0)
+    disturbance = rng.standard_normal(pupil.n_valid) * 300.0
+    for _ in range(3):  # the structure rings: its y is not zero after the first frame
+        shape, y, modes = mirror.shape_and_modes(applied, disturbance)
+    np.testing.assert_array_equal(shape, mirror.influence @ applied + (mirror.shapes_tt @ y if structure else 0.0))
+    np.testing.assert_allclose(modes, mirror.project(disturbance), rtol=0, atol=1e-12 * np.abs(modes).max())
+    residual = disturbance - shape
+    piston = residual.mean()
+    direct = mirror.project(residual - piston)
+    np.testing.assert_allclose(mirror.residual_modes(modes, applied, y, piston), direct, rtol=0, atol=1e-9 * np.abs(direct).max())
+    assert np.abs(direct).max() > 1.0  # a residual worth projecting
+    np.testing.assert_array_equal(Mirror(calibration, pupil, None, RATE_HZ, registration).shape(applied)[0], mirror.influence @ applied)
 
 
 def test_mirror_projection_inverts_its_shape_and_the_structure_responds_statically(calibration, pupil):

@@ -100,9 +100,11 @@ def test_the_registered_mirror_is_the_calibrations(calibration):
     moved = Mirror(calibration, pupil, None, 1000.0, Misregistration(shift_x_pitch=0.5))
     c = np.random.default_rng(1).standard_normal(calibration.basis.M.shape[0])
     # the projections are the calibration's modes: a moved mirror's shape projects onto them
-    # as the disturbance's stage computes it
-    shape, y = moved.shape(c)
-    np.testing.assert_allclose(moved.disturbance_modes(np.zeros(54), c, y, 0.0), moved.project(shape), rtol=1e-9, atol=1e-9)
+    # as the residual's stage computes it (a disturbance equal to the shape leaves no residual)
+    shape = moved.shape(c)[0]
+    _, y, modes = moved.shape_and_modes(c, shape)
+    assert np.abs(modes).max() > 0.01
+    np.testing.assert_allclose(moved.residual_modes(modes, c, y, 0.0), 0.0, atol=1e-9)
 
 
 def test_the_moved_mirrors_coupling_is_the_identity_when_registered_and_cached(calibration, optics_cache, tmp_path):
