@@ -53,26 +53,26 @@ InfluenceFunctions make_influence(const py::array& indptr, const py::array& indi
     }
 }
 
-py::array_t<double> shape(const InfluenceFunctions& f, const py::array& commands) {
-    auto c = float64_vector(commands, f.n_actuators(), "commands");
-    py::array_t<double> out(f.n_pixels());
+// One product of F or F^T: `in` (float64, n_in) -> a new float64 vector of n_out.
+using Product = void (InfluenceFunctions::*)(const double*, double*) const;
+py::array_t<double> product(const InfluenceFunctions& f, Product p, const py::array& in, py::ssize_t n_in, py::ssize_t n_out,
+                            const char* name) {
+    auto x = float64_vector(in, n_in, name);
+    py::array_t<double> out(n_out);
     double* dst = out.mutable_data();
     {
         py::gil_scoped_release release;
-        f.shape(c.data(), dst);
+        (f.*p)(x.data(), dst);
     }
     return out;
 }
 
+py::array_t<double> shape(const InfluenceFunctions& f, const py::array& commands) {
+    return product(f, &InfluenceFunctions::shape, commands, f.n_actuators(), f.n_pixels(), "commands");
+}
+
 py::array_t<double> adjoint(const InfluenceFunctions& f, const py::array& opd) {
-    auto x = float64_vector(opd, f.n_pixels(), "opd");
-    py::array_t<double> out(f.n_actuators());
-    double* dst = out.mutable_data();
-    {
-        py::gil_scoped_release release;
-        f.adjoint(x.data(), dst);
-    }
-    return out;
+    return product(f, &InfluenceFunctions::adjoint, opd, f.n_pixels(), f.n_actuators(), "opd");
 }
 
 std::pair<py::array_t<double>, py::array_t<double>> shape_and_adjoint(const InfluenceFunctions& f, const py::array& commands, const py::array& opd) {
