@@ -110,8 +110,8 @@ class Mirror:
         self.basis, self.pupil, self.structure = basis, pupil, structure
         # Influence functions as a sparse matrix F (responses < 1e-4 dropped): the mirror shape
         # is F c and a modal projection S^T r = M^T (F^T r).  The C++ core computes F c and the
-        # disturbance's F^T phi in one pass over F (``shape``): both are memory-bound in the
-        # loop, and F is read once instead of twice.
+        # disturbance's F^T d in one pass over F (``shape_and_modes``): both are memory-bound in
+        # the loop, and F is read once instead of twice.
         # With a mis-registration the shape is the moved mirror's, F' c, while the modes that
         # measure the disturbance and residual stay the calibration's (S = F M).
         nominal = basis.geometry.sparse_influence_functions(pupil)  # (n_valid, n_actuators)
