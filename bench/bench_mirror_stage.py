@@ -23,7 +23,7 @@ from results_file import save
 from rich.console import Console
 from rich.table import Table
 
-from soulctl._core import InfluenceFunctions
+from soulctl.loop.stages import core_influence
 from soulctl.optics.asm import INFLUENCES, AsmGeometry
 from soulctl.optics.pupil import Pupil
 
@@ -34,7 +34,7 @@ EVICT_BYTES = 64 * 2**20  # more than the last-level cache
 def variants(F):
     """name -> callable(c, d) of the products the mirror stage needs."""
     F_t = F.T.tocsr()
-    core = InfluenceFunctions(F.indptr, F.indices, F.data, F.shape[1])
+    core = core_influence(F)  # the loop's own construction of the core's copy
     return {
         "scipy F c, F^T d": lambda c, d: (F @ c, F_t @ d),
         "scipy F c only": lambda c, d: (F @ c, None),
