@@ -17,8 +17,16 @@ def tip_tilt_gains(tip_mas: float, tilt_mas: float) -> np.ndarray:
     lines = VibrationSpectrum((VibrationLine(13.0, 0.02, tip_mas, tilt_mas),))
     basis_variance = np.full(4, 1e-3)
     g = noise_aware_gains(
-        OBS, None, LoopGains(0.3, 0.3, 0.3).forgetting, np.ones(4), basis_variance, AtmosphereConfig.lbt_default(0.6),
-        np.full(4, 80.0), lines, nm_per_mas=30.0, every_mode=True,
+        OBS,
+        None,
+        LoopGains(0.3, 0.3, 0.3).forgetting,
+        np.ones(4),
+        basis_variance,
+        AtmosphereConfig.lbt_default(0.6),
+        np.full(4, 80.0),
+        lines,
+        nm_per_mas=30.0,
+        every_mode=True,
     )
     return g[:2]
 
