@@ -1,9 +1,10 @@
 """Where does MGM with OGTL lose at R14.5?  Two checks on one grid point of
 `optimize_magnitudes.py` (its request, with the default mirror unless --influence says otherwise):
 
-1. *The Welch kernel* (``welch_bias``): MGM's Tip/Tilt optimum from the model POL PSD the
-   initial gains come from (``loop.optimize.noise_aware_gains``: frozen-flow Tip/Tilt, the
-   vibration lines of each axis, the WFS noise), exact on a fine grid, against the optimum from
+1. *The Welch kernel* (``welch_bias``): MGM's Tip/Tilt optimum from a model POL PSD built from
+   the inputs of the run's ``loop.optimize.noise_aware_gains`` call (frozen-flow Tip/Tilt, the
+   vibration lines of each axis - that function puts their mean on both - and the WFS noise),
+   exact on a fine grid, against the optimum from
    Welch estimates of a synthetic Gaussian POL with that PSD, for segments of 256-8192 frames:
    does the Hann kernel's spread of the 0.5-Hz-wide 13 Hz line over a 512-frame segment's
    bins move the optimum?
