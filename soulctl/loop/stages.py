@@ -161,12 +161,16 @@ class Mirror:
             mirror, seen = self._influence.shape(applied), self._nominal.adjoint(disturbance)
         else:
             mirror, seen = self._influence.shape_and_adjoint(applied, disturbance)
-        return self._with_structure(mirror, y), y, self._M_t @ seen / self.pupil.n_valid
+        return self._with_structure(mirror, y), y, self._modes(seen)
 
     def project(self, opd: np.ndarray) -> np.ndarray:
         """Modal coefficients (nm) of an OPD on the pupil pixels: S^T opd / n_valid (the modes
         are orthonormal on the pupil)."""
-        return self._M_t @ self._nominal.adjoint(np.asarray(opd, dtype=np.float64)) / self.pupil.n_valid
+        return self._modes(self._nominal.adjoint(np.asarray(opd, dtype=np.float64)))
+
+    def _modes(self, seen: np.ndarray) -> np.ndarray:
+        """S^T x / n_valid from what the actuators see of x, F^T x: M^T (F^T x) / n_valid."""
+        return self._M_t @ seen / self.pupil.n_valid
 
     def residual_modes(self, disturbance_modes: np.ndarray, applied: np.ndarray, y: np.ndarray, piston: float) -> np.ndarray:
         """The residual's modes from the disturbance's (see ``__init__``)."""
