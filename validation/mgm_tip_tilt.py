@@ -106,8 +106,7 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     cal = calibration_for(request.run, cache)
     design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))
     k, offsets = result.sensitivities[0], result.offsets[0]
-    first, end = result.phases["settling"]
-    periods = max(optimize_module.OGTL_SETTLING_PERIODS, round((end - first) / request.frames(request.period)))
+    periods = optimize_module.evaluation_ogtl_periods(request, result)
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
 
     def new_ogtl():  # a fresh OGTL task like the run's (``optimize._session``)

@@ -35,7 +35,7 @@ import numpy as np
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import TIP_TILT, default_gains
 from soulctl.control.structure import sampled_structure
-from soulctl.loop.optimize import OptimizeRequest, evaluate, ogtl_task, optimize
+from soulctl.loop.optimize import OptimizeRequest, evaluate, evaluation_ogtl_periods, ogtl_task, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
@@ -73,7 +73,7 @@ def split(request: OptimizeRequest, cache: ArrayCache, result) -> dict:
     def new_ogtl():
         return ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing)
 
-    periods = max(4, round(np.subtract(*result.phases["settling"][::-1]) / period)) if "settling" in result.phases else 4
+    periods = evaluation_ogtl_periods(request, result)
     before, after = result.initial_gains, result.gains
     tt_after = before.copy()
     tt_after[TIP_TILT] = after[TIP_TILT]

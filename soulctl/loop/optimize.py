@@ -809,6 +809,15 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
     result.offsets = (offsets_before, loop.rtc_parameters.slope_offset is not None)
 
 
+def evaluation_ogtl_periods(request: OptimizeRequest, result: OptimizeResult) -> int:
+    """OGTL updates an evaluation settles for: as many as the run's ``settling`` phase held,
+    at least OGTL_SETTLING_PERIODS."""
+    if "settling" not in result.phases:
+        return OGTL_SETTLING_PERIODS
+    first, end = result.phases["settling"]
+    return max(OGTL_SETTLING_PERIODS, round((end - first) / request.frames(request.period)))
+
+
 def evaluate_pair(
     request: OptimizeRequest,
     cal: Calibration,
@@ -824,10 +833,7 @@ def evaluate_pair(
     the fixed k and NCPA offsets of the end of *before*.  Judged so, an optimiser that returns
     the initial gains scores exactly zero, whatever k did while it ran."""
     k, offsets = result.sensitivities[0], result.offsets[0]
-    periods = OGTL_SETTLING_PERIODS
-    if "settling" in result.phases:
-        first, end = result.phases["settling"]
-        periods = max(periods, round((end - first) / request.frames(request.period)))
+    periods = evaluation_ogtl_periods(request, result)
     try:
         result.before = evaluate(request, cal, design, result.initial_gains, k, offsets, tick, new_ogtl(), periods)
         result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl(), periods)
