@@ -109,11 +109,6 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     periods = optimize_module.evaluation_ogtl_periods(request, result)
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
 
-    def new_ogtl():  # a fresh OGTL task like the run's (``optimize._session``)
-        if not request.ogtl:
-            return None
-        return optimize_module.ogtl_task(request.ogtl_settings, request.frames(request.period), cal, cache, noise, request.chi_seeing)
-
     initial, final = np.array(result.initial_gains), np.array(result.gains)
     sets = {f"initial, Tip/Tilt x {s:g}": np.concatenate([initial[:2] * s, initial[2:]]) for s in scales}
     sets["initial, MGM's Tip/Tilt"] = np.concatenate([final[:2], initial[2:]])
@@ -121,7 +116,7 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     sets["MGM's"] = final
     rows = []
     for name, gains in sets.items():
-        m = evaluate(request, cal, design, gains, k, offsets, None, new_ogtl(), periods)
+        m = evaluate(request, cal, design, gains, k, offsets, None, optimize_module.request_ogtl_task(request, cal, cache, noise), periods)
         row = {"gains": name, "tip_tilt": gains[:2].tolist(), "strehl": m.strehl, "windows": list(m.window_strehls)}
         rows.append({**row, "tt_jitter_mas": m.tt_jitter_mas, "k": m.sensitivity})
         tt = np.round(gains[:2], 3)

@@ -552,6 +552,14 @@ def ogtl_task(
     return OgtlTask(period_frames, settings, k_max=1.0 / worst, amplitude_nm=amplitude, k_model=k_model)
 
 
+def request_ogtl_task(request: OptimizeRequest, calibration: Calibration, cache: ArrayCache, noise: np.ndarray) -> OgtlTask | None:
+    """A fresh OGTL task for ``request`` (``ogtl_task`` at its update period and χ seeing), or
+    None when the request runs without OGTL: the run's, and each evaluation's own."""
+    if not request.ogtl:
+        return None
+    return ogtl_task(request.ogtl_settings, request.frames(request.period), calibration, cache, noise, request.chi_seeing)
+
+
 def safety_net(rate_hz: float, tasks) -> SafetyNet:
     """The safety net running every SAFETY_RUN_FRAMES frames and checking every SAFETY_CHECK_S
     (at least SAFETY_CHECK_MIN_FRAMES frames), damping those of ``tasks`` that can be damped
@@ -754,7 +762,7 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
     loop.set_gains(initial_gains(gains, r, cal, cache, loop, chi, noise, request.ogtl, request.ogtl_settings.mode))
     period = request.frames(request.period)
-    ogtl = ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing) if request.ogtl else None
+    ogtl = request_ogtl_task(request, cal, cache, noise)
     optimiser, n_opt = _optimiser(request, cal, cache, chi, gains.forgetting, ogtl, loop.rtc_parameters.gains)
     aux: list = [ogtl] if ogtl is not None else []
     gamma = optical_gain_table(cal, cache, request.chi_seeing)
@@ -766,11 +774,8 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     skip = min(n_measure // 2, request.frames(0.05))  # of each measurement, PSF and metrics alike
     frames = {"closing": n_close, "settle": n_settle, "measure": n_measure, "skip": skip}
 
-    def new_ogtl() -> OgtlTask | None:
-        return ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing) if request.ogtl else None
-
     net = safety_net(obs.frame_rate_hz, aux + [optimiser])
-    return _Session(loop, aux, optimiser, n_opt, net, period, frames, new_ogtl)
+    return _Session(loop, aux, optimiser, n_opt, net, period, frames, lambda: request_ogtl_task(request, cal, cache, noise))
 
 
 def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[PhaseMetrics, tuple[int, int]]:
