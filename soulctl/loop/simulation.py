@@ -84,6 +84,7 @@ class ClosedLoop:
     pyramid's binning, modulation and sampling and the controlled modes); its turbulence does
     not repeat within ``duration_s`` (None: the default screens, ``FrozenFlowAtmosphere``)."""
 
+    @blas.on_one_thread  # the stages' matrices (the mirror's projections, the RTC's) are models too
     def __init__(
         self,
         observation: Observation,
