@@ -55,7 +55,7 @@ class OgtlTask(AuxLoop):
         self.frequency_hz = math.nan
         self.step_scale = 1.0  # the safety net halves it after a recovery
         self._commands_rms: float | None = None  # of the previous window (the growth rule)
-        self.chi_now: float | None = None  # the latest reliable chi of the probed mode, at the k it set
+        self.chi_now: float | None = None  # the latest chi of the probed mode that k acted on, at the k it set
         self._last: tuple[float, float] | None = None  # (k, chi_hat) of the last reliable estimate
         self.ceiling = math.inf  # k's ceiling after a spiral (``ogtl.spiralling``), for ``_ceiling_left`` reliable estimates
         self._ceiling_left = 0
@@ -97,14 +97,17 @@ class OgtlTask(AuxLoop):
         elif reliable:
             self._last = (window.sensitivity, est.chi)
             self._count_down()
-        if reliable:
+        # chi_now (MGM's gamma, the offsets' scale) only from an estimate k acted on: one made while
+        # the commands grow is of a loop in transient, which OGTL itself does not trust to move k
+        acted = reliable and status != ogtl.GROWING
+        if acted:
             self.chi_now = est.chi * k / window.sensitivity
         elif self.chi_now is not None:
             self.chi_now *= k / window.sensitivity
         rtc.set_sensitivity(k)
         if self.chi_now is not None:
             rtc.scale_slope_offset(ogtl.offset_scale(self.chi_now))
-        calibrated = reliable and self.chi_now is not None and abs(self.chi_now - 1.0) <= ogtl.OFFSETS_CHI_TOLERANCE
+        calibrated = acted and self.chi_now is not None and abs(self.chi_now - 1.0) <= ogtl.OFFSETS_CHI_TOLERANCE
         applied = calibrated and rtc.apply_slope_offset()
         if applied:
             self._last = None  # their NCPA lowers gamma by design: no spiral judged across their entry
@@ -133,9 +136,11 @@ class MgmTask(AuxLoop):
     mode (OGTL keeps that one at 1), otherwise the table times the fixed k.
 
     With ``ogtl`` (the run's OGTL task), the model is scaled by what OGTL knows of the probed
-    mode's optical gain gamma: chi_i = chi_model,i x gamma x k, gamma OGTL's latest reliable
-    chi over its k, or, before it has one (a noise-dominated loop where OGTL holds k),
-    ``probe_gain``, the table's gamma of the probed mode.  The safety net's ``damp`` halves rho.
+    mode's optical gain gamma: chi_i = chi_model,i x gamma x k, gamma OGTL's latest chi
+    that k acted on over its k, or, before it has one (a noise-dominated loop where OGTL holds
+    k), ``probe_gain``, the table's gamma of the probed mode.  Not an estimate held while the
+    commands grew: at R16.5 (CI's short case) the only one past the SNR rule was such, 0.093
+    against the table's 0.177, and MGM's first update raised every gain ~10x.  The safety net's ``damp`` halves rho.
 
     Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
     of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the
@@ -361,7 +366,7 @@ class SafetyNet(AuxLoop):
     means per state of the RTC parameters (gains and k).  The loop is in trouble when r exceeds
     ``threshold`` (3) x the lowest state mean of r (a tripled residual; in a healthy loop r
     moves by 2-3x from one check to the next with a strong vibration line), when s jumps to
-    ``STEP_JUMP`` (6) x the previous state's (one MGM update changes a gain by at most ~3x),
+    ``STEP_JUMP`` (6) x the previous state's (one MGM update changes a gain by at most 2x, ``mgm.MAX_GAIN_CHANGE``),
     or when s grows to ``GROWTH`` (2) or c to ``COMMAND_GROWTH`` (3) x their means over the
     state's first checks (an instability at fixed parameters, or a runaway: a loop the PWFS has
     lost grows in its commands while its WFS signal saturates and even falls; c is mostly the

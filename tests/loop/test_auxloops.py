@@ -420,3 +420,46 @@ def test_ogtl_judges_no_spiral_below_the_models_k(monkeypatch):
     assert ogtl.spiralling(4.5, 0.9, (3.0, 1.0), k_model=4.0) and not ogtl.spiralling(3.9, 0.9, (3.0, 1.0), k_model=4.0)
     # a model without a finite k (gamma 0, or unknown) leaves the rule on from k = 1
     assert all(OgtlTask(100, k_model=bad).k_model == ogtl.MIN_SENSITIVITY for bad in (math.nan, math.inf))
+
+
+def test_ogtl_hands_mgm_no_optical_gain_from_an_estimate_held_while_the_commands_grow(monkeypatch):
+    """The commands' RMS doubles in the second window and the estimate there is low (a loop in
+    transient): OGTL holds k, and chi_now - what MGM scales its plant by - stays what the first
+    estimate gave, scaled to k.  Before, the held estimate set it: at R16.5 the only estimate
+    past the SNR rule was such a one, and MGM's first update raised every gain ~10x."""
+    from soulctl.control import ogtl
+
+    chis = iter([0.25, 0.3, 0.25 * 1.5])  # the second above the first: no spiral judged
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(next(chis), 0.01, 100.0))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+    records = []
+    for scale in (1.0, 2.0, 2.0):
+        c = np.full((frames, 40), scale)
+        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        records.append(task.update(window, rtc))
+        if len(records) == 2:
+            assert records[-1]["status"] == ogtl.GROWING and records[-1]["sensitivity"] == 1.5
+            assert task.chi_now == pytest.approx(0.25 * 1.5, rel=1e-12)  # the first estimate's, at k = 1.5
+    assert records[0]["status"] == ogtl.STEP_LIMITED and records[2]["status"] != ogtl.GROWING
+    assert task.chi_now == pytest.approx(0.25 * records[2]["sensitivity"], rel=1e-12)
+
+
+def test_live_mgm_takes_the_tables_gamma_while_ogtl_has_acted_on_no_estimate(monkeypatch):
+    """Every estimate below the SNR threshold but one, made while the commands grew: OGTL never
+    moved k on an estimate, so MGM's gamma is the table's (``probe_gain``), not that one."""
+    from soulctl.control import ogtl
+
+    estimates = iter([ogtl.Estimate(0.09, 0.09, 1.0), ogtl.Estimate(0.09, 0.0009, 100.0), ogtl.Estimate(0.09, 0.09, 1.0)])
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: next(estimates))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+    statuses = []
+    for scale in (1.0, 2.0, 2.0):
+        c = np.full((frames, 40), scale)
+        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        statuses.append(task.update(window, rtc)["status"])
+    assert statuses == [ogtl.LOW_SNR, ogtl.GROWING, ogtl.LOW_SNR] and task.chi_now is None
+    machine = MgmTask.__new__(MgmTask)
+    machine.ogtl, machine.probe_gain = task, 0.177
+    assert machine.gamma(rtc.sensitivity) == 0.177
