@@ -210,6 +210,32 @@ def test_update_gains_formula():
         update_gains(prev, opt[:2], s)
 
 
+def test_update_gains_moves_a_gain_by_at_most_max_change_per_update():
+    """Eq. gainUpdate within a factor MAX_GAIN_CHANGE of the previous gain: a jump of g_hat to
+    10x the gain in force (R16.5's short window) doubles it, a fall to 0 with rho = 0.9 halves
+    it; a step inside the bound is Eq. gainUpdate's, a mode at 0 is not bounded, and inf lifts
+    the bound.  From 0.1x the fixed point nu g_hat the bounded rule is within 10 % of it after 5
+    updates (0.2, 0.4, 0.7, 0.85, 0.93 of it), one more than the unbounded rule (0.55, 0.78, 0.89, 0.94):
+    25 s at the paper's 5 s cadence, inside its "about a minute"."""
+    s = MgmSettings()
+    assert s.max_change == mgm.MAX_GAIN_CHANGE == 2.0
+    prev = np.array([0.1, 1.0, 0.4, 0.0])
+    opt = np.array([1.0, 0.0, 0.5, 0.3])
+    np.testing.assert_allclose(update_gains(prev, opt, s), [0.2, 0.5, 0.425, 0.135])
+    np.testing.assert_allclose(update_gains(prev, opt, MgmSettings(rho=0.9)), [0.2, 0.5, 0.445, 0.243])
+    free = MgmSettings(max_change=math.inf)
+    np.testing.assert_allclose(update_gains(prev, opt, free), 0.5 * prev + 0.45 * opt)
+    for settings, updates in ((s, 5), (free, 4)):
+        g, target = np.array([0.1 * 0.9]), 0.9
+        n = 0
+        while abs(g[0] / target - 1) > 0.1:
+            g, n = update_gains(g, np.array([1.0]), settings), n + 1
+        assert n == updates
+    for bad in (1.0, 0.5, math.nan):
+        with pytest.raises(InputError, match="factor > 1"):
+            MgmSettings(max_change=bad)
+
+
 def test_machine_matches_single_modes_and_steps():
     """Vectorised over modes with mixed filters and the Tip/Tilt resonance: each mode as alone."""
     rng = np.random.default_rng(3)
