@@ -422,6 +422,23 @@ def test_ogtl_judges_no_spiral_below_the_models_k(monkeypatch):
     assert all(OgtlTask(100, k_model=bad).k_model == ogtl.MIN_SENSITIVITY for bad in (math.nan, math.inf))
 
 
+def _ogtl_on_commands(monkeypatch, estimates, scales) -> tuple[OgtlTask, list[dict]]:
+    """OGTL's records over windows whose commands are all ``scales[i]`` (their RMS; 40 modes),
+    the lock-in's estimates replaced by ``estimates``, one per window."""
+    from soulctl.control import ogtl
+
+    given = iter(estimates)
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: next(given))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+    records = []
+    for scale in scales:
+        c = np.full((frames, 40), scale)
+        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        records.append(task.update(window, rtc) | {"chi_now": task.chi_now})
+    return task, records
+
+
 def test_ogtl_hands_mgm_no_optical_gain_from_an_estimate_held_while_the_commands_grow(monkeypatch):
     """The commands' RMS doubles in the second window and the estimate there is low (a loop in
     transient): OGTL holds k, and chi_now - what MGM scales its plant by - stays what the first
@@ -429,18 +446,10 @@ def test_ogtl_hands_mgm_no_optical_gain_from_an_estimate_held_while_the_commands
     past the SNR rule was such a one, and MGM's first update raised every gain ~10x."""
     from soulctl.control import ogtl
 
-    chis = iter([0.25, 0.3, 0.25 * 1.5])  # the second above the first: no spiral judged
-    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(next(chis), 0.01, 100.0))
-    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
-    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
-    records = []
-    for scale in (1.0, 2.0, 2.0):
-        c = np.full((frames, 40), scale)
-        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
-        records.append(task.update(window, rtc))
-        if len(records) == 2:
-            assert records[-1]["status"] == ogtl.GROWING and records[-1]["sensitivity"] == 1.5
-            assert task.chi_now == pytest.approx(0.25 * 1.5, rel=1e-12)  # the first estimate's, at k = 1.5
+    chis = [0.25, 0.3, 0.25 * 1.5]  # the second above the first: no spiral judged
+    task, records = _ogtl_on_commands(monkeypatch, [ogtl.Estimate(chi, 0.01, 100.0) for chi in chis], (1.0, 2.0, 2.0))
+    assert records[1]["status"] == ogtl.GROWING and records[1]["sensitivity"] == 1.5
+    assert records[1]["chi_now"] == pytest.approx(0.25 * 1.5, rel=1e-12)  # the first estimate's, at k = 1.5
     assert records[0]["status"] == ogtl.STEP_LIMITED and records[2]["status"] != ogtl.GROWING
     assert task.chi_now == pytest.approx(0.25 * records[2]["sensitivity"], rel=1e-12)
 
@@ -450,16 +459,9 @@ def test_live_mgm_takes_the_tables_gamma_while_ogtl_has_acted_on_no_estimate(mon
     moved k on an estimate, so MGM's gamma is the table's (``probe_gain``), not that one."""
     from soulctl.control import ogtl
 
-    estimates = iter([ogtl.Estimate(0.09, 0.09, 1.0), ogtl.Estimate(0.09, 0.0009, 100.0), ogtl.Estimate(0.09, 0.09, 1.0)])
-    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: next(estimates))
-    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
-    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
-    statuses = []
-    for scale in (1.0, 2.0, 2.0):
-        c = np.full((frames, 40), scale)
-        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
-        statuses.append(task.update(window, rtc)["status"])
-    assert statuses == [ogtl.LOW_SNR, ogtl.GROWING, ogtl.LOW_SNR] and task.chi_now is None
+    estimates = [ogtl.Estimate(0.09, 0.09, 1.0), ogtl.Estimate(0.09, 0.0009, 100.0), ogtl.Estimate(0.09, 0.09, 1.0)]
+    task, records = _ogtl_on_commands(monkeypatch, estimates, (1.0, 2.0, 2.0))
+    assert [r["status"] for r in records] == [ogtl.LOW_SNR, ogtl.GROWING, ogtl.LOW_SNR] and task.chi_now is None
     machine = MgmTask.__new__(MgmTask)
     machine.ogtl, machine.probe_gain = task, 0.177
-    assert machine.gamma(rtc.sensitivity) == 0.177
+    assert machine.gamma(records[-1]["sensitivity"]) == 0.177
