@@ -352,11 +352,10 @@ def update_gains(previous, optimum, settings: MgmSettings) -> np.ndarray:
     if previous.shape != optimum.shape:
         raise InputError(f"previous and optimal gains must have the same shape, got {previous.shape} and {optimum.shape}")
     gains = (1.0 - settings.rho) * previous + settings.rho * settings.nu * optimum
-    bounded = previous > 0  # a mode at gain 0 (not controlled) gets Eq. gainUpdate alone
-    if math.isinf(settings.max_change) or not bounded.any():
+    if math.isinf(settings.max_change):
         return gains
     clipped = np.clip(gains, previous / settings.max_change, previous * settings.max_change)
-    return np.where(bounded, clipped, gains)
+    return np.where(previous > 0, clipped, gains)  # a mode at gain 0 (not controlled): Eq. gainUpdate alone
 
 
 @dataclass(frozen=True, eq=False)

@@ -140,7 +140,8 @@ class MgmTask(AuxLoop):
     that k acted on over its k, or, before it has one (a noise-dominated loop where OGTL holds
     k), ``probe_gain``, the table's gamma of the probed mode.  Not an estimate held while the
     commands grew: at R16.5 (CI's short case) the only one past the SNR rule was such, 0.093
-    against the table's 0.177, and MGM's first update raised every gain ~10x.  The safety net's ``damp`` halves rho.
+    against the table's 0.177, and MGM's first update raised every gain ~10x.  The safety
+    net's ``damp`` halves rho.
 
     Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
     of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the
@@ -366,8 +367,8 @@ class SafetyNet(AuxLoop):
     means per state of the RTC parameters (gains and k).  The loop is in trouble when r exceeds
     ``threshold`` (3) x the lowest state mean of r (a tripled residual; in a healthy loop r
     moves by 2-3x from one check to the next with a strong vibration line), when s jumps to
-    ``STEP_JUMP`` (6) x the previous state's (one MGM update changes a gain by at most 2x, ``mgm.MAX_GAIN_CHANGE``),
-    or when s grows to ``GROWTH`` (2) or c to ``COMMAND_GROWTH`` (3) x their means over the
+    ``STEP_JUMP`` (6) x the previous state's (one MGM update changes a gain by at most 2x,
+    ``mgm.MAX_GAIN_CHANGE``), or when s grows to ``GROWTH`` (2) or c to ``COMMAND_GROWTH`` (3) x their means over the
     state's first checks (an instability at fixed parameters, or a runaway: a loop the PWFS has
     lost grows in its commands while its WFS signal saturates and even falls; c is mostly the
     turbulence, which alone moves it by up to 2.3x within 2 s in a steady loop); on ``IN_A_ROW`` (3) checks in
