@@ -106,7 +106,6 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     cal = calibration_for(request.run, cache)
     design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))
     k, offsets = result.sensitivities[0], result.offsets[0]
-    periods = optimize_module.evaluation_ogtl_periods(request, result)
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
 
     initial, final = np.array(result.initial_gains), np.array(result.gains)
@@ -116,7 +115,7 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     sets["MGM's"] = final
     rows = []
     for name, gains in sets.items():
-        m = evaluate(request, cal, design, gains, k, offsets, None, optimize_module.request_ogtl_task(request, cal, cache, noise), periods)
+        m = evaluate(request, cal, design, gains, k, offsets, None, optimize_module.request_ogtl_task(request, cal, cache, noise))
         row = {"gains": name, "tip_tilt": gains[:2].tolist(), "strehl": m.strehl, "windows": list(m.window_strehls)}
         rows.append({**row, "tt_jitter_mas": m.tt_jitter_mas, "k": m.sensitivity})
         tt = np.round(gains[:2], 3)

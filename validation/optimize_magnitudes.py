@@ -56,7 +56,7 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import gain_groups
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
-from soulctl.loop.optimize import OGTL_SETTLING_PERIODS, OptimizeRequest, default_period_s, optimize, session_seconds
+from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize, session_seconds
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
@@ -193,8 +193,8 @@ class SharedEvaluations:
     def __enter__(self):
         self._evaluate = optimize_module.evaluate
 
-        def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None, ogtl_periods=OGTL_SETTLING_PERIODS):
-            task = None if ogtl is None else (ogtl.period_frames, ogtl.settings, ogtl.k_max, ogtl.amplitude_nm, ogtl_periods)
+        def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None):
+            task = None if ogtl is None else (ogtl.period_frames, ogtl.settings, ogtl.k_max, ogtl.amplitude_nm)
             fixed = None if ogtl is not None else (float(k), bool(offsets))  # with OGTL the loop starts at k = 1
             # gains to 12 decimals: trial-and-error's kept gains (best x shape) differ from the
             # initial ones in the last bits, and are the same loop
@@ -202,7 +202,7 @@ class SharedEvaluations:
             if key in self.memo:
                 self.hits += 1
                 return copy.deepcopy(self.memo[key])
-            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress, ogtl, ogtl_periods)
+            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress, ogtl)
             self.memo[key] = copy.deepcopy(metrics)
             return metrics
 

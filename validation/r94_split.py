@@ -35,7 +35,7 @@ import numpy as np
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import TIP_TILT, default_gains
 from soulctl.control.structure import sampled_structure
-from soulctl.loop.optimize import OptimizeRequest, evaluate, evaluation_ogtl_periods, ogtl_task, optimize
+from soulctl.loop.optimize import OptimizeRequest, evaluate, ogtl_task, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
@@ -73,7 +73,6 @@ def split(request: OptimizeRequest, cache: ArrayCache, result) -> dict:
     def new_ogtl():
         return ogtl_task(request.ogtl_settings, period, cal, cache, noise, request.chi_seeing)
 
-    periods = evaluation_ogtl_periods(request, result)
     before, after = result.initial_gains, result.gains
     tt_after = before.copy()
     tt_after[TIP_TILT] = after[TIP_TILT]
@@ -81,7 +80,7 @@ def split(request: OptimizeRequest, cache: ArrayCache, result) -> dict:
     high_after[TIP_TILT] = before[TIP_TILT]
     out: dict = {"ogtl": {"before": summary(result.before), "after": summary(result.after)}}
     for name, g in (("tt_after", tt_after), ("high_after", high_after)):
-        out["ogtl"][name] = summary(evaluate(request, cal, design, g, 1.0, False, None, new_ogtl(), periods))
+        out["ogtl"][name] = summary(evaluate(request, cal, design, g, 1.0, False, None, new_ogtl()))
     for k in (result.before.sensitivity, result.after.sensitivity):
         key = f"fixed_k_{k:.2f}"
         out[key] = {n: summary(evaluate(request, cal, design, g, k, True)) for n, g in (("before", before), ("after", after))}

@@ -13,10 +13,10 @@ One continuous closed loop in phases:
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
 4. *evaluation*: the initial and the optimised gains, each in a loop closed afresh on the run's
    own turbulence and noise (``evaluate``): with OGTL closed much as the run was (k = 1 for
-   ``closing_frames``, not stretched to an update boundary; then OGTL from k = 1 for at least
-   as many updates as the run's settling took and at least EVALUATION_SETTLE_S, and running
-   throughout: k is the loop's state, which OGTL keeps, not the optimiser's output); without,
-   at k = 1.
+   ``closing_frames``, not stretched to an update boundary; then OGTL from k = 1 for
+   OGTL_MAX_SETTLING_PERIODS updates, the run's longest settling, and at least
+   EVALUATION_SETTLE_S, and running throughout: k is the loop's state, which OGTL keeps, not
+   the optimiser's output); without, at k = 1.
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
 result's *before* and *after*: a paired comparison, the two differing by the gains alone (and,
@@ -588,18 +588,23 @@ def session_seconds(request: OptimizeRequest) -> float:
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     closing = closing_frames(rate) / rate
     live = closing + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
-    return max(live, closing + evaluation_settle_s(request, request.ogtl, OGTL_MAX_SETTLING_PERIODS) + request.windows * request.window)
+    return max(live, closing + evaluation_settle_s(request, request.ogtl) + request.windows * request.window)
 
 
-def evaluation_settle_s(request: OptimizeRequest, ogtl: bool, ogtl_periods: int = OGTL_SETTLING_PERIODS) -> float:
+def evaluation_settle_s(request: OptimizeRequest, ogtl: bool) -> float:
     """The paired evaluation's settling after its closing: EVALUATION_SETTLE_S, and if the
-    evaluation's loop runs OGTL (``ogtl``) at least ``ogtl_periods`` of its updates (OGTL
-    brings k from 1 as in the run's settling).  The same for both gain sets, so that their
-    windows are paired.  Decided by the evaluation's loop, not by the request: a diagnostic
-    that evaluates an OGTL request at a fixed k settles as any fixed-k evaluation."""
+    evaluation's loop runs OGTL (``ogtl``) at least OGTL_MAX_SETTLING_PERIODS of its updates,
+    the run's longest settling (OGTL brings k from 1).  The same for both gain sets whatever
+    their OGTL does, so that their windows are paired in time; the longest, so that each
+    gain set is judged at the k its loop's OGTL reaches, not mid-way: settled for the run's
+    own count (five updates where the run's settling ended on a hold), the faint R16.5 case's
+    evaluations ended at k = 3.4 and 5.2, in twelve at 5.2 and 5.9, and *before* read 0.127
+    where it reads 0.209 (docs/physics.md, "The paper's faint cases").  Decided by
+    the evaluation's loop, not by the request: a diagnostic that evaluates an OGTL request at
+    a fixed k settles as any fixed-k evaluation."""
     if not ogtl:
         return EVALUATION_SETTLE_S
-    return max(EVALUATION_SETTLE_S, ogtl_periods * request.period)
+    return max(EVALUATION_SETTLE_S, OGTL_MAX_SETTLING_PERIODS * request.period)
 
 
 def evaluate(
@@ -611,16 +616,15 @@ def evaluate(
     offsets: bool = False,
     progress=None,
     ogtl: OgtlTask | None = None,
-    ogtl_periods: int = OGTL_SETTLING_PERIODS,
 ) -> PhaseMetrics:
     """Metrics of ``gains`` on the run's own turbulence and noise: a loop closed afresh from
     t = 0 at k = 1 (``closing_frames``, as the run), settled (``evaluation_settle_s``),
     measured over ``windows`` consecutive windows of ``window_s``.  Without ``ogtl`` k is then
     set and fixed, the NCPA offsets applied with it if ``offsets``; with it (a fresh task) the
-    loop is closed much as the run closes it: OGTL from k = 1 (``k`` unused) for at least
-    ``ogtl_periods`` updates (``evaluation_settle_s``; the run's closing is stretched to an
-    update boundary, this one is not) and on through the windows, applying the offsets
-    itself.  k then belongs to the
+    loop is closed much as the run closes it: OGTL from k = 1 (``k`` unused) for the run's
+    longest settling (``evaluation_settle_s``; the run's closing is stretched to an update
+    boundary, this one is not) and on through the windows, applying the offsets itself.  k
+    then belongs to the
     loop, not to the gains: a k the run reached on other turbulence is not imposed, nor is k
     raised at once on a loop still converging (docs/physics.md, "Over the magnitudes").  The
     Strehl ratio is the mean of the windows' (each a long exposure); residual and jitter are
@@ -631,7 +635,7 @@ def evaluate(
     gain sets moves by 0.02-0.04 from one 1 s window to the next, hence several windows and the
     standard error of their paired differences (``OptimizeResult.strehl_difference``).
     Raises LoopDiverged."""
-    loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress, ogtl, ogtl_periods)
+    loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress, ogtl)
     n_window = request.frames(request.window)
     skip = min(n_window // 2, request.frames(0.05))
     wavelength = band_wavelength(request.run.band)
@@ -655,7 +659,6 @@ def settled_evaluation_loop(
     offsets: bool = False,
     progress=None,
     ogtl: OgtlTask | None = None,
-    ogtl_periods: int = OGTL_SETTLING_PERIODS,
 ) -> ClosedLoop:
     """``evaluate``'s loop before its measurement: closed afresh at k = 1 on the run's own
     turbulence and noise, then either k set and the NCPA offsets applied if ``offsets``, or
@@ -672,7 +675,7 @@ def settled_evaluation_loop(
         loop.rtc_parameters.set_sensitivity(k)
         if offsets:
             loop.rtc_parameters.apply_slope_offset()
-    loop.run(request.frames(evaluation_settle_s(request, ogtl is not None, ogtl_periods)), progress=progress)
+    loop.run(request.frames(evaluation_settle_s(request, ogtl is not None)), progress=progress)
     return loop
 
 
@@ -815,15 +818,6 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
     result.offsets = (offsets_before, loop.rtc_parameters.slope_offset is not None)
 
 
-def evaluation_ogtl_periods(request: OptimizeRequest, result: OptimizeResult) -> int:
-    """OGTL updates an evaluation settles for: as many as the run's ``settling`` phase held,
-    at least OGTL_SETTLING_PERIODS."""
-    if "settling" not in result.phases:
-        return OGTL_SETTLING_PERIODS
-    first, end = result.phases["settling"]
-    return max(OGTL_SETTLING_PERIODS, round((end - first) / request.frames(request.period)))
-
-
 def evaluate_pair(
     request: OptimizeRequest,
     cal: Calibration,
@@ -834,15 +828,14 @@ def evaluate_pair(
 ) -> None:
     """*before* and *after* of ``result``: the initial and the optimised gains in the paired
     evaluation (``evaluate``).  With OGTL (a fresh task from ``new_ogtl`` for each) both loops
-    close much as the run's: OGTL from k = 1 settling for as many updates as the run's (its
-    ``settling`` phase), the closing not stretched to an update boundary; without, both at
+    close much as the run's: OGTL from k = 1 settling for the run's longest settling
+    (``evaluation_settle_s``), the closing not stretched to an update boundary; without, both at
     the fixed k and NCPA offsets of the end of *before*.  Judged so, an optimiser that returns
     the initial gains scores exactly zero, whatever k did while it ran."""
     k, offsets = result.sensitivities[0], result.offsets[0]
-    periods = evaluation_ogtl_periods(request, result)
     try:
-        result.before = evaluate(request, cal, design, result.initial_gains, k, offsets, tick, new_ogtl(), periods)
-        result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl(), periods)
+        result.before = evaluate(request, cal, design, result.initial_gains, k, offsets, tick, new_ogtl())
+        result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl())
     except LoopDiverged as e:
         result.diverged_at, result.diverged_in = e.frame, "evaluation"
 
@@ -864,7 +857,7 @@ def optimize(
     s = _session(request, cal, cache, gains, chi)
     f = s.frames
     n_window = request.frames(request.window)
-    settle = request.frames(evaluation_settle_s(request, request.ogtl, OGTL_MAX_SETTLING_PERIODS))  # at most
+    settle = request.frames(evaluation_settle_s(request, request.ogtl))
     n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + settle + request.windows * n_window)
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     done = 0
