@@ -330,6 +330,9 @@ def report(rows: list[dict], console: Console) -> None:
         b, a = judged(r, "before"), judged(r, "after")
         error = (r.get("windows") or {}).get("standard_error", float("nan"))
         case = f'R{r["mag"]:g} {r["seeing"]:g}" seed {r["seed"]} {r["variant"]}'
+        if r["diverged_at"] is not None or a is None or b is None:
+            console.print(f"  miss: {case}: diverged in the {r.get('diverged_in') or 'run'} at frame {r['diverged_at']}")
+            continue
         console.print(f"  miss: {case}: {b:.4f} -> {a:.4f} ({a - b:+.4f} +- {error:.4f})")
 
 
