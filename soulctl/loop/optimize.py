@@ -6,7 +6,8 @@ One continuous closed loop in phases:
    least 50 frames), as a real loop is closed before its auxiliary loops start; stretched so
    that *before* ends on an update boundary (MGM's windows are then whole periods, in step
    with OGTL's updates);
-   *settling* (with OGTL): OGTL starts from k = 1; ``OGTL_SETTLING_PERIODS`` updates for k to settle;
+   *settling* (with OGTL): OGTL starts from k = 1; ``OGTL_SETTLING_PERIODS`` to
+   ``OGTL_MAX_SETTLING_PERIODS`` updates for k to settle (``_settled``);
 1. *before*: ``measure_s`` at the initial gains (OGTL running when asked);
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
@@ -27,7 +28,7 @@ MGM's plant model takes chi_i from the optical-gain table of the calibration at 
 seeing (the paper tabulates 0.8"), computed with the optical models and cached with the
 calibration: with OGTL, gamma_i / gamma_30 (OGTL holds mode 30 at 1); without, gamma_i times
 the fixed sensitivity k = 1. OGTL starts from k = 1 once the loop is closed and settles (4 to
-12 updates, until one with an estimate moves log k by less than 0.1) before anything is measured, so that
+12 updates, until one that moved k by its own rule moves log k by less than 0.1) before anything is measured, so that
 neither optimiser scans while k is still far from it. (Starting it at 1/gamma_30 of the table
 instead over-drove the loops whose real optical gain was higher than the table's - a 0.6" loop
 has a higher gamma than the 0.8" reference - and before the loop is closed the open-loop
@@ -687,14 +688,15 @@ def _phase_metrics(loop: ClosedLoop, strehl: float, start: int, stop: int) -> Ph
 
 
 def _settled(records: list[dict]) -> bool:
-    """OGTL's k has settled: its last update had an estimate (not held for a low probe SNR or
-    for want of one) and moved log k by less than SETTLED_LOG_STEP.  An update without an
-    estimate says nothing of k: read as settled, one ended R16.5's settling at k = 3.4 of ~4.5
-    and the paired evaluation, settling as long, judged MGM's gains mid-transient (0.077 ->
-    0.047).  A hold while the commands grow, or a bound, still ends it: settling on, OGTL
-    raised k through a growing transient and a small loop diverged (tests/cli/test_optimize.py,
-    seed 5)."""
-    if not records or records[-1]["status"] in (ogtl_model.LOW_SNR, ogtl_model.NO_ESTIMATE):
+    """OGTL's k has settled: its last update had an estimate and moved k by its own rule (not
+    held for a low probe SNR, for want of one or while the commands grow) and moved log k by
+    less than SETTLED_LOG_STEP.  A held update says nothing of where k goes: read as settled,
+    one held for the SNR ended R16.5's settling at k = 3.4 of ~4.5 and the paired evaluation
+    judged MGM's gains mid-transient (0.077 -> 0.047); one held while the commands grew ended
+    R15.5, 1.5"'s at k = 2.25 of the ~10 its evaluations reach in their twelve updates, and
+    trial-and-error, scanning at a quarter of that k, kept 3x the initial gain of modes 3-120,
+    which diverged in the evaluation (docs/physics.md).  A bound still ends it."""
+    if not records or records[-1]["status"] in (ogtl_model.LOW_SNR, ogtl_model.NO_ESTIMATE, ogtl_model.GROWING):
         return False
     previous = records[-2]["sensitivity"] if len(records) > 1 else 1.0
     return abs(math.log(records[-1]["sensitivity"] / previous)) < SETTLED_LOG_STEP

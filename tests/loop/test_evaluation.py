@@ -137,8 +137,9 @@ def test_a_fixed_k_evaluation_of_an_ogtl_request_settles_as_any_fixed_k(setup):
 
 def test_an_ogtl_update_without_an_estimate_is_not_a_settled_k():
     """OGTL's settling ends on an update that had an estimate and moved k little, never on one
-    held for a low probe SNR (R16.5's settling ended at k = 3.4 of ~4.5 on one).  A hold while
-    the commands grow still ends it (settling on, OGTL raised k through the transient)."""
+    held for a low probe SNR (R16.5's settling ended at k = 3.4 of ~4.5 on one) or while the
+    commands grow (R15.5, 1.5": at k = 2.25 of ~10, and trial-and-error's scan at that k kept
+    a gain that diverged in the evaluation); a bound ends it."""
     from soulctl.loop.optimize import _settled
 
     def records(*pairs):
@@ -148,5 +149,6 @@ def test_an_ogtl_update_without_an_estimate_is_not_a_settled_k():
     assert not _settled(records((3.38, ogtl_model.UPDATED), (3.38, ogtl_model.NO_ESTIMATE)))
     assert not _settled(records((3.38, ogtl_model.UPDATED), (3.92, ogtl_model.UPDATED)))
     assert _settled(records((4.93, ogtl_model.UPDATED), (4.88, ogtl_model.UPDATED)))
-    assert _settled(records((2.46, ogtl_model.UPDATED), (2.46, ogtl_model.GROWING)))
+    assert not _settled(records((2.25, ogtl_model.STEP_LIMITED), (2.25, ogtl_model.GROWING)))
+    assert _settled(records((20.0, ogtl_model.AT_BOUND), (20.0, ogtl_model.AT_BOUND)))
     assert not _settled([])
