@@ -589,13 +589,13 @@ def session_seconds(request: OptimizeRequest) -> float:
     settle = OGTL_MAX_SETTLING_PERIODS * request.period if request.ogtl else 0.0
     closing = closing_frames(rate) / rate
     live = closing + request.period + settle + 2 * request.measure_s + optimise + EVALUATION_SETTLE_S
-    return max(live, closing + evaluation_settle_s(request, request.ogtl) + request.windows * request.window)
+    return max(live, closing + evaluation_settle_s(request.period, request.ogtl) + request.windows * request.window)
 
 
-def evaluation_settle_s(request: OptimizeRequest, ogtl: bool) -> float:
+def evaluation_settle_s(period_s: float, ogtl: bool) -> float:
     """The paired evaluation's settling after its closing: EVALUATION_SETTLE_S, and if the
-    evaluation's loop runs OGTL (``ogtl``) at least OGTL_MAX_SETTLING_PERIODS of its updates,
-    the run's longest settling (OGTL brings k from 1).  The same for both gain sets whatever
+    evaluation's loop runs OGTL (``ogtl``) at least OGTL_MAX_SETTLING_PERIODS of its updates
+    (every ``period_s``), the run's longest settling (OGTL brings k from 1).  The same for both gain sets whatever
     their OGTL does, so that their windows are paired in time; the longest, so that each
     gain set is judged at the k its loop's OGTL reaches, not mid-way: settled for the run's
     own count (five updates where the run's settling ended on a hold), the faint R16.5 case's
@@ -605,7 +605,7 @@ def evaluation_settle_s(request: OptimizeRequest, ogtl: bool) -> float:
     a fixed k settles as any fixed-k evaluation."""
     if not ogtl:
         return EVALUATION_SETTLE_S
-    return max(EVALUATION_SETTLE_S, OGTL_MAX_SETTLING_PERIODS * request.period)
+    return max(EVALUATION_SETTLE_S, OGTL_MAX_SETTLING_PERIODS * period_s)
 
 
 def evaluate(
@@ -676,7 +676,7 @@ def settled_evaluation_loop(
         loop.rtc_parameters.set_sensitivity(k)
         if offsets:
             loop.rtc_parameters.apply_slope_offset()
-    loop.run(request.frames(evaluation_settle_s(request, ogtl is not None)), progress=progress)
+    loop.run(request.frames(evaluation_settle_s(request.period, ogtl is not None)), progress=progress)
     return loop
 
 
@@ -859,7 +859,7 @@ def optimize(
     s = _session(request, cal, cache, gains, chi)
     f = s.frames
     n_window = request.frames(request.window)
-    settle = request.frames(evaluation_settle_s(request, request.ogtl))
+    settle = request.frames(evaluation_settle_s(request.period, request.ogtl))
     n_evaluation = 2 * (closing_frames(obs.frame_rate_hz) + settle + request.windows * n_window)
     total = f["closing"] + f["settle"] + 2 * f["measure"] + s.n_opt + n_evaluation
     done = 0

@@ -7,7 +7,8 @@ the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
 ``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
 settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after) and the paired evaluation (two loops, each closed,
-settled for the longer of 1 s and 4 OGTL updates, and measured for ``duration``); for ``trial`` the closing, the settling, twice
+settled for the longer of 1 s and 12 OGTL updates, ``optimize.evaluation_settle_s``, and
+measured for ``duration``); for ``trial`` the closing, the settling, twice
 ``duration`` and the scan (8 gains and the initial one per group, 0.25 s or 100 frames each); the auxiliary loops' own cost
 (MGM, OGTL) is not counted.
 
@@ -26,7 +27,7 @@ from functools import lru_cache
 
 from ..control.gains import gain_groups
 from ..errors import InputError
-from ..loop.optimize import EVALUATION_SETTLE_S, OGTL_SETTLING_PERIODS, OPTIMISER_OGTL, TRIAL_VALUES, default_sequence_s
+from ..loop.optimize import OGTL_SETTLING_PERIODS, OPTIMISER_OGTL, TRIAL_VALUES, default_sequence_s, evaluation_settle_s
 from ..loop.run import closing_frames
 from .case import DEFAULTS, observation_for, optimisation_period_s
 
@@ -129,7 +130,7 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
     if p["gain_method"] != "default":
         period = max(1, round(optimisation_period_s(p["duration"], obs) * rate))
         n_close = closing_frames(rate) + period // 2  # stretched to an update boundary: half a period on average
-        settle = max(round(EVALUATION_SETTLE_S * rate), OGTL_SETTLING_PERIODS * period if OPTIMISER_OGTL else 0)
+        settle = round(evaluation_settle_s(period / rate, OPTIMISER_OGTL) * rate)  # as ``optimize`` settles each evaluation
         evaluation = 2 * (closing_frames(rate) + settle + n)  # before and after, paired, OGTL settling in each
         if p["gain_method"] == "mgm":
             n = n_close + OGTL_SETTLING_PERIODS * period + 3 * n + evaluation

@@ -100,10 +100,10 @@ def test_the_evaluation_settles_ogtl_for_the_runs_longest_settling(setup):
     (``session_seconds``)."""
     request, _, _ = setup
     with_ogtl = _ogtl_request(request)
-    assert evaluation_settle_s(request, False) == EVALUATION_SETTLE_S
-    assert evaluation_settle_s(with_ogtl, True) == max(EVALUATION_SETTLE_S, OGTL_MAX_SETTLING_PERIODS * with_ogtl.period)
+    assert evaluation_settle_s(request.period, False) == EVALUATION_SETTLE_S
+    assert evaluation_settle_s(with_ogtl.period, True) == max(EVALUATION_SETTLE_S, OGTL_MAX_SETTLING_PERIODS * with_ogtl.period)
     long = dataclasses.replace(with_ogtl, period_s=2.0, duration_s=2.0, windows=20)
-    assert session_seconds(long) >= evaluation_settle_s(long, True) + long.windows * long.window
+    assert session_seconds(long) >= evaluation_settle_s(long.period, True) + long.windows * long.window
 
 
 def test_the_evaluations_ogtl_makes_the_runs_most_updates_before_the_windows(setup):

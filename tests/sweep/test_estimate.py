@@ -5,7 +5,8 @@ import time
 
 import pytest
 
-from soulctl.sweep.case import observation_for
+from soulctl.loop.optimize import OGTL_MAX_SETTLING_PERIODS, OGTL_SETTLING_PERIODS, OPTIMISER_OGTL
+from soulctl.sweep.case import observation_for, optimisation_period_s
 from soulctl.sweep.estimate import CALIBRATION_S, CASE_FIXED_S, FRAME_MS, case_cost, estimate
 from soulctl.sweep.grid import parse_grid
 
@@ -25,6 +26,18 @@ def test_frames_of_a_case():
     trial, _, _ = case_cost({**case, "gain_method": "trial"})
     assert mgm > 3 * n and trial > 2 * n
     assert case_cost({"magnitude": 12.0, "oversampling": 1}) == (0, 0.0, None)  # 500 modes at o = 1: fails at once
+
+
+def test_the_paired_evaluation_is_counted_with_its_twelve_ogtl_updates():
+    """Each of the two evaluation loops settles for OGTL_MAX_SETTLING_PERIODS updates when the
+    optimiser runs OGTL (``optimize.evaluation_settle_s``), not for the run's least settling."""
+    assert OPTIMISER_OGTL
+    case = {"magnitude": 16.6, "binning": 4, "oversampling": 1, "duration": 0.5, "gain_method": "mgm"}
+    obs = observation_for(case)
+    rate = obs.frame_rate_hz
+    n, period = round(0.5 * rate), round(optimisation_period_s(0.5, obs) * rate)
+    frames, _, _ = case_cost(case)
+    assert frames >= OGTL_SETTLING_PERIODS * period + 3 * n + 2 * (OGTL_MAX_SETTLING_PERIODS * period + n)
 
 
 def test_a_large_grid_is_estimated_at_once():
