@@ -82,6 +82,19 @@ def test_rows_without_ogtl_of_code_that_changed_only_ogtl_count(grid, tmp_path):
     assert not grid.read_rows([a], {"abc"}, without_ogtl=frozenset({"other"}))
 
 
+def test_rows_without_a_restore_of_code_that_changed_only_the_restore_count(grid, tmp_path):
+    """A code named for two differences (OGTL and the restores) needs both conditions."""
+    a = tmp_path / "a.jsonl"
+    rows = [_row(v, 0.1, 0.2, seed=s, code="old") for v in ("mgm", "mgm+ogtl") for s in (1, 2)]
+    for r in rows[1::2]:
+        r["safety_restores"] = 1
+    a.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    kept = grid.read_rows([a], {"abc"}, without_restores=frozenset({"old"}))
+    assert sorted((r["variant"], r["seed"]) for r in kept) == [("mgm", 1), ("mgm+ogtl", 1)]
+    both = grid.read_rows([a], {"abc"}, without_ogtl=frozenset({"old"}), without_restores=frozenset({"old"}))
+    assert [(r["variant"], r["seed"]) for r in both] == [("mgm", 1)]
+
+
 def test_the_fingerprint_changes_with_any_source_or_table_and_nothing_else(grid, tmp_path):
     package, tables = tmp_path / "soulctl", tmp_path / "tables"
     (package / "loop").mkdir(parents=True)

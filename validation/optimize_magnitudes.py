@@ -31,9 +31,12 @@ Table of several files' rows made with the current code (each row carries the fi
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
       [--code-before-give-up HASH[,HASH...]] [--code-without-ogtl HASH[,HASH...]]
+      [--code-without-restores HASH[,HASH...]]
 The first of these admits rows of code that differs from the current only in what follows the
 safety net's giving up, when they have fewer restores than a give-up needs (those runs were
-alike); the second the rows without OGTL of code that differs only where OGTL runs.
+alike); the second the rows without OGTL of code that differs only where OGTL runs; the third
+the rows without a safety restore of code that differs only in what a restore sets.  A
+fingerprint given to several differs in each way, and its rows must meet each condition.
 """
 
 from __future__ import annotations
@@ -290,19 +293,31 @@ def read_rows(
     wanted: set | None = None,
     before_give_up: frozenset = frozenset(),
     without_ogtl: frozenset = frozenset(),
+    without_restores: frozenset = frozenset(),
 ) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
-    (None: any), or with one of ``before_give_up`` and too few safety restores for the net to
-    have given up (``FEWEST_RESTORES``: code that differs only in what follows a give-up ran
-    those rows alike), or with one of ``without_ogtl`` for a variant without OGTL (code that
-    differs only where OGTL runs ran those rows alike), one per case (the first: a case run
-    twice on one code gives the same row), restricted to ``wanted`` cases if given."""
+    (None: any), or with older code whose differences from the current leave the row alike,
+    one per case (the first: a case run twice on one code gives the same row), restricted to
+    ``wanted`` cases if given.  Each further set names code that differs in one way, and admits
+    the rows that way cannot reach: ``before_give_up`` what follows the safety net's giving up
+    (rows with fewer restores than a give-up needs, ``FEWEST_RESTORES``), ``without_ogtl``
+    where OGTL runs (variants without it), ``without_restores`` what a safety restore sets
+    (rows without a restore).  A code in several sets differs in each of their ways: its rows
+    need every condition."""
+    conditions = (
+        (before_give_up, lambda r: r["safety_restores"] < FEWEST_RESTORES),
+        (without_ogtl, lambda r: not r["variant"].endswith("+ogtl")),
+        (without_restores, lambda r: r["safety_restores"] == 0),
+    )
     unique: dict = {}
     for path in paths:
         for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
-            admitted = codes is None or r.get("code") in codes
-            admitted |= r.get("code") in before_give_up and r["safety_restores"] < FEWEST_RESTORES
-            admitted |= r.get("code") in without_ogtl and not r["variant"].endswith("+ogtl")
+            code = r.get("code")
+            if codes is None or code in codes:
+                admitted = True
+            else:
+                ways = [ok for named, ok in conditions if code in named]
+                admitted = bool(ways) and all(ok(r) for ok in ways)
             if admitted and (wanted is None or _key(r) in wanted):
                 unique.setdefault(_key(r), r)
     return list(unique.values())
@@ -407,11 +422,16 @@ def main() -> None:
         default="",
         help="with --table: also the rows without OGTL of these fingerprints (comma-separated)",
     )
+    p.add_argument(
+        "--code-without-restores",
+        default="",
+        help="with --table: also the rows without a safety restore of these fingerprints (comma-separated)",
+    )
     a = p.parse_args()
     wanted = set(_cases(a))
     if a.table:
         codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
-        extra = [frozenset(filter(None, x.split(","))) for x in (a.code_before_give_up, a.code_without_ogtl)]
+        extra = [frozenset(filter(None, x.split(","))) for x in (a.code_before_give_up, a.code_without_ogtl, a.code_without_restores)]
         rows = read_rows(a.table, codes, wanted, *extra)
         report(rows, Console(width=200))
         print(not_run(wanted, rows))

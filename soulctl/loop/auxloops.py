@@ -377,7 +377,10 @@ class SafetyNet(AuxLoop):
     mean (a runaway within a check, e.g. a trial gain the PWFS cannot hold).  Acting: the net
     opens the loop and closes it again (the RTC's state reset: a loop the PWFS has lost does
     not find its way back by itself) with the last good state's gains and k - a state is good
-    when its mean r is within ``GOOD`` of the lowest - halves the next steps of the ``tuned``
+    when its mean r is within ``GOOD`` of the lowest; the state in trouble is none, even when
+    its r is low (a runaway in the commands while the PWFS saturates), so it leaves the good
+    states and the net goes back to the last other one (the state itself only when no other
+    was good: then the reset alone acts) - halves the next steps of the ``tuned``
     tasks (their ``damp``), skips ``GRACE_CHECKS`` checks while the loop closes, and the
     optimisation continues.  After ``give_up`` checks in a row in trouble, restores
     notwithstanding (a restore and its grace checks do not end a streak; a check out of trouble
@@ -393,6 +396,7 @@ class SafetyNet(AuxLoop):
     FAST_GROWTH = 2.5
     GRACE_CHECKS = 2  # checks skipped after a restore, while the loop closes again
     IN_A_ROW = 3  # checks in trouble in a row before the net acts (fast runaways trip the fast rule)
+    GOOD_MEMORY = 8  # good states kept, to go back past those that fell into trouble
 
     def __init__(self, period_frames: int, tuned: Sequence[Damped] = (), threshold: float = 3.0, give_up: int = 20, checks: int = 1):
         super().__init__(period_frames)
@@ -403,7 +407,7 @@ class SafetyNet(AuxLoop):
         self.give_up = int(give_up)
         self.checks = int(checks)
         self.best = math.inf  # the lowest state mean of r
-        self.good: tuple[np.ndarray, float] | None = None  # (gains, k) of the last good state
+        self._goods: list[tuple[tuple[bytes, float], np.ndarray, float]] = []  # (state, gains, k) of the good states, latest last
         self._state: tuple[bytes, float] | None = None
         self._sum, self._count = np.zeros(3), 0
         self._start = np.full(3, math.inf)  # the state's means over its first MIN_CHECKS checks
@@ -415,6 +419,16 @@ class SafetyNet(AuxLoop):
         self._grace = 0  # checks left to skip
         self.events = 0
         self.gave_up = False
+
+    @property
+    def good(self) -> tuple[np.ndarray, float] | None:
+        """(gains, k) of the last good state, None before the first."""
+        return (self._goods[-1][1], self._goods[-1][2]) if self._goods else None
+
+    def _mark_good(self, window: TelemetryWindow) -> None:
+        assert self._state is not None  # set by ``_enter``
+        others = [g for g in self._goods if g[0] != self._state]
+        self._goods = [*others[-(self.GOOD_MEMORY - 1) :], (self._state, window.gains, window.sensitivity)]
 
     @staticmethod
     def _sums(window: TelemetryWindow, rtc: RtcParameters) -> np.ndarray:
@@ -450,7 +464,7 @@ class SafetyNet(AuxLoop):
         if self._count >= self.MIN_CHECKS:
             self.best = min(self.best, mean[0])
             if mean[0] <= self.GOOD * self.best:
-                self.good = (window.gains, window.sensitivity)
+                self._mark_good(window)
 
     def _trouble(self, x: np.ndarray) -> float:
         """The largest ratio of a measure to its limit (> 1: in trouble)."""
@@ -464,8 +478,9 @@ class SafetyNet(AuxLoop):
         return float(max(finite)) if finite else 0.0
 
     def _restore(self, rtc: RtcParameters) -> None:
-        assert self.good is not None  # a restore follows a good state (``update``)
-        gains, k = self.good
+        assert self._goods  # a restore follows a good state (``update``)
+        self._goods = [g for g in self._goods if g[0] != self._state] or self._goods  # the state in trouble is not good
+        _, gains, k = self._goods[-1]
         rtc.set_gains(gains)
         rtc.set_sensitivity(k)
         rtc.request_reset()

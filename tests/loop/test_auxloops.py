@@ -365,6 +365,27 @@ def test_the_safety_net_gives_up_on_a_loop_that_stays_in_trouble_across_restores
     assert recovering.events >= 10 and not recovering.gave_up and max(r.get("streak", 0) for r in records) <= 3
 
 
+def test_the_safety_net_goes_back_past_a_state_whose_commands_run_away():
+    """A state whose residual stays low while its commands run away (the PWFS saturates) had
+    been good on its first checks: the net restored it, the very gains in trouble, and only
+    the RTC reset acted (R15.5 1.5" s1, three restores to the gains it had tripped at).  Now
+    it goes back to the last other good state, and past it when that one falls into trouble."""
+    rtc = RtcParameters(8, np.full(8, 0.4), lambda g: None)
+    net, rng = SafetyNet(10), np.random.default_rng(0)
+    restored = []
+    for i, (gains, command) in enumerate([(0.4, 1.0)] * 5 + [(0.6, 1.0)] * 4 + [(0.8, 1.0)] * 4 + [(0.8, 5.0)] + [(None, 5.0)] * 8):
+        if gains is not None:
+            rtc.set_gains(np.full(8, gains))
+        commands = command * (1.0 + 0.01 * rng.standard_normal((10, 8)))
+        window = TelemetryWindow(
+            10 * i, 500.0, 1.5, rng.standard_normal((10, 8)), commands, commands, np.zeros((10, 16)), np.ones(10), rtc.gains.copy(), 1.0
+        )
+        if net.update(window, rtc).get("restored"):
+            restored.append(float(rtc.gains[0]))
+    # 0.8 runs away: back to 0.6; 0.6 (still at the runaway commands) then falls into trouble too: back to 0.4
+    assert restored[:2] == [0.6, 0.4] and net.good is not None and net.good[0][0] == 0.4
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.sampled_from([1.0, 1.0, 2.0, 3.5, 5.0, 10.0]), min_size=30, max_size=120))
 def test_a_safety_net_that_gives_up_has_restored_at_least_give_up_over_in_a_row_times(levels):
