@@ -167,6 +167,7 @@ def run_case(
         "during_run": {k: v.strehl for k, v in r.during_run.items()},
         "sensitivities": list(r.sensitivities),
         "sensitivities_evaluated": [m.sensitivity if m else None for m in (r.before, r.after)],
+        "settled_k": [m.settled.k if m and m.settled else None for m in (r.before, r.after)],
         "k": r.loop.rtc_parameters.sensitivity,
         "gain_groups": {name: [float(r.initial_gains[m].mean()), float(r.gains[m].mean())] for name, m in gain_groups(len(r.gains))},
         "aux": summary(records),
@@ -187,7 +188,8 @@ class SharedEvaluations:
     everything the evaluation depends on besides the run itself (the block runs one point),
     the gains to 12 decimals: trial-and-error's kept gains reuse the *before* evaluation
     (``shared_evaluations`` 2 from rows made after that change, 1 before; the RTC's float32
-    gains make the two evaluations the same loop either way)."""
+    gains make the two evaluations the same loop either way), and with OGTL so does *after*'s
+    evaluation frozen at *before*'s settled k when the same gains settle there themselves."""
 
     def __init__(self):
         self.memo: dict = {}
@@ -196,17 +198,20 @@ class SharedEvaluations:
     def __enter__(self):
         self._evaluate = optimize_module.evaluate
 
-        def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None):
+        def shared(request, cal, design, gains, k, offsets=False, progress=None, ogtl=None, freeze=None):
             task = None if ogtl is None else (ogtl.period_frames, ogtl.settings, ogtl.k_max, ogtl.amplitude_nm)
             fixed = None if ogtl is not None else (float(k), bool(offsets))  # with OGTL the loop starts at k = 1
             # gains to 12 decimals: trial-and-error's kept gains (best x shape) differ from the
             # initial ones in the last bits, and are the same loop
             key = (session_seconds(request), request.windows, request.window, np.round(gains, 12).tobytes(), fixed, task)
-            if key in self.memo:
+            # a loop frozen at the k its own OGTL settles to is the loop measured unfrozen
+            own = self.memo.get((key, None))
+            hit = self.memo.get((key, freeze)) or (own if own is not None and own.settled == freeze else None)
+            if hit is not None:
                 self.hits += 1
-                return copy.deepcopy(self.memo[key])
-            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress, ogtl)
-            self.memo[key] = copy.deepcopy(metrics)
+                return copy.deepcopy(hit)
+            metrics = self._evaluate(request, cal, design, gains, k, offsets, progress, ogtl, freeze)
+            self.memo[(key, freeze)] = copy.deepcopy(metrics)
             return metrics
 
         optimize_module.evaluate = shared

@@ -326,8 +326,9 @@ def gains_cmd(o: GainsOptions) -> int:
     optimised gains.  With --ogtl the optical gain tracking loop runs throughout; a safety net
     restores the last good gains and k when the loop degrades.  Prints the gains and the
     Strehl ratio and residual before and after, both measured in loops closed afresh on the
-    run's own turbulence and noise, with --ogtl each with OGTL from k = 1 as the run (a paired
-    comparison; the run's own phases, at other times, are shown beside them); exit status 3
+    run's own turbulence and noise, with --ogtl each with OGTL from k = 1 as the run, then both
+    at the k the initial gains' OGTL settled to (a paired comparison; the run's own phases, at
+    other times, are shown beside them); exit status 3
     only if the loop diverged all the same or the
     safety net could not recover it (no gain file written).  With
     --telemetry FILE: MGM offline on a recorded loop, printing the gains it would apply; its

@@ -16,12 +16,13 @@ One continuous closed loop in phases:
    own turbulence and noise (``evaluate``): with OGTL closed much as the run was (k = 1 for
    ``closing_frames``, not stretched to an update boundary; then OGTL from k = 1 for
    OGTL_MAX_SETTLING_PERIODS updates, the run's longest settling, and at least
-   EVALUATION_SETTLE_S, and running throughout: k is the loop's state, which OGTL keeps, not
-   the optimiser's output); without, at k = 1.
+   EVALUATION_SETTLE_S: k is the loop's state, which OGTL keeps, not the optimiser's output);
+   then OGTL stops (its probe stays) and both loops' windows run at the k *before*'s OGTL
+   settled to (``FrozenK``): with OGTL running through them, the two loops' k paths part and
+   the windows differ by them as much as by the gains; without OGTL, at k = 1.
 
 Strehl ratio (long-exposure PSF), residual and Tip/Tilt jitter of the evaluation are the
-result's *before* and *after*: a paired comparison, the two differing by the gains alone (and,
-with OGTL, by the k each loop's OGTL reaches with them);
+result's *before* and *after*: a paired comparison, the two differing by the gains alone;
 those of the run's own phases (``during_run``) differ by the turbulence of their time too.
 
 MGM's plant model takes chi_i from the optical-gain table of the calibration at the run's
@@ -45,7 +46,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -77,6 +78,7 @@ from ..optics.calibration import Calibration
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
+from .auxloop import RtcParameters
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, could_not_recover
 from .chi_model import mgm_chi, optical_gain_table, plant_model, probe_gain
 from .metrics import band_wavelength
@@ -285,10 +287,33 @@ class PhaseMetrics:
     residual_nm: float
     tt_jitter_mas: float
     window_strehls: list[float] = field(default_factory=list)  # the paired evaluation's windows, in order
-    sensitivity: float | None = None  # the paired evaluation's k at its end (OGTL's, when it runs)
+    sensitivity: float | None = None  # the paired evaluation's k in its windows
+    settled: FrozenK | None = None  # with OGTL: what the evaluation's own OGTL settled to
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {**self.__dict__, "settled": None if self.settled is None else asdict(self.settled)}
+
+
+@dataclass(frozen=True)
+class FrozenK:
+    """k and the NCPA offsets' state (in force, OGTL's scale of them) of a loop whose OGTL has
+    settled: what both of the paired evaluation's loops run their windows at (``evaluate``)."""
+
+    k: float
+    offsets: bool
+    offset_scale: float = 1.0
+
+    @classmethod
+    def of(cls, rtc: RtcParameters) -> FrozenK:
+        return cls(rtc.sensitivity, rtc.slope_offset is not None, rtc.offset_scale)
+
+    def set(self, rtc: RtcParameters) -> None:
+        rtc.set_sensitivity(self.k)
+        if self.offsets:
+            rtc.apply_slope_offset()
+        else:
+            rtc.hold_slope_offset()
+        rtc.scale_slope_offset(self.offset_scale)
 
 
 @dataclass
@@ -617,6 +642,7 @@ def evaluate(
     offsets: bool = False,
     progress=None,
     ogtl: OgtlTask | None = None,
+    freeze: FrozenK | None = None,
 ) -> PhaseMetrics:
     """Metrics of ``gains`` on the run's own turbulence and noise: a loop closed afresh from
     t = 0 at k = 1 (``closing_frames``, as the run), settled (``evaluation_settle_s``),
@@ -624,19 +650,24 @@ def evaluate(
     set and fixed, the NCPA offsets applied with it if ``offsets``; with it (a fresh task) the
     loop is closed much as the run closes it: OGTL from k = 1 (``k`` unused) for the run's
     longest settling (``evaluation_settle_s``; the run's closing is stretched to an update
-    boundary, this one is not) and on through the windows, applying the offsets itself.  k
-    then belongs to the
-    loop, not to the gains: a k the run reached on other turbulence is not imposed, nor is k
-    raised at once on a loop still converging (docs/physics.md, "Over the magnitudes").  The
-    Strehl ratio is the mean of the windows' (each a long exposure); residual and jitter are
-    over all of them.  *before* and *after* so measured differ by the gains alone - a paired
-    comparison: measured in the run's own phases, 0.5 s apart in time, they differ by the
-    turbulence too, by up to +-0.05 in Strehl at 1.0" (docs/physics.md).  Paired, one window
-    still depends on what the turbulence does in it: at R17.5-18.5, 0.6" the difference of two
-    gain sets moves by 0.02-0.04 from one 1 s window to the next, hence several windows and the
-    standard error of their paired differences (``OptimizeResult.strehl_difference``).
-    Raises LoopDiverged."""
+    boundary, this one is not), applying the offsets itself.  k then belongs to the loop, not
+    to the gains: a k the run reached on other turbulence is not imposed, nor is k raised at
+    once on a loop still converging (docs/physics.md, "Over the magnitudes").  OGTL then stops
+    (its probe stays on) and the windows run at one k: the loop's own (``settled``), or
+    ``freeze`` (*before*'s, for *after*: ``evaluate_pair``).  The Strehl ratio is the mean of
+    the windows' (each a long exposure); residual and jitter are over all of them.  *before*
+    and *after* so measured differ by the gains alone - a paired comparison: measured in the
+    run's own phases, 0.5 s apart in time, they differ by the turbulence too, by up to +-0.05
+    in Strehl at 1.0" (docs/physics.md).  Paired, one window still depends on what the
+    turbulence does in it: at R17.5-18.5, 0.6" the difference of two gain sets moves by
+    0.02-0.04 from one 1 s window to the next, hence several windows and the standard error of
+    their paired differences (``OptimizeResult.strehl_difference``).  Raises LoopDiverged."""
     loop = settled_evaluation_loop(request, cal, design, gains, k, offsets, progress, ogtl)
+    settled = None
+    if ogtl is not None:
+        loop.remove_aux_loop(ogtl)
+        settled = FrozenK.of(loop.rtc_parameters)
+        (freeze or settled).set(loop.rtc_parameters)
     n_window = request.frames(request.window)
     skip = min(n_window // 2, request.frames(0.05))
     wavelength = band_wavelength(request.run.band)
@@ -648,6 +679,7 @@ def evaluate(
     metrics = _phase_metrics(loop, float(np.mean(strehls)), start + skip, loop.frame)
     metrics.window_strehls = strehls
     metrics.sensitivity = loop.rtc_parameters.sensitivity
+    metrics.settled = settled
     return metrics
 
 
@@ -831,13 +863,19 @@ def evaluate_pair(
     """*before* and *after* of ``result``: the initial and the optimised gains in the paired
     evaluation (``evaluate``).  With OGTL (a fresh task from ``new_ogtl`` for each) both loops
     close much as the run's: OGTL from k = 1 settling for the run's longest settling
-    (``evaluation_settle_s``), the closing not stretched to an update boundary; without, both at
+    (``evaluation_settle_s``), the closing not stretched to an update boundary, and both then
+    measure their windows at the k (and offsets) *before*'s OGTL settled to; without, both at
     the fixed k and NCPA offsets of the end of *before*.  Judged so, an optimiser that returns
-    the initial gains scores exactly zero, whatever k did while it ran."""
+    the initial gains scores exactly zero, whatever k did while it ran.  Why one k: with OGTL
+    running through the windows the two loops' k paths part, and the windows differ by them as
+    much as by the gains - R14.5 1.5" seed 2: *after*'s OGTL held at k = 5.06 against
+    *before*'s 8.41, -0.049, where at one k both gain sets read 0.0731; R16.5 0.6" seed 2: k
+    2.31 and 2.40 at the end, -0.016 +- 0.004, at one k +0.002 (docs/physics.md, "Over the
+    magnitudes")."""
     k, offsets = result.sensitivities[0], result.offsets[0]
     try:
         result.before = evaluate(request, cal, design, result.initial_gains, k, offsets, tick, new_ogtl())
-        result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl())
+        result.after = evaluate(request, cal, design, result.gains, k, offsets, tick, new_ogtl(), result.before.settled)
     except LoopDiverged as e:
         result.diverged_at, result.diverged_in = e.frame, "evaluation"
 

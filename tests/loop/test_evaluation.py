@@ -1,5 +1,6 @@
 """`optimize`'s paired evaluation: before and after measured on the same turbulence and noise,
-so that they differ by the gains alone (k fixed at 1, or OGTL's in both)."""
+so that they differ by the gains alone (k fixed at 1, or OGTL settling each loop and *before*'s k
+in the windows of both)."""
 
 import dataclasses
 
@@ -9,11 +10,13 @@ import pytest
 from soulctl.control import ogtl as ogtl_model
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
+from soulctl.loop.auxloop import RtcParameters
 from soulctl.loop.auxloops import OgtlTask
 from soulctl.loop.optimize import (
     EVALUATION_SETTLE_S,
     OGTL_MAX_SETTLING_PERIODS,
     OGTL_SETTLING_PERIODS,
+    FrozenK,
     OptimizeRequest,
     OptimizeResult,
     evaluate,
@@ -92,6 +95,42 @@ def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
     assert frozen_after.strehl != result.after.strehl
     assert result.before.sensitivity is not None and result.before.sensitivity > 1.0  # OGTL raised k from 1 in the evaluation's loop
     assert result.before.sensitivity <= ogtl_model.SENSITIVITY_RANGE[1]
+
+
+def test_with_ogtl_both_loops_measure_their_windows_at_befores_settled_k(setup):
+    """Each loop's OGTL settles from k = 1, then stops, and both loops' windows run at the k
+    *before*'s OGTL settled to: with OGTL running through the windows the two k paths part and
+    the windows differ by them as much as by the gains (R14.5 1.5" seed 2: k 8.41 against 5.06
+    and -0.049, where at one k both gain sets read 0.0731; R16.5 0.6" seed 2: -0.016, at one k
+    +0.002).  Here *before*'s OGTL never trusts its probe (k stays at 1) while *after*'s raises
+    k: *after* is still measured at k = 1, and its own settled k is kept."""
+    request, cal, design = setup
+    request = _ogtl_request(request)
+    g = 0.3 * design.per_mode(54)
+    period = request.frames(request.period)
+    tasks = iter([OgtlTask(period, ogtl_model.OgtlSettings(min_snr=float("inf"))), OgtlTask(period)])
+    result = OptimizeResult(request, g, g.copy(), None, None, None, None, sensitivities=(1.5, 2.0), offsets=(False, False))
+    evaluate_pair(request, cal, design, result, lambda: next(tasks), None)
+    assert result.before is not None and result.after is not None
+    assert result.before.settled is not None and result.after.settled is not None
+    assert result.before.settled.k == 1.0 and result.after.settled.k > ogtl_model.MAX_STEP  # their OGTL parted
+    assert result.before.sensitivity == result.after.sensitivity == 1.0  # one k in the windows: before's
+
+
+def test_a_frozen_k_sets_k_and_the_offsets_state_of_the_settled_loop():
+    """``FrozenK`` carries k, whether the NCPA offsets are in force and OGTL's scale of them
+    from one loop to the other."""
+    offset = np.ones(4, dtype=np.float32)
+    settled = RtcParameters(2, np.zeros(2), lambda g: None, 3.0, offset.copy())
+    settled.scale_slope_offset(0.8)
+    frozen = FrozenK.of(settled)
+    assert frozen == FrozenK(3.0, True, 0.8)
+    other = RtcParameters(2, np.zeros(2), lambda g: None, 1.0, offset.copy())
+    other.hold_slope_offset()  # as OGTL holds them until k is calibrated
+    frozen.set(other)
+    assert other.sensitivity == 3.0 and other.slope_offset is not None and other.offset_scale == 0.8
+    FrozenK(2.0, False).set(other)
+    assert other.sensitivity == 2.0 and other.slope_offset is None and other.held_offset is not None and other.offset_scale == 1.0
 
 
 def test_the_evaluation_settles_ogtl_for_the_runs_longest_settling(setup):
