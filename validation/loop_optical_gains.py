@@ -69,9 +69,8 @@ def main() -> None:
     run = _run(obs, a.seeing, a.seed)
     request = OptimizeRequest(run, "mgm", duration, None, True, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
     cache = ArrayCache(str(default_cache_dir()))
-    r = request.run
-    cal = calibration_for(r, cache)
-    gains = r.gains or default_gains(obs, sampled_structure(r.structure, obs.frame_rate_hz))
+    cal = calibration_for(run, cache)
+    gains = run.gains or default_gains(obs, sampled_structure(run.structure, obs.frame_rate_hz))
     s = _session(request, cal, cache, gains, plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing))
     initial = s.loop.rtc_parameters.gains
     loop = settled_evaluation_loop(request, cal, gains, initial, 1.0, False, None, s.new_ogtl())
