@@ -46,8 +46,10 @@ import copy
 import hashlib
 import json
 import math
+import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +94,24 @@ def code_fingerprint(package: Path | None = None, tables: Path | None = None) ->
     for name, f in sorted(files):
         h.update(name.encode() + b"\0" + f.read_bytes() + b"\0")
     return h.hexdigest()[:12]
+
+
+def machine() -> dict:
+    """What besides the code moves a row's numbers: the libraries pip resolved for the session
+    and the CPU's widest vector extension (the core is built with -march=native and OpenBLAS
+    picks its kernels per CPU).  A faint loop amplifies a last-bit difference: R14.5 1.0" seed
+    2, MGM with OGTL, on one code in two sessions (another machine, the libraries pip resolved
+    for each), 0.4003 -> 0.3896 and 0.3968 -> 0.3897 (docs/physics.md, "Over the magnitudes")."""
+    flags = next((line.split(":", 1)[1].split() for line in _cpuinfo() if line.startswith("flags")), [])
+    simd = next((x for x in ("avx512f", "avx2", "sse4_2") if x in flags), platform.machine())
+    return {"simd": simd, **{name: version(name) for name in ("numpy", "scipy")}}
+
+
+def _cpuinfo() -> list[str]:
+    try:
+        return Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:  # not Linux
+        return []
 
 
 def _run(obs, seeing: float, seed: int, influence: str = DEFAULT_INFLUENCE):
@@ -173,6 +193,7 @@ def run_case(
         "aux": summary(records),
         "windows": paired_windows(r),
         "seconds": time.perf_counter() - t0,
+        "machine": machine(),
     }
 
 
