@@ -1,0 +1,111 @@
+"""Is MGM's loss with OGTL at R14.5 the paper's nu?  One grid point of `optimize_magnitudes.py`
+(its request: the look-up table's observation, the default mirror), optimised as the grid runs
+it, then the paired evaluation (``evaluate``, OGTL from k = 1, the windows at the k *before*'s
+OGTL settled to, as `optimize gains` judges) of:
+
+* the initial gains scaled by ``--scales`` (all modes at once);
+* MGM's gains, and MGM's gains divided by nu (Eq. gainUpdate: g_RTC(kappa) =
+  (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa) settles at nu g_hat, every gain 10 % below
+  the model's optimum with the paper's nu = 0.9).
+
+If the initial gains already sit near the model's optimum, lowering every gain by nu costs a
+little on each mode and the sum is what the point loses; MGM's gains / nu then recover it.
+Each difference to the initial gains is given with the standard error of its paired windows.
+Not in CI (~25 min at R14.5 on one core).
+
+Run:  python validation/mgm_nu.py --mag 14.5 --seeing 1.0 --seed 2 [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import soulctl.loop.optimize as optimize_module
+from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import default_gains, gain_groups
+from soulctl.control.structure import sampled_structure
+from soulctl.files import atomic_write_text
+from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
+from soulctl.loop.run import calibration_for
+from soulctl.observation import observation_for_magnitude
+from soulctl.optics.asm import DEFAULT_INFLUENCE
+from soulctl.optics.cache import ArrayCache
+
+sys.path.insert(0, str(Path(__file__).parent))
+from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+
+
+def paired(result, metrics) -> tuple[float, float | None]:
+    """``metrics`` - the initial gains' evaluation of ``result``: the windows' paired mean and
+    its standard error (``OptimizeResult.strehl_difference``)."""
+    pair = copy.copy(result)
+    pair.after = metrics
+    return pair.strehl_difference()
+
+
+def gain_sets(initial: np.ndarray, final: np.ndarray, nu: float, scales: list[float]) -> dict[str, np.ndarray]:
+    """The gain sets to evaluate besides the initial ones."""
+    sets = {f"initial x {s:g}": initial * s for s in scales}
+    sets["MGM's"] = final
+    sets[f"MGM's / nu ({nu:g})"] = final / nu
+    return sets
+
+
+def evaluate_sets(request: OptimizeRequest, result, cache: ArrayCache, sets: dict[str, np.ndarray]) -> list[dict]:
+    """Each set's paired evaluation against the initial gains, at *before*'s settled k."""
+    obs = request.run.observation
+    cal = calibration_for(request.run, cache)
+    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))
+    k, offsets = result.sensitivities[0], result.offsets[0]
+    noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
+    rows = []
+    for name, gains in sets.items():
+        task = optimize_module.request_ogtl_task(request, cal, cache, noise)
+        m = evaluate(request, cal, design, gains, k, offsets, None, task, result.before.settled)
+        diff, error = paired(result, m)
+        groups = {g: float(gains[idx].mean()) for g, idx in gain_groups(len(gains))}
+        rows.append({"gains": name, "strehl": m.strehl, "difference": diff, "standard_error": error, "groups": groups})
+        rows[-1]["own_settled_k"] = m.settled.k if m.settled else None
+        print(f"{name:24s} Strehl {m.strehl:.4f}  difference {diff:+.4f} +- {error or float('nan'):.4f}", flush=True)
+    return rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mag", type=float, default=14.5)
+    p.add_argument("--seeing", type=float, default=1.0)
+    p.add_argument("--seed", type=int, default=2)
+    p.add_argument("--scales", default="0.8,0.9,1.1", help="scales of all the initial gains")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
+    obs = observation_for_magnitude(a.mag)
+    windows = windows_for(obs.frame_rate_hz, WINDOWS)
+    duration = DURATION_PERIODS * default_period_s(obs)
+    run = _run(obs, a.seeing, a.seed, DEFAULT_INFLUENCE)
+    request = OptimizeRequest(run, "mgm", duration, None, True, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
+    cache = ArrayCache(default_cache_dir())
+    result = optimize(request, cache)
+    if result.diverged_at is not None:
+        raise SystemExit(f"the optimisation diverged at frame {result.diverged_at}")
+    initial, final = np.array(result.initial_gains), np.array(result.gains)
+    nu = request.settings_for_rate(obs.frame_rate_hz).nu
+    print(f"before {result.before.strehl:.4f} -> after {result.after.strehl:.4f} (k {result.before.settled.k:.3f})", flush=True)
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": "mgm+ogtl", "windows": windows, "nu": nu}
+    out["before"], out["after"] = result.before.strehl, result.after.strehl
+    out["settled_k"] = result.before.settled.k
+    out["initial_gains"], out["final_gains"] = initial.tolist(), final.tolist()
+    out["sets"] = evaluate_sets(request, result, cache, gain_sets(initial, final, nu, [float(s) for s in a.scales.split(",")]))
+    out["code"] = launched
+    if a.out is not None:
+        atomic_write_text(a.out, json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
