@@ -8,9 +8,11 @@ OGTL settled to, as `optimize gains` judges) of:
   (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa) settles at nu g_hat, every gain 10 % below
   the model's optimum with the paper's nu = 0.9).
 
-If the initial gains already sit near the model's optimum, lowering every gain by nu costs a
-little on each mode and the sum is what the point loses; MGM's gains / nu then recover it.
-Each difference to the initial gains is given with the standard error of its paired windows.
+The hypothesis: if the initial gains already sit near the model's optimum, lowering every gain
+by nu costs a little on each mode and the sum is what the point loses; MGM's gains / nu then
+recover it.  Measured (docs/physics.md, "Over the magnitudes"): the initial gains x 0.9 lose
+nothing, MGM's / nu recover most of MGM's loss - MGM's optimum is itself low there.  Each
+difference to the initial gains is given with the standard error of its paired windows.
 Not in CI (~25 min at R14.5 on one core).
 
 Run:  python validation/mgm_nu.py --mag 14.5 --seeing 1.0 --seed 2 [--out FILE]
@@ -31,14 +33,12 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import default_gains, gain_groups
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
+from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
-from soulctl.observation import observation_for_magnitude
-from soulctl.optics.asm import DEFAULT_INFLUENCE
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+from optimize_magnitudes import code_fingerprint, point_request  # noqa: E402
 
 
 def paired(result, metrics) -> tuple[float, float | None]:
@@ -85,11 +85,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
-    obs = observation_for_magnitude(a.mag)
-    windows = windows_for(obs.frame_rate_hz, WINDOWS)
-    duration = DURATION_PERIODS * default_period_s(obs)
-    run = _run(obs, a.seeing, a.seed, DEFAULT_INFLUENCE)
-    request = OptimizeRequest(run, "mgm", duration, None, True, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
+    request = point_request(a.mag, a.seeing, a.seed, "mgm+ogtl")
+    obs, windows = request.run.observation, request.windows
     cache = ArrayCache(default_cache_dir())
     result = optimize(request, cache)
     if result.diverged_at is not None:

@@ -36,13 +36,12 @@ from soulctl.control.gains import default_gains, unit_loops
 from soulctl.control.structure import sampled_structure
 from soulctl.disturbance.turbulence import TurbulenceTipTilt
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
+from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
-from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
 
 SEGMENTS = (256, 512, 1024, 2048, 4096, 8192)
 SYNTHETIC_FRAMES = 2**20  # ~23 min at 750 Hz: the long-series estimate is the Welch estimator's mean
@@ -135,13 +134,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
-    method, ogtl = a.variant.split("+")[0], a.variant.endswith("+ogtl")
-    obs = observation_for_magnitude(a.mag)
-    windows = windows_for(obs.frame_rate_hz, a.windows)
-    duration = DURATION_PERIODS * default_period_s(obs)
-    request = OptimizeRequest(
-        _run(obs, a.seeing, a.seed, a.influence), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S
-    )
+    request = point_request(a.mag, a.seeing, a.seed, a.variant, a.windows, influence=a.influence)
+    windows = request.windows
     cache = ArrayCache(default_cache_dir())
     calls = []
     model = optimize_module.noise_aware_gains

@@ -150,6 +150,32 @@ def windows_for(rate_hz: float, windows: int = WINDOWS) -> int:
     return max(windows, math.ceil(windows * REFERENCE_RATE_HZ / rate_hz - 1e-9))
 
 
+def point_request(
+    mag: float,
+    seeing: float,
+    seed: int,
+    variant: str,
+    windows: int = WINDOWS,
+    window_s: float = WINDOW_S,
+    influence: str = DEFAULT_INFLUENCE,
+) -> OptimizeRequest:
+    """The `optimize gains` request of a grid point: the look-up table's observation, MGM for
+    DURATION_PERIODS update periods, ``windows_for`` its frame rate."""
+    method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
+    obs = observation_for_magnitude(mag)
+    duration = DURATION_PERIODS * default_period_s(obs)
+    return OptimizeRequest(
+        _run(obs, seeing, seed, influence),
+        method,
+        duration,
+        None,
+        ogtl,
+        measure_s=MEASURE_S,
+        windows=windows_for(obs.frame_rate_hz, windows),
+        window_s=window_s,
+    )
+
+
 def run_case(
     mag: float,
     seeing: float,
@@ -161,14 +187,8 @@ def run_case(
     influence: str = DEFAULT_INFLUENCE,
 ) -> dict:
     """One `optimize gains` point; the row of the results."""
-    method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
     t0 = time.perf_counter()
-    obs = observation_for_magnitude(mag)
-    duration = DURATION_PERIODS * default_period_s(obs)
-    windows = windows_for(obs.frame_rate_hz, windows)
-    request = OptimizeRequest(
-        _run(obs, seeing, seed, influence), method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=window_s
-    )
+    request = point_request(mag, seeing, seed, variant, windows, window_s, influence)
     cache = ArrayCache(cache_dir)
     r = optimize(request, cache)
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
