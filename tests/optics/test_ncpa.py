@@ -120,15 +120,16 @@ def test_without_turbulence_the_offsets_cancel_their_fraction_of_the_controlled_
     assert np.sqrt(np.mean(outside**2)) < 0.8 * 30  # the offsets have something to remove
 
 
-def test_ogtl_applies_the_offsets_once_k_is_calibrated(optics_cache):
+def test_ogtl_applies_the_offsets_once_k_is_calibrated(calibration, optics_cache):
     """With OGTL the offsets wait until the probed mode's chi is within 20 % of 1 (k ~ 1 /
     gamma_30 ~ 2.7 here), then enter once; the loop keeps lock and gains over the same run
-    without them.  Theory: the aberration's controlled part is 74 nm of its 100, whose full
-    compensation multiplies the H Strehl ratio by exp((2 pi 74 / 1650)^2) = 1.083, +0.022 here
-    had it held over the whole run, and the default half of the offsets 3/4 of that; the
-    offsets enter after OGTL's first calibrations, near the middle of the 5 s (thin-plate
-    mirror: measured 0.271 with half the offsets, 0.274 with all, against 0.260; with all, on
-    the Gaussian, 0.373 against 0.341, a run that drifted to a 0.7-1.4 um residual)."""
+    without them.  Theory: the aberration's controlled part c (74 nm of its 100) compensated
+    by the fraction f of the offsets leaves (1 - f) c, which multiplies the H Strehl ratio by
+    exp((2 pi |c| / 1650)^2 (1 - (1 - f)^2)) = 1.062 for the default half (+0.016 on 0.26);
+    the offsets enter after OGTL's first calibrations, so the long exposure (frames from
+    ``skip`` on) holds that gain only for its share after the entry frame.  The test asks for
+    half the share-weighted gain (measured: 0.271 against 0.263, the offsets in for 69 % of
+    the measured frames: +0.008 of the expected +0.011)."""
     base = BASE.with_values({"run.duration_s": 5.0, "auxiliary.ogtl": True, "auxiliary.period_s": 0.75, "ncpa.rms_nm": 100.0})
     result = {}
     for compensated in (False, True):
@@ -140,7 +141,15 @@ def test_ogtl_applies_the_offsets_once_k_is_calibrated(optics_cache):
     i = applied[0]
     assert abs(ogtl["chi"][i] * ogtl["sensitivity"][i] / ogtl["sensitivity"][i - 1] - 1) <= 0.2
     assert not result[False].telemetry.aux_arrays("ogtl")["offsets_applied"].any()
-    assert result[True].metrics.strehl > result[False].metrics.strehl + 0.01
+    pupil = calibration.setup.pyramid.pupil
+    c = np.linalg.norm(controlled_part(ncpa_opd(NcpaSpec(rms_nm=100), pupil), calibration.basis.shapes(pupil)))
+    f = base.resolved().ncpa.offset_fraction
+    request = base.request()
+    frames = request.frames
+    share = (frames - max(int(ogtl["frame"][i]), request.skip)) / (frames - request.skip)
+    off, on = result[False].metrics.strehl, result[True].metrics.strehl
+    expected = off * (np.exp((2 * np.pi * c * 1e-9 / band_wavelength("H")) ** 2 * (1 - (1 - f) ** 2)) - 1) * share
+    assert share > 0.2 and on - off > 0.5 * expected, (off, on, expected, share)
 
 
 def test_the_pyramid_folds_so_offsets_narrow_the_loops_capture_range(calibration):
