@@ -108,11 +108,14 @@ def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, 
 
 
 def test_table_output_and_same_seed_same_gains(capsys, cache_dir):
+    """The table (read without OGTL: its k row then says so), and the same seed giving the same
+    gains and figures with OGTL, whose settling is most of a run's time."""
     args = ["optimize", "gains", *SMALL, "--period", "1", "--duration", "1", "--measure", "0.2", "--seed", "5"]
-    status, out, err = cli(args, capsys, cache_dir)
+    status, out, err = cli([*args, "--no-ogtl"], capsys, cache_dir)
     assert status == 0, err
     for text in ("Strehl ratio", "before → after", "after - before (4 windows)", " ± ", "gains Tip / Tilt", "slope sensitivity k"):
         assert text in out
+    assert "1 (no OGTL)" in out
     a = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
     b = json.loads(cli([*args, "--json"], capsys, cache_dir)[1])
     assert a["gains"] == b["gains"] and a["after"] == b["after"]
@@ -357,11 +360,13 @@ def test_the_default_period_is_valid_at_every_magnitude():
 
 def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     """`--mag 18` refused its own default period; now one MGM update runs on it (the period's
-    window is what was refused: one is enough to show it is accepted)."""
+    window is what was refused: one is enough to show it is accepted).  The period is the same
+    with or without OGTL (it holds the probe's cycles too, and ``test_the_default_period_is_valid_at_every_magnitude``
+    checks the probe accepts it); without OGTL and on the coarser pupil, the run is not spent
+    on OGTL's settling of up to 12 such periods, three times over."""
     period = default_period_s(observation_for_magnitude(18))  # 4.1 s at 160 Hz: 4 segments of 256 frames
-    status, out, err = cli(
-        ["optimize", "gains", "--mag", "18", "--duration", f"{1.5 * period:g}", "--measure", "0.3", "--json"], capsys, cache_dir
-    )
+    args = ["optimize", "gains", "--mag", "18", "--no-ogtl", "--oversampling", "1", "--duration", f"{1.5 * period:g}"]
+    status, out, err = cli([*args, "--measure", "0.3", "--json"], capsys, cache_dir)
     assert status == 0, err
     assert json.loads(out)["mgm_updates"] == 1
 
@@ -447,7 +452,8 @@ def test_a_loop_the_safety_net_could_not_recover_exits_3(hopeless, tmp_path, cap
     assert safety["gave_up_at_frame"] == arrays["aux/safety/frame"][given_up][0] and arrays["aux/safety/streak"][given_up][0] == 21
     gains = tmp_path / "gains.toml"
     status, out, err = cli(
-        ["optimize", "gains", *SMALL, "--method", "mgm", "--duration", "6", "--measure", "0.3", "--out", str(gains), "--json"],
+        ["optimize", "gains", *SMALL, "--method", "mgm", "--no-ogtl", "--period", "1", "--duration", "3", "--measure", "0.3"]
+        + ["--out", str(gains), "--json"],
         capsys,
         cache_dir,
     )
