@@ -67,8 +67,11 @@ def test_mgm_and_trial_and_error_on_one_seed_see_the_same_turbulence(setup):
     assert evaluate(request, cal, design, g, 1.0) == evaluate(trial, cal, design, g, 1.0)
 
 
-def _ogtl_request(request):
-    return dataclasses.replace(request, ogtl=True)
+def _ogtl_request(request, period_s=None):
+    """The request with OGTL; ``period_s`` its update period (0.2 s: twelve settling updates
+    in 2.4 s of this bright 1000 Hz loop instead of 6 s at the request's 0.5 s)."""
+    request = dataclasses.replace(request, ogtl=True)
+    return request if period_s is None else dataclasses.replace(request, period_s=period_s)
 
 
 def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
@@ -77,10 +80,10 @@ def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
     moved while it ran.  Judged at the run's final k frozen, the same gains lost 0.113 in
     Strehl at R11.9, 1.5", seed 2 (k 4.03 -> 4.71: docs/physics.md, "Over the magnitudes")."""
     request, cal, design = setup
-    request = _ogtl_request(request)
+    request = _ogtl_request(request, period_s=0.2)
     # 0.3 x the design gains, as ``initial_gains`` caps them: uncapped (or at 0.5 x) this coarse
     # pyramid's low orders are over-driven once OGTL's k nears 1 / gamma_30 (~4.4), and the
-    # loop diverges within the evaluation's twelve updates (at frames 5091 and 7955)
+    # loop diverged within the evaluation's twelve updates (of 0.5 s: at frames 5091 and 7955)
     g = 0.3 * design.per_mode(54)
     period = request.frames(request.period)
     result = OptimizeResult(request, g, g.copy(), None, None, None, None, sensitivities=(1.5, 2.0), offsets=(False, False))
@@ -105,7 +108,7 @@ def test_with_ogtl_both_loops_measure_their_windows_at_befores_settled_k(setup):
     +0.002).  Here *before*'s OGTL never trusts its probe (k stays at 1) while *after*'s raises
     k: *after* is still measured at k = 1, and its own settled k is kept."""
     request, cal, design = setup
-    request = _ogtl_request(request)
+    request = _ogtl_request(request, period_s=0.2)
     g = 0.3 * design.per_mode(54)
     period = request.frames(request.period)
     tasks = iter([OgtlTask(period, ogtl_model.OgtlSettings(min_snr=float("inf"))), OgtlTask(period)])
@@ -152,7 +155,7 @@ def test_the_evaluations_ogtl_makes_the_runs_most_updates_before_the_windows(set
     twelve updates both reach 5.2-5.9 and *before* reads 0.209 instead of 0.127
     (docs/physics.md, "The paper's faint cases").  The windows of both start on one frame."""
     request, cal, design = setup
-    with_ogtl = dataclasses.replace(_ogtl_request(request), period_s=0.2)
+    with_ogtl = _ogtl_request(request, period_s=0.2)
     assert OGTL_MAX_SETTLING_PERIODS * with_ogtl.period > EVALUATION_SETTLE_S  # the updates set the settling here
     period = with_ogtl.frames(with_ogtl.period)
     loops = [settled_evaluation_loop(with_ogtl, cal, design, s * design.per_mode(54), 1.0, ogtl=OgtlTask(period)) for s in (1.0, 0.5)]
