@@ -170,7 +170,7 @@ def test_a_fixed_k_evaluation_of_an_ogtl_request_settles_as_any_fixed_k(setup):
     EVALUATION_SETTLE_S, as before OGTL ran in the evaluation (docs/physics.md gives their
     frame ranges), not for OGTL's settling updates."""
     request, cal, design = setup
-    with_ogtl = dataclasses.replace(_ogtl_request(request), period_s=0.5)
+    with_ogtl = _ogtl_request(request, period_s=0.5)
     assert OGTL_SETTLING_PERIODS * with_ogtl.period > EVALUATION_SETTLE_S  # the two rules differ here
     loop = settled_evaluation_loop(with_ogtl, cal, design, design.per_mode(54), 2.0)
     assert loop.frame == closing_frames(OBS.frame_rate_hz) + with_ogtl.frames(EVALUATION_SETTLE_S)
