@@ -1,0 +1,115 @@
+"""Tip lock loss in a paired evaluation: the same loop closed afresh on one grid point's
+turbulence and noise (``settled_evaluation_loop``'s sequence: k = 1 for the closing, then OGTL
+from k = 1 for the settling), at several gain sets, its Tip/Tilt residual followed every
+0.2 s.  Found at R11.9 1.5" seed 3 (mgm+ogtl): a Tip excursion at t ~ 12 s carries every gain
+set past the pyramid's linear range; the initial gains come back from ~1.3 um, MGM's run away
+to divergence (docs/physics.md, "Over the magnitudes").
+
+The gain sets: ``initial`` and ``mgm`` (MGM's result, from ``--gains`` written by a previous
+run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtures
+(``mgm_tt``: MGM's Tip/Tilt with the initial higher modes; ``mgm_high``: the converse).
+Not in CI (~3 min per gain set on one core at R11.9).
+
+Run:  python validation/lock_loss.py --mag 11.9 --seeing 1.5 --seed 3 \
+          [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from soulctl.cli.common import default_cache_dir
+from soulctl.control.gains import default_gains
+from soulctl.control.structure import sampled_structure
+from soulctl.files import atomic_write_text
+from soulctl.loop.chi_model import plant_model
+from soulctl.loop.optimize import _new_loop, _session, evaluation_settle_s, optimize
+from soulctl.loop.run import calibration_for, closing_frames
+from soulctl.loop.simulation import LoopDiverged
+from soulctl.optics.cache import ArrayCache
+
+sys.path.insert(0, str(Path(__file__).parent))
+from optimize_magnitudes import code_fingerprint, point_request  # noqa: E402
+
+STEP_S = 0.2  # the path's sampling
+
+
+def gain_sets(initial: np.ndarray, mgm: np.ndarray) -> dict[str, np.ndarray]:
+    """The initial and MGM's gains and their two Tip/Tilt - higher-mode mixtures."""
+    return {"initial": initial, "mgm": mgm, "mgm_tt": np.r_[mgm[:2], initial[2:]], "mgm_high": np.r_[initial[:2], mgm[2:]]}
+
+
+def settle_path(request, cal, design, structure, gains: np.ndarray, ogtl) -> dict:
+    """The evaluation loop's settling at ``gains``: per STEP_S, k, the residual RMS and the
+    Tip/Tilt residual's mean and RMS (nm); where it diverged, if it did."""
+    r = request.run
+    loop = _new_loop(request, cal, design, structure)
+    loop.set_gains(gains)
+    loop.rtc_parameters.hold_slope_offset()
+    loop.run(closing_frames(r.observation.frame_rate_hz))
+    loop.add_aux_loop(ogtl)
+    n, step = request.frames(evaluation_settle_s(request.period, True)), request.frames(STEP_S)
+    path: list[dict] = []
+    diverged = None
+    try:
+        while loop.frame < n + closing_frames(r.observation.frame_rate_hz):
+            start = loop.frame
+            loop.run(step)
+            rms = np.asarray(loop.telemetry.residual_rms_nm[start : loop.frame])
+            tt = loop.telemetry.series("residual_tt")[start : loop.frame]
+            path.append(
+                {
+                    "t_s": loop.frame / r.observation.frame_rate_hz,
+                    "k": loop.rtc_parameters.sensitivity,
+                    "residual_nm": float(np.sqrt(np.mean(rms**2))),
+                    "tt_mean_nm": tt.mean(axis=0).tolist(),
+                    "tt_rms_nm": np.sqrt(np.mean(tt**2, axis=0)).tolist(),
+                }
+            )
+    except LoopDiverged as e:
+        diverged = {"frame": e.frame, "residual_nm": e.residual_nm}
+    return {"path": path, "diverged": diverged}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mag", type=float, default=11.9)
+    p.add_argument("--seeing", type=float, default=1.5)
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--gains", type=Path, default=None, help="npz with 'initial' and 'mgm' (written here when absent)")
+    p.add_argument("--sets", default="initial,mgm,mgm_tt,mgm_high")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    request = point_request(a.mag, a.seeing, a.seed, "mgm+ogtl")
+    cache = ArrayCache(default_cache_dir())
+    if a.gains is not None and a.gains.exists():
+        saved = np.load(a.gains)
+        initial, mgm = saved["initial"], saved["mgm"]
+    else:
+        result = optimize(request, cache)
+        initial, mgm = np.asarray(result.initial_gains), np.asarray(result.gains)
+        if a.gains is not None:
+            np.savez(a.gains, initial=initial, mgm=mgm)
+    r = request.run
+    structure = sampled_structure(r.structure, r.observation.frame_rate_hz)
+    design = r.gains or default_gains(r.observation, structure)
+    cal = calibration_for(r, cache)
+    chi = plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing)
+    session = _session(request, cal, cache, design, chi)
+    sets = gain_sets(initial, mgm)
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "code": code_fingerprint(), "sets": {}}
+    for name in a.sets.split(","):
+        out["sets"][name] = res = settle_path(request, cal, design, structure, sets[name], session.new_ogtl())
+        worst = max(res["path"], key=lambda s: abs(s["tt_mean_nm"][0]))
+        print(f"{name}: diverged {res['diverged']}; largest Tip mean {worst['tt_mean_nm'][0]:.0f} nm at {worst['t_s']:.1f} s", flush=True)
+        if a.out:
+            atomic_write_text(a.out, json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
