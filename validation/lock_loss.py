@@ -46,7 +46,9 @@ def gain_sets(initial: np.ndarray, mgm: np.ndarray) -> dict[str, np.ndarray]:
 
 def settle_path(request, cal, design, structure, gains: np.ndarray, ogtl) -> dict:
     """The evaluation loop's settling at ``gains``: per STEP_S, k, the residual RMS and the
-    Tip/Tilt residual's mean and RMS (nm); where it diverged, if it did."""
+    Tip/Tilt residual's mean and RMS (nm); where it diverged, if it did.  The sequence of
+    ``settled_evaluation_loop``, repeated here because that function's loop is out of reach
+    once it raises LoopDiverged, and the path up to the divergence is what is wanted."""
     r = request.run
     loop = _new_loop(request, cal, design, structure)
     loop.set_gains(gains)
