@@ -2,8 +2,8 @@
 turbulence and noise (``settled_evaluation_loop``'s sequence: k = 1 for the closing, then OGTL
 from k = 1 for the settling), at several gain sets, its Tip/Tilt residual followed every
 0.2 s.  Found at R11.9 1.5" seed 3 (mgm+ogtl): a Tip excursion at t ~ 12 s carries every gain
-set past the pyramid's linear range; the initial gains come back from ~1.3 um, MGM's run away
-to divergence (docs/physics.md, "Over the magnitudes").
+set toward or past the pyramid's linear range; the initial gains come back from a Tip of
+0.64 um, MGM's run away to divergence (docs/physics.md, "Over the magnitudes").
 
 The gain sets: ``initial`` and ``mgm`` (MGM's result, from ``--gains`` written by a previous
 run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtures
@@ -23,18 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
-from soulctl.loop.chi_model import plant_model
-from soulctl.loop.optimize import _new_loop, _session, evaluation_settle_s, optimize
-from soulctl.loop.run import calibration_for, closing_frames
+from soulctl.loop.optimize import _new_loop, evaluation_settle_s, optimize
+from soulctl.loop.run import closing_frames
 from soulctl.loop.simulation import LoopDiverged
-from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, point_request  # noqa: E402
+from optimize_magnitudes import code_fingerprint, point_loops  # noqa: E402
 
 STEP_S = 0.2  # the path's sampling
 
@@ -44,29 +40,29 @@ def gain_sets(initial: np.ndarray, mgm: np.ndarray) -> dict[str, np.ndarray]:
     return {"initial": initial, "mgm": mgm, "mgm_tt": np.r_[mgm[:2], initial[2:]], "mgm_high": np.r_[initial[:2], mgm[2:]]}
 
 
-def settle_path(request, cal, design, structure, gains: np.ndarray, ogtl) -> dict:
+def settle_path(point, gains: np.ndarray) -> dict:
     """The evaluation loop's settling at ``gains``: per STEP_S, k, the residual RMS and the
     Tip/Tilt residual's mean and RMS (nm); where it diverged, if it did.  The sequence of
     ``settled_evaluation_loop``, repeated here because that function's loop is out of reach
     once it raises LoopDiverged, and the path up to the divergence is what is wanted."""
-    r = request.run
-    loop = _new_loop(request, cal, design, structure)
+    request, rate = point.request, point.request.run.observation.frame_rate_hz
+    loop = _new_loop(request, point.cal, point.design, sampled_structure(request.run.structure, rate))
     loop.set_gains(gains)
     loop.rtc_parameters.hold_slope_offset()
-    loop.run(closing_frames(r.observation.frame_rate_hz))
-    loop.add_aux_loop(ogtl)
-    n, step = request.frames(evaluation_settle_s(request.period, True)), request.frames(STEP_S)
+    loop.run(closing_frames(rate))
+    loop.add_aux_loop(point.session.new_ogtl())
+    end, step = loop.frame + request.frames(evaluation_settle_s(request.period, True)), request.frames(STEP_S)
     path: list[dict] = []
     diverged = None
     try:
-        while loop.frame < n + closing_frames(r.observation.frame_rate_hz):
+        while loop.frame < end:
             start = loop.frame
             loop.run(step)
             rms = np.asarray(loop.telemetry.residual_rms_nm[start : loop.frame])
             tt = loop.telemetry.series("residual_tt")[start : loop.frame]
             path.append(
                 {
-                    "t_s": loop.frame / r.observation.frame_rate_hz,
+                    "t_s": loop.frame / rate,
                     "k": loop.rtc_parameters.sensitivity,
                     "residual_nm": float(np.sqrt(np.mean(rms**2))),
                     "tt_mean_nm": tt.mean(axis=0).tolist(),
@@ -87,26 +83,19 @@ def main() -> None:
     p.add_argument("--sets", default="initial,mgm,mgm_tt,mgm_high")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
-    request = point_request(a.mag, a.seeing, a.seed, "mgm+ogtl")
-    cache = ArrayCache(default_cache_dir())
+    point = point_loops(a.mag, a.seeing, a.seed)
     if a.gains is not None and a.gains.exists():
         saved = np.load(a.gains)
         initial, mgm = saved["initial"], saved["mgm"]
     else:
-        result = optimize(request, cache)
+        result = optimize(point.request, point.cache)
         initial, mgm = np.asarray(result.initial_gains), np.asarray(result.gains)
         if a.gains is not None:
             np.savez(a.gains, initial=initial, mgm=mgm)
-    r = request.run
-    structure = sampled_structure(r.structure, r.observation.frame_rate_hz)
-    design = r.gains or default_gains(r.observation, structure)
-    cal = calibration_for(r, cache)
-    chi = plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing)
-    session = _session(request, cal, cache, design, chi)
     sets = gain_sets(initial, mgm)
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "code": code_fingerprint(), "sets": {}}
     for name in a.sets.split(","):
-        out["sets"][name] = res = settle_path(request, cal, design, structure, sets[name], session.new_ogtl())
+        out["sets"][name] = res = settle_path(point, sets[name])
         worst = max(res["path"], key=lambda s: abs(s["tt_mean_nm"][0]))
         print(f"{name}: diverged {res['diverged']}; largest Tip mean {worst['tt_mean_nm'][0]:.0f} nm at {worst['t_s']:.1f} s", flush=True)
         if a.out:

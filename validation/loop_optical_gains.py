@@ -20,19 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
-from soulctl.loop.chi_model import optical_gain_table, plant_model
-from soulctl.loop.optimize import OptimizeRequest, _session, default_period_s, settled_evaluation_loop
-from soulctl.loop.run import calibration_for
-from soulctl.observation import observation_for_magnitude
-from soulctl.optics.cache import ArrayCache
+from soulctl.loop.chi_model import optical_gain_table
+from soulctl.loop.optimize import settled_evaluation_loop
 from soulctl.optics.calibration import calibration_sensor, mode_maps, push_pull
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+from optimize_magnitudes import code_fingerprint, point_loops  # noqa: E402
 
 MODES = (1, 2, 3, 10, 30, 60, 100)  # Tip, Tilt, focus, a few orders up; 30 is OGTL's probe
 
@@ -63,17 +57,10 @@ def main() -> None:
     p.add_argument("--gap", type=float, default=0.05, help="seconds between snapshots")
     p.add_argument("--out", type=Path)
     a = p.parse_args()
-    obs = observation_for_magnitude(a.mag)
-    windows = windows_for(obs.frame_rate_hz, WINDOWS)
-    duration = DURATION_PERIODS * default_period_s(obs)
-    run = _run(obs, a.seeing, a.seed)
-    request = OptimizeRequest(run, "mgm", duration, None, True, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
-    cache = ArrayCache(str(default_cache_dir()))
-    cal = calibration_for(run, cache)
-    gains = run.gains or default_gains(obs, sampled_structure(run.structure, obs.frame_rate_hz))
-    s = _session(request, cal, cache, gains, plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing))
-    initial = s.loop.rtc_parameters.gains
-    loop = settled_evaluation_loop(request, cal, gains, initial, 1.0, False, None, s.new_ogtl())
+    point = point_loops(a.mag, a.seeing, a.seed)
+    request, cal, cache, obs = point.request, point.cal, point.cache, point.request.run.observation
+    initial = point.session.loop.rtc_parameters.gains
+    loop = settled_evaluation_loop(request, cal, point.design, initial, 1.0, False, None, point.session.new_ogtl())
     modes = [m for m in MODES if m <= cal.basis.n_modes]
     g = loop_gains(loop, cal, modes, a.snapshots, max(1, round(a.gap * obs.frame_rate_hz)))
     table = optical_gain_table(cal, cache, request.chi_seeing)[[m - 1 for m in modes]]

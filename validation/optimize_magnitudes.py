@@ -51,6 +51,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from importlib.metadata import version
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from rich.console import Console
@@ -58,10 +59,13 @@ from rich.table import Table
 
 import soulctl
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import gain_groups
+from soulctl.control.gains import default_gains, gain_groups
+from soulctl.control.structure import sampled_structure
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, optimize, session_seconds
+from soulctl.loop.chi_model import plant_model
+from soulctl.loop.optimize import OptimizeRequest, _session, default_period_s, optimize, session_seconds
+from soulctl.loop.run import calibration_for
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
@@ -174,6 +178,29 @@ def point_request(
         windows=windows_for(obs.frame_rate_hz, windows),
         window_s=window_s,
     )
+
+
+class PointLoops(NamedTuple):
+    """What a script needs to re-close a grid point's loops (``loop_optical_gains.py``,
+    ``lock_loss.py``): its request, cache, calibration, design gains, and the optimisation's
+    session (the initial gains on ``session.loop``, a fresh OGTL task per ``session.new_ogtl()``)."""
+
+    request: OptimizeRequest
+    cache: ArrayCache
+    cal: object
+    design: object
+    session: object
+
+
+def point_loops(mag: float, seeing: float, seed: int, variant: str = "mgm+ogtl") -> PointLoops:
+    """``PointLoops`` of a grid point (``point_request``), MGM's plant with OGTL's chi."""
+    request = point_request(mag, seeing, seed, variant)
+    r = request.run
+    cache = ArrayCache(str(default_cache_dir()))
+    cal = calibration_for(r, cache)
+    design = r.gains or default_gains(r.observation, sampled_structure(r.structure, r.observation.frame_rate_hz))
+    chi = plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing)
+    return PointLoops(request, cache, cal, design, _session(request, cal, cache, design, chi))
 
 
 def run_case(
