@@ -1,9 +1,11 @@
 """Tip lock loss in a paired evaluation: the same loop closed afresh on one grid point's
 turbulence and noise (``settled_evaluation_loop``'s sequence: k = 1 for the closing, then OGTL
 from k = 1 for the settling), at several gain sets, its Tip/Tilt residual followed every
-0.2 s.  Found at R11.9 1.5" seed 3 (mgm+ogtl): a Tip excursion at t ~ 12 s carries every gain
-set toward or past the pyramid's linear range; the initial gains come back from a Tip of
-0.64 um, MGM's run away to divergence (docs/physics.md, "Over the magnitudes").
+0.2 s.  Found at R11.9 1.5" seed 3 (mgm+ogtl): an excursion at t ~ 12 s carries every gain
+set toward or past the pyramid's range; the initial gains come back from a Tip of 0.64 um,
+MGM's run away to divergence (docs/physics.md, "Over the magnitudes").  The Tip followed here
+is the projection of what runs away, a shape of the pupil's rim in a false lock, not a lost
+Tip: ``edge_runaway.py`` shows the pyramid's own Tip/Tilt signal at zero throughout.
 
 The gain sets: ``initial`` and ``mgm`` (MGM's result, from ``--gains`` written by a previous
 run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtures
