@@ -183,10 +183,8 @@ def neighbour_pairs(pupil) -> np.ndarray:
 
 def pupil_radius(pupil) -> np.ndarray:
     """Each valid pupil pixel's distance from the centre, in pupil radii."""
-    n = pupil.n_pixels
-    yy, xx = np.mgrid[:n, :n]
-    c = (n - 1) / 2
-    return np.hypot(xx - c, yy - c)[pupil.mask] / (n / 2)
+    x, y = pupil.coordinates()
+    return np.hypot(x, y) / (pupil.diameter_m / 2)
 
 
 def run_path(mag: float, seeing: float, seed: int, variant: str) -> dict:

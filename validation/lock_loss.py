@@ -13,7 +13,7 @@ run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtu
 Not in CI (~3 min per gain set on one core at R11.9).
 
 Run:  python validation/lock_loss.py --mag 11.9 --seeing 1.5 --seed 3 \
-          [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--out FILE]
+          [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--modulation L] [--out FILE]
 """
 
 from __future__ import annotations
@@ -83,9 +83,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--gains", type=Path, default=None, help="npz with 'initial' and 'mgm' (written here when absent)")
     p.add_argument("--sets", default="initial,mgm,mgm_tt,mgm_high")
+    p.add_argument("--modulation", type=float, default=None, help="lambda/D instead of the table's (the same gain sets)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
-    point = point_loops(a.mag, a.seeing, a.seed)
+    point = point_loops(a.mag, a.seeing, a.seed, modulation=a.modulation)
     if a.gains is not None and a.gains.exists():
         saved = np.load(a.gains)
         initial, mgm = saved["initial"], saved["mgm"]
@@ -95,7 +96,8 @@ def main() -> None:
         if a.gains is not None:
             np.savez(a.gains, initial=initial, mgm=mgm)
     sets = gain_sets(initial, mgm)
-    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "code": code_fingerprint(), "sets": {}}
+    modulation = point.request.run.observation.modulation_lambda_over_d
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "modulation": modulation, "code": code_fingerprint(), "sets": {}}
     for name in a.sets.split(","):
         out["sets"][name] = res = settle_path(point, sets[name])
         worst = max(res["path"], key=lambda s: abs(s["tt_mean_nm"][0]))

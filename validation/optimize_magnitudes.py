@@ -49,6 +49,7 @@ import math
 import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import replace
 from importlib.metadata import version
 from pathlib import Path
 from typing import NamedTuple
@@ -162,11 +163,15 @@ def point_request(
     windows: int = WINDOWS,
     window_s: float = WINDOW_S,
     influence: str = DEFAULT_INFLUENCE,
+    modulation: float | None = None,
 ) -> OptimizeRequest:
-    """The `optimize gains` request of a grid point: the look-up table's observation, MGM for
+    """The `optimize gains` request of a grid point: the look-up table's observation (its
+    modulation replaced by ``modulation`` lambda/D if given, for diagnostics), MGM for
     DURATION_PERIODS update periods, ``windows_for`` its frame rate."""
     method, ogtl = variant.split("+")[0], variant.endswith("+ogtl")
     obs = observation_for_magnitude(mag)
+    if modulation is not None:
+        obs = replace(obs, modulation_lambda_over_d=modulation)
     duration = DURATION_PERIODS * default_period_s(obs)
     return OptimizeRequest(
         _run(obs, seeing, seed, influence),
@@ -192,9 +197,9 @@ class PointLoops(NamedTuple):
     session: object
 
 
-def point_loops(mag: float, seeing: float, seed: int, variant: str = "mgm+ogtl") -> PointLoops:
+def point_loops(mag: float, seeing: float, seed: int, variant: str = "mgm+ogtl", modulation: float | None = None) -> PointLoops:
     """``PointLoops`` of a grid point (``point_request``), MGM's plant with OGTL's chi."""
-    request = point_request(mag, seeing, seed, variant)
+    request = point_request(mag, seeing, seed, variant, modulation=modulation)
     r = request.run
     cache = ArrayCache(str(default_cache_dir()))
     cal = calibration_for(r, cache)
