@@ -14,7 +14,7 @@ command, and the sub-apertures' flux map (``FluxMap``); and the net's restores.
 Found at R11.9 1.5" seed 3 (mgm+ogtl), where the earlier reading of a lost Tip
 (``lock_loss.py``) was wrong: the residual that grows is a shape of the pupil's edge ring,
 whose projection on Tip is large, while the pyramid's mean signal stays at zero
-(docs/physics.md, "Over the magnitudes").  ~4 min per point on one core at R11.9.
+(docs/physics.md, "Over the magnitudes").  ~5 min per point on one core at R11.9.
 
 Run:  python validation/edge_runaway.py --mag 11.9 --seeing 1.5 --seed 3 [--out FILE]
 """

@@ -27,7 +27,7 @@ import numpy as np
 
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import _new_loop, evaluation_settle_s, optimize
+from soulctl.loop.optimize import _new_loop, evaluate, evaluation_settle_s, optimize
 from soulctl.loop.run import closing_frames
 from soulctl.loop.simulation import LoopDiverged
 
@@ -76,6 +76,13 @@ def settle_path(point, gains: np.ndarray) -> dict:
     return {"path": path, "diverged": diverged}
 
 
+def windows(point, gains: np.ndarray) -> dict:
+    """The paired evaluation's measurement of ``gains`` (``evaluate``: OGTL from k = 1, its
+    settling, then the windows at the loop's own k): Strehl ratio, per window, residual, k."""
+    m = evaluate(point.request, point.cal, point.design, gains, 1.0, ogtl=point.session.new_ogtl())
+    return {"strehl": m.strehl, "window_strehls": m.window_strehls, "residual_nm": m.residual_nm, "k": m.sensitivity}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mag", type=float, default=11.9)
@@ -84,6 +91,7 @@ def main() -> None:
     p.add_argument("--gains", type=Path, default=None, help="npz with 'initial' and 'mgm' (written here when absent)")
     p.add_argument("--sets", default="initial,mgm,mgm_tt,mgm_high")
     p.add_argument("--modulation", type=float, default=None, help="lambda/D instead of the table's (the same gain sets)")
+    p.add_argument("--evaluate", action="store_true", help="also each set's paired-evaluation windows (its Strehl ratio)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     point = point_loops(a.mag, a.seeing, a.seed, modulation=a.modulation)
@@ -102,6 +110,9 @@ def main() -> None:
         out["sets"][name] = res = settle_path(point, sets[name])
         worst = max(res["path"], key=lambda s: abs(s["tt_mean_nm"][0]))
         print(f"{name}: diverged {res['diverged']}; largest Tip mean {worst['tt_mean_nm'][0]:.0f} nm at {worst['t_s']:.1f} s", flush=True)
+        if a.evaluate and res["diverged"] is None:
+            res["evaluation"] = windows(point, sets[name])
+            print(f"{name}: Strehl ratio {res['evaluation']['strehl']:.4f} over the windows", flush=True)
         if a.out:
             atomic_write_text(a.out, json.dumps(out, indent=1))
 
