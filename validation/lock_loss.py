@@ -1,4 +1,4 @@
-"""Tip lock loss in a paired evaluation: the same loop closed afresh on one grid point's
+"""A runaway in a paired evaluation, followed by its Tip: the same loop closed afresh on one grid point's
 turbulence and noise (``settled_evaluation_loop``'s sequence: k = 1 for the closing, then OGTL
 from k = 1 for the settling), at several gain sets, its Tip/Tilt residual followed every
 0.2 s.  Found at R11.9 1.5" seed 3 (mgm+ogtl): an excursion at t ~ 12 s carries every gain
@@ -13,7 +13,11 @@ run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtu
 Not in CI (~3 min per gain set on one core at R11.9).
 
 Run:  python validation/lock_loss.py --mag 11.9 --seeing 1.5 --seed 3 \
-          [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--modulation L] [--out FILE]
+          [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--modulation L] [--evaluate] [--out FILE]
+
+``--modulation``: the pyramid modulated at L lambda/D instead of the table's, the same gain
+sets (a new calibration and optical-gain table, ~5 min, cached).  ``--evaluate``: also each
+set that held, measured as the paired evaluation measures it (``evaluate``, ~8 min a set).
 """
 
 from __future__ import annotations
