@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.files import atomic_write_text
+from soulctl.loop.auxloops import summary
 from soulctl.loop.optimize import OptimizeResult, _live_phases, band_wavelength
 from soulctl.loop.simulation import LoopDiverged
 
@@ -83,8 +84,11 @@ class FluxMap:
 class PathSink:
     """A telemetry sink summing each frame's records per step (``Sink``)."""
 
-    def __init__(self, step: int, shapes: np.ndarray, radius: np.ndarray, weak: np.ndarray, flux: FluxMap, pairs: np.ndarray):
-        self.step, self.shapes, self.weak, self.flux = step, shapes, weak, flux
+    def __init__(
+        self, step: int, rate_hz: float, shapes: np.ndarray, radius: np.ndarray, weak: np.ndarray, flux: FluxMap, pairs: np.ndarray
+    ):
+        self.step, self.rate_hz = step, rate_hz
+        self.shapes, self.weak, self.flux = shapes, weak, flux
         self.edge, self.inner = radius > EDGE_R, radius < INNER_R
         self.pairs = pairs[self.edge[pairs[:, 0]] | self.edge[pairs[:, 1]]]  # neighbouring pixels touching the edge ring
         self.rows: list[dict] = []
@@ -138,7 +142,7 @@ class PathSink:
         n, m, x = self._n, max(self._m, 1), self._sums
         self.rows.append(
             {
-                "t_s": frame,  # replaced by seconds in ``run_path``
+                "t_s": frame / self.rate_hz,
                 "k": k,
                 "residual_nm": np.sqrt(x["residual2"] / n),
                 "tip_mean_nm": x["tip"] / n,
@@ -195,7 +199,7 @@ def run_path(mag: float, seeing: float, seed: int, variant: str) -> dict:
     weak, singular = weak_directions(point.cal.interaction_matrix)
     flux = FluxMap(loop.sensor)
     shapes, pupil = point.cal.basis.shapes(loop.pupil), loop.pupil
-    sink = PathSink(request.frames(STEP_S), shapes, pupil_radius(pupil), weak, flux, neighbour_pairs(pupil))
+    sink = PathSink(request.frames(STEP_S), rate, shapes, pupil_radius(pupil), weak, flux, neighbour_pairs(pupil))
     loop.telemetry.sink = sink
     initial = loop.rtc_parameters.gains
     result = OptimizeResult(request, initial, initial, None, None, loop, None)
@@ -204,10 +208,8 @@ def run_path(mag: float, seeing: float, seed: int, variant: str) -> dict:
         _live_phases(s, result, band_wavelength(request.run.band), None)
     except LoopDiverged as e:
         diverged = {"frame": e.frame, "residual_nm": e.residual_nm}
-    for row in sink.rows:
-        row["t_s"] = row["t_s"] / rate
-    net = loop.telemetry.aux_arrays(s.net.name) if s.net.name in loop.telemetry.aux else {}
-    restored = [int(f) / rate for f, x in zip(net.get("frame", []), net.get("restored", [])) if x]
+    records = summary({name: loop.telemetry.aux_arrays(name) for name in loop.telemetry.aux})
+    restored = [f / rate for f in records.get("safety", {}).get("restored_at_frames", [])]
     phases = {k: [f / rate for f in v] for k, v in result.phases.items()}
     return {"phases_s": phases, "singular_values": singular, "path": sink.rows, "restores_s": restored, "diverged": diverged}
 
