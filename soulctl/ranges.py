@@ -111,6 +111,7 @@ WIND_M_S = Range(0.0, 100.0, "m/s", lo_open=True)  # the effective (5/3-moment) 
 OUTER_SCALE_M = Range(0.5, 1e4, "m")
 DURATION_S = Range(0.0, 600.0, "s", lo_open=True)
 OVERSAMPLING = Range(1, 4, integer=True)
+WFS_FIELD_OF_VIEW_ARCSEC = Range(0.0, 4.0, "arcsec")  # the pyramid's simulated field (0: as sampled, no stop)
 SEED = Range(0, 2**63 - 1, integer=True)  # numpy's generators take non-negative seeds
 LOOP_GAIN = Range(0.0, 10.0)  # a modal gain of the RTC (the stability check comes after)
 FORGETTING = Range(0.0, 1.0)  # of the leaky integrators

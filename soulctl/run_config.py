@@ -32,7 +32,10 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [mirror]      influence ("thin-plate", the default, or "gaussian": ``optics.asm``)
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
-    [run]         duration_s, band, seed, oversampling
+    [run]         duration_s, band, seed, oversampling, wfs_field_arcsec (the pyramid's simulated
+                  field, a diameter; 0, the default: the field the pupil's sampling gives, +-0.75"
+                  at oversampling 2, with no stop; 2.1: SOUL's, ~2.3x the pyramid's cost;
+                  ``optics.pwfs.PyramidConfig.field_of_view_arcsec``)
 
 ``to_toml`` writes the description resolved (the observation whole, the vibration lines inline,
 the gains the run starts from), so that a stored description re-runs the same loop.
@@ -62,7 +65,18 @@ from .optics.atmosphere import Layer, r0_from_seeing
 from .optics.calibration_noise import CalibrationNoise
 from .optics.ncpa import NcpaSpec
 from .optics.registration import Misregistration
-from .ranges import DURATION_S, LOOP_GAIN, OUTER_SCALE_M, OVERSAMPLING, PERIOD_S, SEED, SEEING_ARCSEC, WIND_M_S, Range
+from .ranges import (
+    DURATION_S,
+    LOOP_GAIN,
+    OUTER_SCALE_M,
+    OVERSAMPLING,
+    PERIOD_S,
+    SEED,
+    SEEING_ARCSEC,
+    WFS_FIELD_OF_VIEW_ARCSEC,
+    WIND_M_S,
+    Range,
+)
 
 HEADER = "# soulctl run description (soulctl loop run --print-config; read by loop run --config).\n"
 OBSERVATION_SECTIONS = ("star", "wfs", "control", "delay", "photometry")
@@ -84,7 +98,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
     "mirror": ("influence",),
     "detector": ("noise",),
     "auxiliary": ("mgm", "ogtl", "period_s", "probe_mode", "probe_amplitude_nm", "probe_frequency_hz"),
-    "run": ("duration_s", "band", "seed", "oversampling"),
+    "run": ("duration_s", "band", "seed", "oversampling", "wfs_field_arcsec"),
 }
 # What an override makes stale (re-derived unless given too); "section.*": the section's keys
 # but the controller's.
@@ -206,9 +220,11 @@ class RunConfig:
     band: str = defaults.BAND
     seed: int = defaults.SEED
     oversampling: int = defaults.OVERSAMPLING
+    wfs_field_arcsec: float = 0.0  # the pyramid's simulated field; 0: as sampled, no stop
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "run.duration_s")
+        WFS_FIELD_OF_VIEW_ARCSEC.check(self.wfs_field_arcsec, "run.wfs_field_arcsec")
         SEED.check(self.seed, "run.seed")
         OVERSAMPLING.check(self.oversampling, "run.oversampling")
         check_influence(self.influence)
@@ -245,6 +261,7 @@ class RunConfig:
             ncpa if ncpa.active else None,
             self.calibration if self.calibration.active else None,
             self.influence,
+            self.wfs_field_arcsec,
         )
 
     def resolved(self) -> RunConfig:
@@ -347,6 +364,8 @@ def _to_dict(c: RunConfig) -> dict:
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
+    if c.wfs_field_arcsec:
+        d["run"]["wfs_field_arcsec"] = c.wfs_field_arcsec
     return d
 
 
@@ -401,6 +420,7 @@ def _from_dict(data: dict) -> RunConfig:
             band=str(run.get("band", defaults.BAND)),
             seed=_integer(run.get("seed", defaults.SEED), "run.seed"),
             oversampling=_integer(run.get("oversampling", defaults.OVERSAMPLING), "run.oversampling"),
+            wfs_field_arcsec=_number(run.get("wfs_field_arcsec", 0.0), "run.wfs_field_arcsec"),
         )
     except TypeError as e:  # a value of the wrong kind deep in a constructor
         raise InputError(str(e)) from None

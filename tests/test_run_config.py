@@ -128,6 +128,8 @@ def test_partial_observation_takes_the_table_row_key_by_key():
         ({"atmosphere": {"layer": [{"height": 0}]}}, "atmosphere.layer 1"),
         ({"mirror": {"influence": "spline"}}, "mirror.influence must be one of gaussian, thin-plate"),
         ({"mirror": {"coupling": 0.3}}, "unknown key 'coupling'"),
+        ({"run": {"wfs_field_arcsec": 5.0}}, "run.wfs_field_arcsec must be in 0..4 arcsec"),
+        ({"run": {"wfs_field_arcsec": "2.1"}}, "run.wfs_field_arcsec must be a finite number"),
     ],
 )
 def test_bad_descriptions_name_the_field(data, words):
@@ -151,6 +153,23 @@ def test_the_mirror_model_round_trips_and_reaches_the_calibration():
     basis = setups[1].basis
     former = {k: v for k, v in asdict(basis.asm).items() if k != "influence"}
     assert basis.key() == cache_key("basis", {"asm": former, "L0_m": basis.L0_m, "pixels": basis.pixels, "sign_seed": SIGN_SEED})
+
+
+def test_the_wfs_field_round_trips_and_reaches_the_calibration():
+    """[run] wfs_field_arcsec: SOUL's 2.1" gives the pyramid a field stop and a sensing pupil
+    that holds it; 0, the default, is the field the sampling gives, written nowhere, with the
+    calibration's cache key it had before the choice existed."""
+    from soulctl.loop.run import calibration_setup
+
+    wide = RunConfig().with_values({"run.wfs_field_arcsec": 2.1})
+    assert round_trip(wide) == wide and wide.request().field_of_view_arcsec == 2.1
+    assert "wfs_field_arcsec" not in RunConfig().to_dict()["run"] and round_trip(RunConfig()).wfs_field_arcsec == 0.0
+    plain, sensed = (calibration_setup(c.request()) for c in (RunConfig(), wide))
+    assert (plain.pyramid.sensing_oversampling, sensed.pyramid.sensing_oversampling) == (2, 3)
+    assert plain.key() != sensed.key()
+    former = {k: v for k, v in asdict(plain.pyramid).items() if k not in ("band_nm", "field_stop_lambda_over_d", "field_of_view_arcsec")}
+    key = {"pyramid": former, "n_modes": plain.n_modes, "basis": plain.basis.key(), "push_nm": plain.push_nm}
+    assert plain.key() == cache_key("calibration", key)
 
 
 def test_with_values_overrides_dotted_fields():

@@ -24,7 +24,7 @@ from ..optics.calibration_noise import CalibrationNoise, measured_calibration
 from ..optics.ncpa import NcpaSpec, non_common_path
 from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
-from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WIND_M_S
+from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WFS_FIELD_OF_VIEW_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from .auxloops import could_not_recover
 from .chi_model import optical_gain_table
@@ -58,6 +58,7 @@ class RunRequest:
     ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
     calibration_noise: CalibrationNoise | None = None  # the loop's D measured at a finite flux; None: noiseless
     influence: str = DEFAULT_INFLUENCE  # the mirror's influence-function model (``optics.asm``)
+    field_of_view_arcsec: float = 0.0  # the pyramid's simulated field (``PyramidConfig``); 0: as sampled, no stop
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -69,6 +70,7 @@ class RunRequest:
         band_wavelength(self.band)
         check_sampling(self.observation.modes, self.oversampling)
         check_influence(self.influence)
+        WFS_FIELD_OF_VIEW_ARCSEC.check(self.field_of_view_arcsec, "WFS field of view")
 
     @property
     def frames(self) -> int:
@@ -146,6 +148,7 @@ def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
         "seed": r.seed,
         "noise": r.noise,
         "oversampling": r.oversampling,
+        **({"field_of_view_arcsec": r.field_of_view_arcsec} if r.field_of_view_arcsec else {}),
         "gains": asdict(gains),
         "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
         "structure": asdict(r.structure) if r.structure else None,
@@ -199,7 +202,12 @@ def calibration_setup(request: RunRequest) -> CalibrationSetup:
     """What the request's calibration depends on (binning, modulation, sampling, modes, the
     mirror's influence functions)."""
     obs = request.observation
-    config = PyramidConfig(binning=obs.binning, modulation_lambda_over_d=obs.modulation_lambda_over_d, oversampling=request.oversampling)
+    config = PyramidConfig(
+        binning=obs.binning,
+        modulation_lambda_over_d=obs.modulation_lambda_over_d,
+        oversampling=request.oversampling,
+        field_of_view_arcsec=request.field_of_view_arcsec,
+    )
     return CalibrationSetup(config, obs.modes, BasisSetup(AsmGeometry(influence=request.influence)))
 
 

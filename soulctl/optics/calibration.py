@@ -97,9 +97,10 @@ class CalibrationSetup:
         check_sampling(self.n_modes, self.pyramid.oversampling)
 
     def key(self) -> str:
-        """The cache key; a monochromatic pyramid without a field stop has the key it had
-        before bands and stops existed, so cached calibrations stay valid."""
-        pyramid = {k: v for k, v in asdict(self.pyramid).items() if k not in ("band_nm", "field_stop_lambda_over_d") or v}
+        """The cache key; a monochromatic pyramid without a field stop or field of view has the
+        key it had before bands and stops existed, so cached calibrations stay valid."""
+        optional = ("band_nm", "field_stop_lambda_over_d", "field_of_view_arcsec")
+        pyramid = {k: v for k, v in asdict(self.pyramid).items() if k not in optional or v}
         return cache_key("calibration", {"pyramid": pyramid, "n_modes": self.n_modes, "basis": self.basis.key(), "push_nm": self.push_nm})
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import InputError
 
@@ -77,3 +78,24 @@ class Pupil:
             c = c - c.mean()
             out.append(c / np.sqrt(np.mean(c**2)))
         return out[0], out[1]
+
+
+class PupilResampler:
+    """OPD maps on ``source``'s grid onto ``target``'s, a finer sampling of the same pupil: the
+    pupil's values carried outwards to the nearest pupil pixel (so that interpolation does not
+    pull the rim towards zero), then cubic spline interpolation on pixel areas.  What SPECULA's
+    pyramid does to its electric field to reach its field of view; here for the pyramid's
+    sensing pupil (``pwfs.PyramidConfig.field_of_view_arcsec``)."""
+
+    def __init__(self, source: Pupil, target: Pupil):
+        if target.n_pixels < source.n_pixels or (source.diameter_m, source.obstruction) != (target.diameter_m, target.obstruction):
+            raise InputError(f"resampling goes to a finer grid of the same pupil, got {source} -> {target}")
+        _, (self._rows, self._cols) = ndimage.distance_transform_edt(~source.mask, return_indices=True)
+        self.source, self.target = source, target
+
+    def __call__(self, opd: np.ndarray) -> np.ndarray:
+        """(n, n) or (batch, n, n) float32 on the source grid -> the same on the target grid."""
+        factor = self.target.n_pixels / self.source.n_pixels
+        filled = np.asarray(opd, dtype=np.float64)[..., self._rows, self._cols]
+        zoom = (1.0,) * (filled.ndim - 2) + (factor, factor)
+        return ndimage.zoom(filled, zoom, order=3, grid_mode=True, mode="nearest").astype(np.float32)

@@ -27,6 +27,11 @@ weight) sums the monochromatic frames of its wavelengths, each with the modulati
 angle (``modulation_lambda_over_d`` is in lambda/D at ``wavelength_m``) and the same pupil
 images (the pyramid's deflection is taken as achromatic); the same OPD is less phase at the
 band's red end, which keeps the sensor linear over larger residuals.
+Field: the focal plane spans +-20 o lambda/D (0.75" at o = 2) and light beyond it wraps around.
+A field of view (``field_of_view_arcsec``; SOUL's is 2.1") puts a stop at its edge and reads
+the OPD interpolated on a sensing pupil of ``o'`` pixels per detector pixel, the least whose
+focal plane holds the stop (``optics.pupil.PupilResampler``, as SPECULA's pyramid reaches its
+field of view).
 Intensities returned by :meth:`Pyramid.intensity` are binned detector frames normalised so
 that an unaberrated frame holds a total of 1; multiply by the photons per frame.
 """
@@ -44,10 +49,12 @@ import numpy as np
 import scipy.fft
 
 from ..errors import InputError
-from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+from ..ranges import WFS_FIELD_OF_VIEW_ARCSEC
+from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, MAS_PER_RAD, Pupil, PupilResampler
 
 SUBAPERTURES_BIN1 = 40
 WFS_WAVELENGTH_M = 750e-9
+SOUL_FIELD_OF_VIEW_ARCSEC = 2.1  # SOUL's WFS field, a diameter (Arcetri error budget; LBTO elab_lib)
 MAX_BAND_WAVELENGTHS = 9
 _FFT_PER_PUPIL = 96 / 40  # N / n_pup
 _SEPARATION_PER_PUPIL = 48 / 40  # distance between pupil image centres / n_pup
@@ -70,6 +77,10 @@ class PyramidConfig:
     n_modulation: int | None = None  # None: the 4 ceil(2 r) rule
     band_nm: tuple[float, ...] = ()  # a polychromatic beam's wavelengths (equal photons); () monochromatic
     field_stop_lambda_over_d: float = 0.0  # radius of a field stop around the vertex, lambda/D at wavelength_m; 0: none
+    # The WFS's field of view (a diameter, arcsec; 0: none).  The pyramid then reads the OPD
+    # interpolated on a sensing pupil fine enough for its focal plane to hold the field, with a
+    # stop at its edge (``sensing_oversampling``, ``stop_lambda_over_d``); docs/physics.md.
+    field_of_view_arcsec: float = 0.0
 
     def __post_init__(self):
         if self.binning not in (1, 2, 3, 4):
@@ -85,7 +96,13 @@ class PyramidConfig:
             raise InputError(f"valid sub-aperture threshold must be in (0, 1), got {self.valid_threshold}")
         if self.n_modulation is not None and not (1 <= self.n_modulation <= 1000):
             raise InputError(f"modulation points must be 1..1000, got {self.n_modulation}")
-        stop, field = self.field_stop_lambda_over_d, self.field_lambda_over_d
+        fov = self.field_of_view_arcsec
+        if not WFS_FIELD_OF_VIEW_ARCSEC.contains(fov) or (fov > 0 and self.field_stop_lambda_over_d > 0):
+            raise InputError(
+                f"WFS field of view must be {WFS_FIELD_OF_VIEW_ARCSEC.text()} (0: none), without a field stop in lambda/D, "
+                f"got {fov} (field stop {self.field_stop_lambda_over_d} lambda/D)"
+            )
+        stop, field = self.stop_lambda_over_d, self.field_lambda_over_d
         if not (math.isfinite(stop) and (stop == 0 or r < stop <= field)):
             raise InputError(
                 f"field stop must be 0 (none) or above the modulation ({r:g}) up to the simulated field ({field:g} lambda/D at "
@@ -109,22 +126,45 @@ class PyramidConfig:
         return replace(self, wavelength_m=wavelength_nm * 1e-9, modulation_lambda_over_d=radius, field_stop_lambda_over_d=stop, band_nm=())
 
     @property
+    def stop_lambda_over_d(self) -> float:
+        """The field stop's radius (lambda/D at wavelength_m; 0: none): the field of view's half
+        or ``field_stop_lambda_over_d``."""
+        if self.field_of_view_arcsec > 0:
+            return self.field_of_view_arcsec / 2 * 1e3 / MAS_PER_RAD * self.diameter_m / self.wavelength_m
+        return self.field_stop_lambda_over_d
+
+    @property
+    def sensing_oversampling(self) -> int:
+        """Simulation pixels per binning-1 detector pixel of the pyramid's own propagation:
+        ``oversampling``, or with a field of view the least at which the focal plane
+        (+-20 o lambda/D) holds its stop (3 for SOUL's 2.1" at 750 nm: +-60 against a radius of 56)."""
+        if self.field_of_view_arcsec <= 0:
+            return self.oversampling
+        return max(self.oversampling, math.ceil(self.stop_lambda_over_d / (SUBAPERTURES_BIN1 / 2)))
+
+    @property
     def field_lambda_over_d(self) -> float:
         """Half-width of the simulated focal plane: N/2 pixels at N / n_pup per lambda/D."""
-        return self.pupil.n_pixels / 2
+        return self.sensing_pupil.n_pixels / 2
 
     @property
     def pupil(self) -> Pupil:
+        """The grid of the OPD the pyramid reads (the loop's, the mirror's)."""
         return Pupil(SUBAPERTURES_BIN1 * self.oversampling, self.diameter_m, self.obstruction)
 
     @property
+    def sensing_pupil(self) -> Pupil:
+        """The grid of the pyramid's propagation: ``pupil``, or finer with a field of view."""
+        return Pupil(SUBAPERTURES_BIN1 * self.sensing_oversampling, self.diameter_m, self.obstruction)
+
+    @property
     def fft_size(self) -> int:
-        return round(_FFT_PER_PUPIL * self.pupil.n_pixels)
+        return round(_FFT_PER_PUPIL * self.sensing_pupil.n_pixels)
 
     @property
     def detector_pixel(self) -> int:
-        """Simulation pixels per detector pixel side."""
-        return self.oversampling * self.binning
+        """Simulation pixels per detector pixel side (of the sensing pupil)."""
+        return self.sensing_oversampling * self.binning
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -183,15 +223,18 @@ class Pyramid:
 
     def _monochromatic(self, config: PyramidConfig) -> None:
         """The propagation's geometry, masks and per-thread scratch at one wavelength."""
-        n_pup, N = self.pupil.n_pixels, config.fft_size
+        self._sensing = sensing = config.sensing_pupil
+        # with a field of view, the OPD is interpolated on the finer sensing pupil first
+        self._resample = PupilResampler(self.pupil, sensing) if sensing != self.pupil else None
+        n_pup, N = sensing.n_pixels, config.fft_size
         self._offset = (N - n_pup) // 2  # the pupil sits at the centre of the padded field
         # At binning 3 a pupil image is 13.3 detector pixels wide: shifting the pixel grid by
         # half a pixel centres it on 13 full pixels (13 sub-apertures across, as SOUL's table).
-        self._grid_shift = round(1.5 * config.oversampling) if config.binning == 3 else 0
+        self._grid_shift = round(1.5 * config.sensing_oversampling) if config.binning == 3 else 0
         # Half a focal-plane pixel of tilt puts the PSF on the vertex between four pixels.
         idx = np.arange(n_pup) + self._offset
         half = np.exp(-1j * np.pi * idx / N)
-        self._amplitude = (np.outer(half, half) * self.pupil.mask).astype(np.complex64)
+        self._amplitude = (np.outer(half, half) * sensing.mask).astype(np.complex64)
         self._masks = self._modulated_masks()
         # The fixed shares of the modulation points (SUM_SHARES), one total each; per thread
         # its scratch buffers.  Thread t sums shares t, t + threads, ...
@@ -206,8 +249,8 @@ class Pyramid:
         c = self.config
         N = c.fft_size
         f = np.fft.fftfreq(N, 1.0 / N)  # focal-plane pixel index, FFT order
-        shift = _SEPARATION_PER_PUPIL * self.pupil.n_pixels / 2  # pupil image offset, pixels
-        pixels_per_lambda_over_d = N / self.pupil.n_pixels
+        shift = _SEPARATION_PER_PUPIL * self._sensing.n_pixels / 2  # pupil image offset, pixels
+        pixels_per_lambda_over_d = N / self._sensing.n_pixels
         radius = c.modulation_lambda_over_d * pixels_per_lambda_over_d
         angles = 2 * np.pi * np.arange(c.points) / c.points
         masks = np.empty((c.points, N, N), dtype=np.complex64)
@@ -220,8 +263,8 @@ class Pyramid:
             phase_u = -2 * np.pi * np.abs(u) * shift / N
             phase_v = -2 * np.pi * np.abs(v) * shift / N
             masks[k] = np.exp(1j * (phase_v[:, None] + phase_u[None, :]))
-            if c.field_stop_lambda_over_d > 0:  # the stop sits on the pyramid: it moves with it
-                masks[k] *= (u[None, :] ** 2 + v[:, None] ** 2) <= (c.field_stop_lambda_over_d * pixels_per_lambda_over_d) ** 2
+            if c.stop_lambda_over_d > 0:  # the stop sits on the pyramid: it moves with it
+                masks[k] *= (u[None, :] ** 2 + v[:, None] ** 2) <= (c.stop_lambda_over_d * pixels_per_lambda_over_d) ** 2
         return masks
 
     def _raw_total(self) -> float:
@@ -235,7 +278,9 @@ class Pyramid:
             frames = np.stack([p._raw(opd_nm) * np.float32(p._norm) for p in self._parts])
             return frames.mean(axis=0, dtype=np.float32)
         c = self.config
-        N, o, n_pup = c.fft_size, self._offset, self.pupil.n_pixels
+        if self._resample is not None:
+            opd_nm = self._resample(opd_nm)
+        N, o, n_pup = c.fft_size, self._offset, self._sensing.n_pixels
         k = 2 * np.pi / (c.wavelength_m * 1e9)
         batch = opd_nm.shape[0]
         field = np.zeros((batch, N, N), dtype=np.complex64)

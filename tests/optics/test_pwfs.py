@@ -254,3 +254,54 @@ def test_a_field_stop_removes_the_light_beyond_it_and_nothing_within():
         PyramidConfig(field_stop_lambda_over_d=2.0)  # inside the modulation
     with pytest.raises(InputError, match="WFS band: at 600 nm"):
         PyramidConfig(oversampling=3, field_stop_lambda_over_d=56.0, band_nm=(600.0, 900.0))  # 70 lambda/D at 600 nm
+
+
+def test_a_field_of_view_reads_the_sampled_pupil_through_a_field_that_holds_it():
+    """``field_of_view_arcsec``: SOUL's 2.1" is a stop of radius 55.8 lambda/D at 750 nm on 8.222 m,
+    beyond the +-40 lambda/D an 80-pixel pupil's focal plane holds; the pyramid reads the same
+    80-pixel OPD interpolated on 120 pixels (+-60 lambda/D), onto the same detector."""
+    wide = PyramidConfig(binning=4, oversampling=2, field_of_view_arcsec=2.1)
+    assert wide.stop_lambda_over_d == pytest.approx(1.05 / 206264.806 / LAMBDA_OVER_D_RAD)
+    assert (wide.sensing_oversampling, wide.field_lambda_over_d, wide.pupil.n_pixels) == (3, 60.0, 80)
+    assert wide.frame_shape == PyramidConfig(binning=4, oversampling=2).frame_shape
+    assert PyramidConfig(oversampling=4, field_of_view_arcsec=2.1).sensing_oversampling == 4  # already wide enough
+    both = {"field_of_view_arcsec": 2.1, "field_stop_lambda_over_d": 30.0}
+    bad_fields = ({"field_of_view_arcsec": 4.5}, {"field_of_view_arcsec": -1.0}, both)
+    for bad in bad_fields:
+        with pytest.raises(InputError, match="WFS field of view must be 0..4 arcsec"):
+            PyramidConfig(oversampling=2, **bad)
+
+
+def test_the_wide_field_reads_a_small_wavefront_as_the_sampled_pupil_does():
+    """In the linear regime the field beyond 40 lambda/D holds no light: both pyramids give the
+    same slopes (the interpolation of a smooth OPD changes nothing) within 2 %."""
+    detector = Detector(read_noise_e=0, excess_noise=False)
+    plain = WavefrontSensor(Pyramid(PyramidConfig(binning=4, oversampling=2)), detector, 1.0)
+    wide = WavefrontSensor(Pyramid(PyramidConfig(binning=4, oversampling=2, field_of_view_arcsec=2.1)), detector, 1.0)
+    p = plain.pupil
+    x, y = (np.asarray(c) / p.diameter_m for c in np.meshgrid(*(2 * [(np.arange(p.n_pixels) + 0.5 - p.n_pixels / 2) * p.pixel_scale_m])))
+    opd = (20 * np.sin(2 * np.pi * 3 * x) + 15 * np.cos(2 * np.pi * 2 * y) + 10 * x) * p.mask
+    a, b = plain.slopes(opd.astype(np.float32)), wide.slopes(opd.astype(np.float32))
+    assert np.corrcoef(a, b)[0, 1] > 0.99
+    assert np.linalg.norm(b) / np.linalg.norm(a) == pytest.approx(1.0, abs=0.02)
+
+
+@pytest.mark.parametrize("angle, sampled_sign, wide_lit", [(30.0, 1, True), (50.0, -1, True), (60.0, -1, False)])
+def test_a_steep_tilt_lands_where_the_field_puts_it(angle, sampled_sign, wide_lit):
+    """Geometric optics: a beam tilted by theta lambda/D puts its PSF at theta, on the faces of
+    that side, and the pyramid's x signal saturates at +1.  The sampled pupil's focal plane is
+    periodic with +-40 lambda/D: at 50 it puts the PSF at -30, on the opposite faces (the sign
+    reversed), at 60 at -20 (the same).  The wide field reads 50 with the right sign and its
+    55.8 lambda/D stop takes the beam at 60 away (the detector dark), as SOUL's field stop
+    does.  Its own focal plane is periodic with +-60 lambda/D: a tilt beyond 2 x 60 - 55.8 =
+    64.2 lambda/D (1.2") comes back inside the stop (docs/physics.md, the pyramid's field)."""
+    detector = Detector(read_noise_e=0, excess_noise=False)
+    plain = WavefrontSensor(Pyramid(PyramidConfig(binning=4, oversampling=2)), detector, 1.0)
+    wide = WavefrontSensor(Pyramid(PyramidConfig(binning=4, oversampling=2, field_of_view_arcsec=2.1)), detector, 1.0)
+    opd = tip_map(plain, angle)
+    assert np.sign(mean_slopes(plain, opd)[0]) == sampled_sign and abs(mean_slopes(plain, opd)[0]) > 0.5
+    flux = wide.pyramid.intensity(opd).sum()
+    if wide_lit:
+        assert flux > 0.9 and mean_slopes(wide, opd)[0] > 0.5
+    else:
+        assert flux < 0.1 and plain.pyramid.intensity(opd).sum() > 0.9  # the modulation circle (3 lambda/D) grazes the stop
