@@ -21,7 +21,6 @@ Run:  python validation/edge_runaway.py --mag 11.9 --seeing 1.5 --seed 3 [--out 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -34,7 +33,7 @@ from soulctl.loop.optimize import OptimizeResult, _live_phases, band_wavelength
 from soulctl.loop.simulation import LoopDiverged
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, machine, point_loops  # noqa: E402
+from optimize_magnitudes import code_fingerprint, machine, point_arguments, point_loops  # noqa: E402
 
 STEP_S = 0.4  # the path's sampling
 EDGE_R, INNER_R = 0.95, 0.5  # the edge ring and the inner half, in pupil radii
@@ -227,12 +226,7 @@ def line(row: dict) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mag", type=float, default=11.9)
-    p.add_argument("--seeing", type=float, default=1.5)
-    p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--variant", default="mgm+ogtl")
-    p.add_argument("--out", type=Path, default=None)
+    p = point_arguments(__doc__)
     a = p.parse_args()
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "code": code_fingerprint(), "machine": machine()}
     out |= run_path(a.mag, a.seeing, a.seed, a.variant)

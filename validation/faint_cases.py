@@ -10,9 +10,11 @@ loop (issue: MGM and OGTL that never drive the loop unstable).  Not in CI (~15 m
 * OGTL alone at R17.5 for 60 s: k within [1, k_max], the loop closed.
 
 Run:  python validation/faint_cases.py [--seeds 1,2,3] [--transient-s 60] [--ogtl-s 60] [--out FILE]
-      [--only R13,R16.5,ogtl,transient] [--vibrations lbt|lbt-onsky|FILE]
+      [--only R13,R16.5,ogtl,transient] [--vibrations lbt|lbt-onsky|FILE] [--wfs-field ARCSEC]
 ``--vibrations`` replaces the default Tip/Tilt vibrations of the two paper cases (e.g. the
 on-sky level, ``lbt-onsky``: whether MGM, as on sky, brings those loops to the paper's range).
+``--wfs-field`` gives the two paper cases' pyramid that field of view (``[run] wfs_field_arcsec``;
+2.1: SOUL's) and writes ``faint_cases_wfs_field_<ARCSEC>.json``.
 """
 
 from __future__ import annotations
@@ -65,11 +67,13 @@ def r165_observation():
     )
 
 
-def paper_case(label: str, obs, atmosphere: AtmosphereSpec, band: str, seeds, cache, vibrations: str | None = None) -> dict:
+def paper_case(
+    label: str, obs, atmosphere: AtmosphereSpec, band: str, seeds, cache, vibrations: str | None = None, wfs_field: float = 0.0
+) -> dict:
     rows = []
     lines = {} if vibrations is None else {"vibrations": VibrationSpectrum.read(vibrations)}
     for seed in seeds:
-        config = RunConfig(observation=obs, atmosphere=atmosphere, band=band, seed=seed, ncpa=NO_NCPA, **lines)
+        config = RunConfig(observation=obs, atmosphere=atmosphere, band=band, seed=seed, ncpa=NO_NCPA, wfs_field_arcsec=wfs_field, **lines)
         r = optimize(OptimizeRequest(config.request(), "mgm", measure_s=1.0), cache)
         records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
         rows.append(
@@ -93,6 +97,7 @@ def paper_case(label: str, obs, atmosphere: AtmosphereSpec, band: str, seeds, ca
         "band": band,
         "wind_m_s": atmosphere.wind_m_s,
         "vibrations": vibrations or "default",
+        "wfs_field_arcsec": wfs_field,
         "runs": rows,
         "after_mean": mean,
         "after_scatter": scatter,
@@ -153,15 +158,18 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=RESULTS / "faint_cases.json")
     p.add_argument("--only", default=None, help="comma list of R13, R16.5, ogtl, transient (default: all)")
     p.add_argument("--vibrations", default=None, help="the paper cases' vibrations: lbt, lbt-onsky or a file (default: the default)")
+    p.add_argument("--wfs-field", type=float, default=0.0, help="the paper cases' WFS field of view, arcsec (0: the sampled field)")
     a = p.parse_args()
     if a.vibrations is not None and a.out == RESULTS / "faint_cases.json":  # not over the default level's results
         a.out = RESULTS / f"faint_cases_vibrations_{Path(a.vibrations).stem}.json"
+    if a.wfs_field and a.out == RESULTS / "faint_cases.json":
+        a.out = RESULTS / f"faint_cases_wfs_field_{a.wfs_field:g}.json"
     cache = ArrayCache(default_cache_dir())
     seeds = [int(s) for s in a.seeds.split(",")]
     t0 = time.perf_counter()
     parts = {
-        "R13": lambda: paper_case("R13", observation(13.0, 980.0), R13_NIGHT, "FeII", seeds, cache, a.vibrations),
-        "R16.5": lambda: paper_case("R16.5", r165_observation(), AT_1_ARCSEC, "Ks", seeds, cache, a.vibrations),
+        "R13": lambda: paper_case("R13", observation(13.0, 980.0), R13_NIGHT, "FeII", seeds, cache, a.vibrations, a.wfs_field),
+        "R16.5": lambda: paper_case("R16.5", r165_observation(), AT_1_ARCSEC, "Ks", seeds, cache, a.vibrations, a.wfs_field),
         "ogtl": lambda: ogtl_alone(a.ogtl_s, cache),
         "transient": lambda: transient(observation(13.0, 980.0), a.transient_s, cache),
     }

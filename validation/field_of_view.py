@@ -1,6 +1,6 @@
 """A grid point's `optimize gains` row with a pyramid whose simulated field covers the WFS's
 field of view: every loop of the optimisation (``optimize._new_loop``) reads its residual OPD,
-interpolated on a finer pupil (``rim_sampling.Upsampler``), through a pyramid at oversampling
+interpolated on a finer pupil (``optics.pupil.PupilResampler``), through a pyramid at oversampling
 ``--oversampling`` with the 2.1" field stop (``rim_sampling.FIELD_STOP``), instead of the table's
 pupil of 80 pixels whose focal plane is +-40 lambda/D (0.75") with no stop.  The calibration,
 the screens, the noise draws and everything else are the grid's: the interaction matrix and
@@ -19,7 +19,6 @@ Run:  python validation/field_of_view.py --mag 11.9 --seeing 1.5 --seed 3 [--var
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import replace
@@ -30,12 +29,13 @@ import numpy as np
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
-from soulctl.optics.pwfs import Pyramid
+from soulctl.optics.pupil import Pupil, PupilResampler
+from soulctl.optics.pwfs import SUBAPERTURES_BIN1, Pyramid
 from soulctl.optics.sensor import WavefrontSensor
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, machine, run_case  # noqa: E402
-from rim_sampling import FIELD_STOP, Upsampler  # noqa: E402
+from optimize_magnitudes import code_fingerprint, machine, point_arguments, run_case  # noqa: E402
+from rim_sampling import FIELD_STOP  # noqa: E402
 
 
 class WideField:
@@ -46,7 +46,7 @@ class WideField:
     def __init__(self, coarse: Pyramid, oversampling: int, stop: float):
         self.fine = Pyramid(replace(coarse.config, oversampling=oversampling, field_stop_lambda_over_d=stop))
         self.config, self.pupil = self.fine.config, coarse.pupil
-        self.upsample = Upsampler(coarse.pupil.mask, oversampling / coarse.config.oversampling)
+        self.upsample = PupilResampler(coarse.pupil, Pupil(SUBAPERTURES_BIN1 * oversampling))
         if self.config.frame_shape != coarse.config.frame_shape:
             raise ValueError(f"the wide-field pyramid's frame {self.config.frame_shape} is not the loop's {coarse.config.frame_shape}")
         self.subaperture_pixels = coarse.subaperture_pixels  # the RTC's valid sub-apertures, as calibrated
@@ -73,13 +73,8 @@ def widen(oversampling: int, stop: float) -> None:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mag", type=float, default=11.9)
-    p.add_argument("--seeing", type=float, default=1.5)
-    p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--variant", default="mgm+ogtl")
+    p = point_arguments(__doc__)
     p.add_argument("--oversampling", type=int, default=4)
-    p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     widen(a.oversampling, FIELD_STOP)
     row = run_case(a.mag, a.seeing, a.seed, a.variant, str(default_cache_dir()))

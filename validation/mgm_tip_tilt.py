@@ -22,7 +22,6 @@ Run:  python validation/mgm_tip_tilt.py --mag 14.5 --seeing 0.6 --seed 2 [--out 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -41,7 +40,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, point_arguments, point_request  # noqa: E402
 
 SEGMENTS = (256, 512, 1024, 2048, 4096, 8192)
 SYNTHETIC_FRAMES = 2**20  # ~23 min at 750 Hz: the long-series estimate is the Welch estimator's mean
@@ -123,15 +122,10 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mag", type=float, default=14.5)
-    p.add_argument("--seeing", type=float, default=0.6)
-    p.add_argument("--seed", type=int, default=2)
-    p.add_argument("--variant", default="mgm+ogtl")
+    p = point_arguments(__doc__, 14.5, 0.6, 2)
     p.add_argument("--influence", choices=("gaussian", "thin-plate"), default="thin-plate")
     p.add_argument("--scales", default="0.7,0.85,1,1.2", help="Tip/Tilt scales of the initial gains")
     p.add_argument("--windows", type=int, default=WINDOWS)
-    p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
     request = point_request(a.mag, a.seeing, a.seed, a.variant, a.windows, influence=a.influence)

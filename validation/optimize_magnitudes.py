@@ -143,6 +143,18 @@ def paired_windows(r) -> dict | None:
     }
 
 
+def point_arguments(doc: str, mag: float = 11.9, seeing: float = 1.5, seed: int = 3) -> argparse.ArgumentParser:
+    """The command line of a script about one grid point (--mag, --seeing, --seed, --variant,
+    --out), its defaults the point asked about; the script adds its own options."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--mag", type=float, default=mag)
+    p.add_argument("--seeing", type=float, default=seeing)
+    p.add_argument("--seed", type=int, default=seed)
+    p.add_argument("--variant", default="mgm+ogtl")
+    p.add_argument("--out", type=Path, default=None)
+    return p
+
+
 def windows_for(rate_hz: float, windows: int = WINDOWS) -> int:
     """Windows of the paired evaluation at ``rate_hz``: at least ``windows``, and as many
     frames as ``windows`` at REFERENCE_RATE_HZ, whatever their length (45 at 100 Hz).

@@ -6,10 +6,13 @@ times, each read offline by two noiseless pyramids with the table's modulation:
   is +-40 lambda/D at 750 nm, so a phase step of more than half a wave between two pixels
   comes back with the other sign (the pupil's Nyquist), and light beyond 40 lambda/D wraps
   into the field;
-* ``fine``: the same OPD interpolated (cubic) on 160 pixels (oversampling 4), the focal plane
-  +-80 lambda/D, and a field stop at the WFS's field of view (2.1", radius FIELD_STOP of
-  55.8 lambda/D at 750 nm on 8.222 m; docs field notes): what a sensor of the real field
-  reads of a continuous phase.
+* ``fine``: the same OPD interpolated (``optics.pupil.PupilResampler``) on 160 pixels
+  (oversampling 4), the focal plane +-80 lambda/D, and a field stop at the WFS's field of view
+  (2.1", radius FIELD_STOP of 55.8 lambda/D at 750 nm on 8.222 m; docs field notes): what a
+  sensor of the real field reads of a continuous phase;
+* ``fine_open``, ``fine_stop40``: the same without a stop, with one at 40 lambda/D;
+* ``three``: the package's own wide field (``PyramidConfig.field_of_view_arcsec`` = 2.1: the
+  OPD interpolated on 120 pixels, +-60 lambda/D, the same stop).
 
 Both are read through the loop's reconstructor at k = 1, as measured modes.  Per snapshot: the
 residual's modal content ``true`` (the mirror's projection), and each sensor's gain on it, in
@@ -26,32 +29,30 @@ Run:  python validation/rim_sampling.py --seed 3 --times 11.6,12.4,13.2,14.0,16.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeResult, _live_phases, band_wavelength
 from soulctl.loop.simulation import LoopDiverged
-from soulctl.optics.pupil import LBT_DIAMETER_M
-from soulctl.optics.pwfs import WFS_WAVELENGTH_M, Pyramid
+from soulctl.optics.pupil import PupilResampler
+from soulctl.optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC, Pyramid, PyramidConfig
 from soulctl.optics.sensor import WavefrontSensor
 
 sys.path.insert(0, str(Path(__file__).parent))
 from edge_runaway import weak_directions  # noqa: E402
-from optimize_magnitudes import code_fingerprint, machine, point_loops  # noqa: E402
+from optimize_magnitudes import code_fingerprint, machine, point_arguments, point_loops  # noqa: E402
 
-RAD_PER_ARCSEC = np.pi / 180 / 3600
-FIELD_STOP = 1.05 * RAD_PER_ARCSEC / (WFS_WAVELENGTH_M / LBT_DIAMETER_M)  # the 2.1" field's radius, lambda/D
+FIELD_STOP = PyramidConfig(field_of_view_arcsec=SOUL_FIELD_OF_VIEW_ARCSEC).stop_lambda_over_d  # the 2.1" field's radius, lambda/D
 SMALL = 0.02  # the linear copy's scale
-# The sensors reading each snapshot: name -> (oversampling, field stop radius in lambda/D; 0 none).
-# ``loop`` is the loop's own; the others see the OPD interpolated on their finer pupil.
-SENSORS = {"loop": (2, 0.0), "fine": (4, FIELD_STOP), "fine_open": (4, 0.0), "fine_stop40": (4, 39.9), "three": (3, FIELD_STOP)}
+# The sensors reading each snapshot: name -> (oversampling, field stop radius in lambda/D; 0
+# none), or the package's wide field ("fov").  ``loop`` is the loop's own; the others see the
+# OPD interpolated on their finer pupil.
+SENSORS = {"loop": (2, 0.0), "fine": (4, FIELD_STOP), "fine_open": (4, 0.0), "fine_stop40": (4, 39.9), "three": "fov"}
 
 
 class Taken(Exception):
@@ -94,26 +95,16 @@ def capture(point, times_s: list[float]) -> tuple[dict[float, np.ndarray], dict 
     return snaps.opd, diverged
 
 
-class Upsampler:
-    """An OPD on the pupil ``mask``'s grid, on a grid ``factor`` x finer: the pupil's values
-    carried outwards to the nearest pupil pixel (so that the rim is not pulled to zero), then
-    cubic interpolation on pixel areas (what SPECULA's pyramid does to its electric field to
-    reach its field of view)."""
-
-    def __init__(self, mask: np.ndarray, factor: float):
-        _, (self.rows, self.cols) = ndimage.distance_transform_edt(~mask, return_indices=True)
-        self.factor = factor
-
-    def __call__(self, opd: np.ndarray) -> np.ndarray:
-        filled = opd[self.rows, self.cols].astype(np.float64)
-        return ndimage.zoom(filled, self.factor, order=3, grid_mode=True, mode="grid-constant").astype(np.float32)
-
-
-def other_sensor(loop, oversampling: int, stop: float) -> WavefrontSensor:
-    """The loop's pyramid at another oversampling and field stop, the same detector."""
+def other_sensor(loop, spec) -> tuple[WavefrontSensor, PupilResampler | None]:
+    """The loop's pyramid at another oversampling and field stop (``spec``), or with the
+    package's wide field; the same detector; the resampling of the loop's OPD it needs."""
     c = loop.sensor.pyramid.config
-    config = replace(c, oversampling=oversampling, field_stop_lambda_over_d=stop)
-    return WavefrontSensor(Pyramid(config), loop.sensor.detector, loop.sensor.photons_per_frame)
+    if spec == "fov":
+        config = replace(c, field_of_view_arcsec=SOUL_FIELD_OF_VIEW_ARCSEC)
+    else:
+        config = replace(c, oversampling=spec[0], field_stop_lambda_over_d=spec[1])
+    sensor = WavefrontSensor(Pyramid(config), loop.sensor.detector, loop.sensor.photons_per_frame)
+    return sensor, None if sensor.pupil == loop.pupil else PupilResampler(loop.pupil, sensor.pupil)
 
 
 def matched(fine: WavefrontSensor, coarse: WavefrontSensor) -> np.ndarray:
@@ -135,17 +126,15 @@ def read(point, snapshots: dict[float, np.ndarray]) -> list[dict]:
     loop = point.session.loop
     R = np.asarray(point.cal.reconstructor, dtype=np.float64)
     weak, _ = weak_directions(point.cal.interaction_matrix)
-    base = loop.sensor.pyramid.config.oversampling
-    sensors = {name: loop.sensor if name == "loop" else other_sensor(loop, o, stop) for name, (o, stop) in SENSORS.items()}
-    orders = {name: matched(sensor, loop.sensor) for name, sensor in sensors.items()}
+    sensors = {name: (loop.sensor, None) if name == "loop" else other_sensor(loop, spec) for name, spec in SENSORS.items()}
+    orders = {name: matched(sensor, loop.sensor) for name, (sensor, _) in sensors.items()}
     mask = loop.pupil.mask
     rows = []
     for t, opd in sorted(snapshots.items()):
         true = loop.project(opd[mask])
         row = {"t_s": t, "residual_nm": float(np.sqrt(np.mean(opd[mask] ** 2))), "true_weak_nm": float(np.linalg.norm(weak @ true))}
-        for name, sensor in sensors.items():
-            o = sensor.pyramid.config.oversampling
-            seen = opd if o == base else Upsampler(mask, o / base)(opd)
+        for name, (sensor, resample) in sensors.items():
+            seen = opd if resample is None else resample(opd)
             for scale, tag in ((1.0, ""), (SMALL, "_small")):
                 m = R @ sensor.slopes(scale * seen).astype(np.float64)[orders[name]] / scale
                 row[name + tag] = gains(m, true, weak)
@@ -161,14 +150,9 @@ def line(row: dict) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mag", type=float, default=11.9)
-    p.add_argument("--seeing", type=float, default=1.5)
-    p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--variant", default="mgm+ogtl")
+    p = point_arguments(__doc__)
     p.add_argument("--times", default="11.6,12.4,13.2,14.0,16.0,20.0", help="seconds, comma-separated")
     p.add_argument("--snapshots", type=Path, default=None, help="the snapshots (.npz): read from it if it exists, else written to it")
-    p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     point = point_loops(a.mag, a.seeing, a.seed, a.variant)
     diverged: dict | str | None = "not known: the snapshots were read from a file"
