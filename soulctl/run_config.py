@@ -34,7 +34,7 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling, wfs_field_arcsec (the pyramid's simulated
                   field, a diameter; 0, the default: the field the pupil's sampling gives, +-0.75"
-                  at oversampling 2, with no stop; 2.1: SOUL's, ~2.3x the pyramid's cost;
+                  at oversampling 2, with no stop; 2.1: SOUL's, ~2x a loop frame's cost;
                   ``optics.pwfs.PyramidConfig.field_of_view_arcsec``)
 
 ``to_toml`` writes the description resolved (the observation whole, the vibration lines inline,

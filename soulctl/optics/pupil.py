@@ -94,8 +94,14 @@ class PupilResampler:
         self.source, self.target = source, target
 
     def __call__(self, opd: np.ndarray) -> np.ndarray:
-        """(n, n) or (batch, n, n) float32 on the source grid -> the same on the target grid."""
-        factor = self.target.n_pixels / self.source.n_pixels
+        """(n, n) or (batch, n, n) float32 on the source grid -> the same on the target grid
+        (map by map: a spline along the batch axis would cost 9x one map's)."""
         filled = np.asarray(opd, dtype=np.float64)[..., self._rows, self._cols]
-        zoom = (1.0,) * (filled.ndim - 2) + (factor, factor)
-        return ndimage.zoom(filled, zoom, order=3, grid_mode=True, mode="nearest").astype(np.float32)
+        if filled.ndim == 2:
+            return self._zoom(filled)
+        maps = [self._zoom(m) for m in filled.reshape(-1, *filled.shape[-2:])]
+        return np.stack(maps).reshape(*filled.shape[:-2], *maps[0].shape)
+
+    def _zoom(self, filled: np.ndarray) -> np.ndarray:
+        factor = self.target.n_pixels / self.source.n_pixels
+        return ndimage.zoom(filled, factor, order=3, grid_mode=True, mode="nearest").astype(np.float32)
