@@ -190,23 +190,31 @@ def pupil_radius(pupil) -> np.ndarray:
     return np.hypot(x, y) / (pupil.diameter_m / 2)
 
 
+def live_phases(point) -> tuple[OptimizeResult, dict | None]:
+    """The point's live phases on its session's loop (``optimize._live_phases``: closing, OGTL's
+    settling, *before*, the optimisation, *after*): the result (its phases) and where the loop
+    diverged, None if it did not."""
+    s, request = point.session, point.request
+    initial = s.loop.rtc_parameters.gains
+    result = OptimizeResult(request, initial, initial, None, None, s.loop, None)
+    try:
+        _live_phases(s, result, band_wavelength(request.run.band), None)
+    except LoopDiverged as e:
+        return result, {"frame": e.frame, "residual_nm": e.residual_nm}
+    return result, None
+
+
 def run_path(mag: float, seeing: float, seed: int, variant: str) -> dict:
     """The run's live phases at the point, its path per STEP_S and the net's restores."""
     point = point_loops(mag, seeing, seed, variant)
-    s, request = point.session, point.request
-    loop, rate = s.loop, request.run.observation.frame_rate_hz
+    request, loop = point.request, point.session.loop
+    rate = request.run.observation.frame_rate_hz
     weak, singular = weak_directions(point.cal.interaction_matrix)
     flux = FluxMap(loop.sensor)
     shapes, pupil = point.cal.basis.shapes(loop.pupil), loop.pupil
     sink = PathSink(request.frames(STEP_S), rate, shapes, pupil_radius(pupil), weak, flux, neighbour_pairs(pupil))
     loop.telemetry.sink = sink
-    initial = loop.rtc_parameters.gains
-    result = OptimizeResult(request, initial, initial, None, None, loop, None)
-    diverged = None
-    try:
-        _live_phases(s, result, band_wavelength(request.run.band), None)
-    except LoopDiverged as e:
-        diverged = {"frame": e.frame, "residual_nm": e.residual_nm}
+    result, diverged = live_phases(point)
     records = summary({name: loop.telemetry.aux_arrays(name) for name in loop.telemetry.aux})
     restored = [f / rate for f in records.get("safety", {}).get("restored_at_frames", [])]
     phases = {k: [f / rate for f in v] for k, v in result.phases.items()}

@@ -29,8 +29,8 @@ import numpy as np
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
-from soulctl.optics.pupil import Pupil, PupilResampler
-from soulctl.optics.pwfs import SUBAPERTURES_BIN1, Pyramid
+from soulctl.optics.pupil import PupilResampler
+from soulctl.optics.pwfs import Pyramid
 from soulctl.optics.sensor import WavefrontSensor
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -46,7 +46,7 @@ class WideField:
     def __init__(self, coarse: Pyramid, oversampling: int, stop: float):
         self.fine = Pyramid(replace(coarse.config, oversampling=oversampling, field_stop_lambda_over_d=stop))
         self.config, self.pupil = self.fine.config, coarse.pupil
-        self.upsample = PupilResampler(coarse.pupil, Pupil(SUBAPERTURES_BIN1 * oversampling))
+        self.upsample = PupilResampler(coarse.pupil, self.fine.pupil)
         if self.config.frame_shape != coarse.config.frame_shape:
             raise ValueError(f"the wide-field pyramid's frame {self.config.frame_shape} is not the loop's {coarse.config.frame_shape}")
         self.subaperture_pixels = coarse.subaperture_pixels  # the RTC's valid sub-apertures, as calibrated

@@ -37,14 +37,12 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeResult, _live_phases, band_wavelength
-from soulctl.loop.simulation import LoopDiverged
 from soulctl.optics.pupil import PupilResampler
 from soulctl.optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC, Pyramid, PyramidConfig
 from soulctl.optics.sensor import WavefrontSensor
 
 sys.path.insert(0, str(Path(__file__).parent))
-from edge_runaway import weak_directions  # noqa: E402
+from edge_runaway import live_phases, weak_directions  # noqa: E402
 from optimize_magnitudes import code_fingerprint, machine, point_arguments, point_loops  # noqa: E402
 
 FIELD_STOP = PyramidConfig(field_of_view_arcsec=SOUL_FIELD_OF_VIEW_ARCSEC).stop_lambda_over_d  # the 2.1" field's radius, lambda/D
@@ -78,20 +76,15 @@ class Snapshots:
 
 def capture(point, times_s: list[float]) -> tuple[dict[float, np.ndarray], dict | None]:
     """The residual OPD (80 x 80, nm) at ``times_s`` of the point's live phases; where it diverged."""
-    s, request = point.session, point.request
-    rate = request.run.observation.frame_rate_hz
-    snaps = Snapshots(s.loop, {round(t * rate): t for t in times_s})
-    initial = s.loop.rtc_parameters.gains
-    result = OptimizeResult(request, initial, initial, None, None, s.loop, None)
+    loop, rate = point.session.loop, point.request.run.observation.frame_rate_hz
+    snaps = Snapshots(loop, {round(t * rate): t for t in times_s})
     diverged = None
     try:
-        _live_phases(s, result, band_wavelength(request.run.band), None)
-    except LoopDiverged as e:
-        diverged = {"frame": e.frame, "t_s": e.frame / rate, "residual_nm": e.residual_nm}
+        _, diverged = live_phases(point)
     except Taken:
         pass
     finally:
-        del s.loop.sensor.pyramid.intensity  # the instance's wrapper: the class's method again
+        del loop.sensor.pyramid.intensity  # the instance's wrapper: the class's method again
     return snaps.opd, diverged
 
 

@@ -91,7 +91,7 @@ class PupilResampler:
         if target.n_pixels < source.n_pixels or (source.diameter_m, source.obstruction) != (target.diameter_m, target.obstruction):
             raise InputError(f"resampling goes to a finer grid of the same pupil, got {source} -> {target}")
         _, (self._rows, self._cols) = ndimage.distance_transform_edt(~source.mask, return_indices=True)
-        self.source, self.target = source, target
+        self.factor = target.n_pixels / source.n_pixels
 
     def __call__(self, opd: np.ndarray) -> np.ndarray:
         """(n, n) or (batch, n, n) float32 on the source grid -> the same on the target grid
@@ -103,5 +103,4 @@ class PupilResampler:
         return np.stack(maps).reshape(*filled.shape[:-2], *maps[0].shape)
 
     def _zoom(self, filled: np.ndarray) -> np.ndarray:
-        factor = self.target.n_pixels / self.source.n_pixels
-        return ndimage.zoom(filled, factor, order=3, grid_mode=True, mode="nearest").astype(np.float32)
+        return ndimage.zoom(filled, self.factor, order=3, grid_mode=True, mode="nearest").astype(np.float32)
