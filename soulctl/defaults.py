@@ -4,6 +4,8 @@ and the Python API assume when the user says nothing.  The run description
 prints them resolved.  Physical constants of the telescope and the tables' values have their
 own homes (``optics.pupil``, ``tables/``); these are choices of a run."""
 
+from .optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC
+
 MAGNITUDE_R = 9.7  # the paper's bright-star on-sky tests (Sec. 4)
 SEEING_ARCSEC = 1.0  # at 500 nm, on the line of sight
 WIND_M_S = 8.0  # effective wind speed of the LBT profile
@@ -12,6 +14,14 @@ DURATION_S = 0.2  # simulated time of `loop run`
 BAND = "H"  # science band of the Strehl ratio
 SEED = 1
 OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
+# The pyramid's simulated field of view (a diameter, arcsec; 0: the field the pupil's sampling
+# gives, +-0.75" at oversampling 2, with no stop): SOUL's.  The sampled field read partly
+# corrected residuals 30-40 % low at 1.5" and let the pupil's rim lock falsely (docs/physics.md,
+# "The pyramid's field of view"); SOUL's costs ~2x a loop frame (bench/bench_frame_cost.py).
+WFS_FIELD_ARCSEC = SOUL_FIELD_OF_VIEW_ARCSEC
+# What a description or telemetry soulctl stored without ``wfs_field_arcsec`` ran: the key was
+# written only when set until SOUL's field became the default, so such a file re-runs with 0.
+PREDATED_WFS_FIELD_ARCSEC = 0.0
 # The science path's NCPA: the paper's LUCI1 carried ~100 nm (Sec. 3.1 and the caption of the
 # Tip/Tilt results table), compensated on sky by reference-slope offsets once OGTL has
 # calibrated k (Sec. 2.4, Modal Gain Machine).

@@ -33,9 +33,11 @@ look-up table's value for its star, else ``soulctl.defaults``:
     [detector]    noise
     [auxiliary]   mgm, ogtl, period_s, probe_mode, probe_amplitude_nm, probe_frequency_hz
     [run]         duration_s, band, seed, oversampling, wfs_field_arcsec (the pyramid's simulated
-                  field, a diameter; 0, the default: the field the pupil's sampling gives, +-0.75"
-                  at oversampling 2, with no stop; 2.1: SOUL's, ~2x a loop frame's cost;
-                  ``optics.pwfs.PyramidConfig.field_of_view_arcsec``)
+                  field, a diameter; 2.1, the default: SOUL's, with a stop at its edge; 0: the
+                  field the pupil's sampling gives, +-0.75" at oversampling 2, with no stop, ~2x
+                  cheaper; ``optics.pwfs.PyramidConfig.field_of_view_arcsec``.  A description
+                  soulctl wrote (``HEADER``, or stored in telemetry) without the key predates
+                  this default and ran 0; one written by hand takes the default)
 
 ``to_toml`` writes the description resolved (the observation whole, the vibration lines inline,
 the gains the run starts from), so that a stored description re-runs the same loop.
@@ -45,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -220,7 +223,7 @@ class RunConfig:
     band: str = defaults.BAND
     seed: int = defaults.SEED
     oversampling: int = defaults.OVERSAMPLING
-    wfs_field_arcsec: float = 0.0  # the pyramid's simulated field; 0: as sampled, no stop
+    wfs_field_arcsec: float = defaults.WFS_FIELD_ARCSEC  # the pyramid's simulated field; 0: as sampled, no stop
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "run.duration_s")
@@ -326,9 +329,17 @@ def read_run_config(path: str | Path) -> RunConfig:
         from .telemetry.formats import stored_run_description
 
         return RunConfig.from_dict(stored_run_description(path), f"telemetry file {path}")
-    from .files import read_toml
+    from .files import read_input_text
+    from .telemetry.hdf5 import predated_field
 
-    return RunConfig.from_dict(read_toml(path, "run description"), f"run description {path}")
+    text = read_input_text(path, "run description")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"run description {path} is not valid TOML: {e}") from None
+    if text.startswith(HEADER):  # written by soulctl, resolved: without the key, it predates the default
+        data = predated_field(data)
+    return RunConfig.from_dict(data, f"run description {path}")
 
 
 # ---- the TOML form -------------------------------------------------------------------------
@@ -364,8 +375,7 @@ def _to_dict(c: RunConfig) -> dict:
     d["detector"] = {"noise": c.noise}
     d["auxiliary"] = {k: v for k, v in dataclasses.asdict(c.auxiliary).items() if v is not None}
     d["run"] = {"duration_s": c.duration_s, "band": c.band, "seed": c.seed, "oversampling": c.oversampling}
-    if c.wfs_field_arcsec:
-        d["run"]["wfs_field_arcsec"] = c.wfs_field_arcsec
+    d["run"]["wfs_field_arcsec"] = c.wfs_field_arcsec
     return d
 
 
@@ -420,7 +430,7 @@ def _from_dict(data: dict) -> RunConfig:
             band=str(run.get("band", defaults.BAND)),
             seed=_integer(run.get("seed", defaults.SEED), "run.seed"),
             oversampling=_integer(run.get("oversampling", defaults.OVERSAMPLING), "run.oversampling"),
-            wfs_field_arcsec=_number(run.get("wfs_field_arcsec", 0.0), "run.wfs_field_arcsec"),
+            wfs_field_arcsec=_number(run.get("wfs_field_arcsec", defaults.WFS_FIELD_ARCSEC), "run.wfs_field_arcsec"),
         )
     except TypeError as e:  # a value of the wrong kind deep in a constructor
         raise InputError(str(e)) from None

@@ -14,7 +14,8 @@ from soulctl.errors import InputError
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import SIGN_SEED
 from soulctl.optics.cache import cache_key
-from soulctl.run_config import RunConfig, read_run_config
+from soulctl.optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC
+from soulctl.run_config import HEADER, RunConfig, read_run_config
 
 EXPLICIT = """
 [star]
@@ -156,20 +157,42 @@ def test_the_mirror_model_round_trips_and_reaches_the_calibration():
 
 
 def test_the_wfs_field_round_trips_and_reaches_the_calibration():
-    """[run] wfs_field_arcsec: SOUL's 2.1" gives the pyramid a field stop and a sensing pupil
-    that holds it; 0, the default, is the field the sampling gives, written nowhere, with the
-    calibration's cache key it had before the choice existed."""
+    """[run] wfs_field_arcsec: SOUL's 2.1", the default, gives the pyramid a field stop and a
+    sensing pupil that holds it; 0 is the field the sampling gives, with the calibration's cache
+    key it had before the choice existed.  Both are written, so that a stored description does
+    not depend on the default."""
     from soulctl.loop.run import calibration_setup
 
-    wide = RunConfig().with_values({"run.wfs_field_arcsec": 2.1})
-    assert round_trip(wide) == wide and wide.request().field_of_view_arcsec == 2.1
-    assert "wfs_field_arcsec" not in RunConfig().to_dict()["run"] and round_trip(RunConfig()).wfs_field_arcsec == 0.0
-    plain, sensed = (calibration_setup(c.request()) for c in (RunConfig(), wide))
+    sampled = RunConfig().with_values({"run.wfs_field_arcsec": 0.0})
+    assert RunConfig().wfs_field_arcsec == SOUL_FIELD_OF_VIEW_ARCSEC == 2.1 and RunConfig().request().field_of_view_arcsec == 2.1
+    assert round_trip(sampled) == sampled and sampled.request().field_of_view_arcsec == 0.0
+    assert sampled.to_dict()["run"]["wfs_field_arcsec"] == 0.0 and RunConfig().to_dict()["run"]["wfs_field_arcsec"] == 2.1
+    plain, sensed = (calibration_setup(c.request()) for c in (sampled, RunConfig()))
     assert (plain.pyramid.sensing_oversampling, sensed.pyramid.sensing_oversampling) == (2, 3)
     assert plain.key() != sensed.key()
     former = {k: v for k, v in asdict(plain.pyramid).items() if k not in ("band_nm", "field_stop_lambda_over_d", "field_of_view_arcsec")}
     key = {"pyramid": former, "n_modes": plain.n_modes, "basis": plain.basis.key(), "push_nm": plain.push_nm}
     assert plain.key() == cache_key("calibration", key)
+
+
+def test_a_stored_description_without_the_wfs_field_re_runs_the_sampled_field(tmp_path):
+    """Telemetry and descriptions soulctl wrote before SOUL's field was the default hold no
+    ``wfs_field_arcsec`` (0 was not written): they re-run the field they ran with, 0, while a
+    description written by hand without the key takes the default."""
+    import h5py
+
+    text = RunConfig().with_values({"run.seed": 4}).to_toml()
+    old = text.replace("wfs_field_arcsec = 2.1\n", "")
+    assert old != text
+    path = tmp_path / "old.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["run_description"] = old
+    recorded = read_run_config(path)
+    assert recorded.wfs_field_arcsec == 0.0 and recorded.seed == 4
+    (tmp_path / "old.toml").write_text(old)
+    assert old.startswith(HEADER) and read_run_config(tmp_path / "old.toml").wfs_field_arcsec == 0.0
+    (tmp_path / "hand.toml").write_text(old.removeprefix(HEADER))
+    assert read_run_config(tmp_path / "hand.toml").wfs_field_arcsec == 2.1
 
 
 def test_with_values_overrides_dotted_fields():

@@ -97,6 +97,16 @@ OVERSAMPLING = typer.Option(
     show_default=str(defaults.OVERSAMPLING),
     help="Simulation pixels per binning-1 detector pixel (1..4; 1 only up to 90 modes).",
 )
+WFS_FIELD = typer.Option(
+    None,
+    "--wfs-field",
+    parser=number(ranges.WFS_FIELD_OF_VIEW_ARCSEC),
+    metavar="ARCSEC",
+    show_default=f"{defaults.WFS_FIELD_ARCSEC:g}",
+    help=f"The pyramid's simulated field of view, a diameter ({ranges.WFS_FIELD_OF_VIEW_ARCSEC.text()}; SOUL's "
+    f"{defaults.WFS_FIELD_ARCSEC:g}\" with a stop at its edge; 0: the field the pupil's sampling gives, no stop, "
+    "~2x faster at oversampling 2).",
+)
 PERIOD = typer.Option(
     None,
     "--period",
@@ -181,7 +191,7 @@ def gain_file_input(text: str | None) -> tuple[str, Path | None]:
     return ("--gains", None if text is None else _gain_file(text))
 
 
-def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=None) -> None:
+def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=None, wfs_field=None) -> None:
     """InputError naming the option and its accepted range for the options of a simulated loop
     (None: not given)."""
     for value, accepted, option in (
@@ -191,6 +201,7 @@ def check_run_options(seeing, wind, L0, band, seed, duration=None, oversampling=
         (seed, ranges.SEED, "--seed"),
         (duration, ranges.DURATION_S, "--duration"),
         (oversampling, ranges.OVERSAMPLING, "--oversampling"),
+        (wfs_field, ranges.WFS_FIELD_OF_VIEW_ARCSEC, "--wfs-field"),
     ):
         if value is not None:
             accepted.check(value, option)
@@ -226,12 +237,14 @@ class LoopOptions(Protocol):
     def no_resonance(self) -> bool: ...
     @property
     def oversampling(self) -> int | None: ...
+    @property
+    def wfs_field(self) -> float | None: ...
 
 
 def loop_overrides(o: LoopOptions) -> dict:
     """The options of a simulated loop as overrides of the run description's dotted fields
     (given options only; --gains through ``gain_overrides``)."""
-    check_run_options(o.seeing, o.wind, o.L0, o.band, o.seed, oversampling=o.oversampling)
+    check_run_options(o.seeing, o.wind, o.L0, o.band, o.seed, oversampling=o.oversampling, wfs_field=o.wfs_field)
     if o.tt_control not in (None, *TT_CONTROLS):
         raise InputError(f"--tt-control must be 'iir' or 'int', got '{o.tt_control}'")
     values = {
@@ -242,6 +255,7 @@ def loop_overrides(o: LoopOptions) -> dict:
         "run.band": o.band,
         "run.seed": o.seed,
         "run.oversampling": o.oversampling,
+        "run.wfs_field_arcsec": o.wfs_field,
         "detector.noise": False if o.no_noise else None,
         "vibrations.file": str(o.vibrations) if o.vibrations is not None and not o.no_vibrations else None,
         "vibrations.enabled": False if o.no_vibrations else None,

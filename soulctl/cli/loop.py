@@ -169,6 +169,7 @@ class RunOptions:
     no_vibrations: bool = NO_VIBRATIONS
     no_resonance: bool = NO_RESONANCE
     oversampling: int | None = common.OVERSAMPLING
+    wfs_field: float | None = common.WFS_FIELD
     misregistration: str | None = common.MISREGISTRATION
     ncpa: float | None = typer.Option(
         None,

@@ -23,8 +23,21 @@ from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC, CorrectionLevel, OpticalGainTable, optical_gains
 from ..optics.optical_gains import SCREENS as GAIN_SCREENS
 from ..optics.pwfs import PyramidConfig
-from ..ranges import BINNING, FRACTION, MODES, MODULATION_LAMBDA_OVER_D, OUTER_SCALE_M, OVERSAMPLING, SCREENS, SEED, SEEING_ARCSEC, WIND_M_S
-from .common import CACHE_DIR, CONFIG, NO_CACHE, array_cache, observation_option, quantity_table
+from ..ranges import (
+    BINNING,
+    FRACTION,
+    MODES,
+    MODULATION_LAMBDA_OVER_D,
+    OUTER_SCALE_M,
+    OVERSAMPLING,
+    SCREENS,
+    SEED,
+    SEEING_ARCSEC,
+    WFS_FIELD_OF_VIEW_ARCSEC,
+    WIND_M_S,
+)
+from ..run_config import read_run_config
+from .common import CACHE_DIR, CONFIG, NO_CACHE, WFS_FIELD, array_cache, observation_option, quantity_table
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -39,10 +52,17 @@ def table_modes(binning: int) -> int:
 
 
 def sensing_setup(
-    config: Path | None, mag: str | None, binning: int | None, modes: int | None, modulation: float | None, oversampling: int
+    config: Path | None,
+    mag: str | None,
+    binning: int | None,
+    modes: int | None,
+    modulation: float | None,
+    oversampling: int,
+    wfs_field: float | None = None,
 ) -> CalibrationSetup:
     """The calibration set-up from --config/--mag (the look-up table), overridden by explicit
-    --binning/--modes/--modulation; without either, binning 1 and the table's modes for it."""
+    --binning/--modes/--modulation; without either, binning 1 and the table's modes for it; the
+    field of view --wfs-field's, else --config's ``[run] wfs_field_arcsec``, else the runs' default."""
     obs = observation_option(config, mag)
     b = binning if binning is not None else (obs.binning if obs else 1)
     if b not in BINNINGS:
@@ -52,7 +72,12 @@ def sensing_setup(
     MODULATION_LAMBDA_OVER_D.check(r, "--modulation")
     MODES.check(n, "--modes")
     OVERSAMPLING.check(oversampling, "--oversampling")
-    return CalibrationSetup(PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling), n, BasisSetup())
+    field = wfs_field
+    if field is None:  # a run description's field, else the runs' default
+        field = read_run_config(config).wfs_field_arcsec if config is not None else defaults.WFS_FIELD_ARCSEC
+    WFS_FIELD_OF_VIEW_ARCSEC.check(field, "--wfs-field")
+    pyramid = PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling, field_of_view_arcsec=field)
+    return CalibrationSetup(pyramid, n, BasisSetup())
 
 
 _MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
@@ -155,6 +180,9 @@ def _calibration_dict(cal, cache: ArrayCache) -> dict:
         "modulation_points": c.points,
         "wfs_wavelength_nm": c.wavelength_m * 1e9,
         "pupil_pixels": c.pupil.n_pixels,
+        "wfs_field_arcsec": c.field_of_view_arcsec,
+        "field_stop_lambda_over_d": c.stop_lambda_over_d,
+        "sensing_pupil_pixels": c.sensing_pupil.n_pixels,
         "fft_size": c.fft_size,
         "frame_shape": list(c.frame_shape),
         "push_nm": cal.setup.push_nm,
@@ -173,6 +201,7 @@ def calibrate_cmd(
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
     oversampling: int = _OVERSAMPLING,
+    wfs_field: float | None = WFS_FIELD,
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = _JSON,
@@ -183,7 +212,7 @@ def calibrate_cmd(
 
     Example: soulctl optics calibrate --mag 13
     """
-    setup = sensing_setup(config, mag, binning, modes, modulation, oversampling)
+    setup = sensing_setup(config, mag, binning, modes, modulation, oversampling, wfs_field)
     cache = array_cache(no_cache, cache_dir)
     with nullcontext() if json_output else make_console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
         cal = calibrate(setup, cache)
@@ -196,7 +225,12 @@ def calibrate_cmd(
     t.add_row("valid sub-apertures / slopes", f"{d['valid_subapertures']} / {d['slopes']}")
     t.add_row("controlled modes", f"{d['modes']}")
     t.add_row("modulation", f"{d['modulation_lambda_over_d']:g} λ/D, {d['modulation_points']} points")
-    t.add_row("pupil / FFT / frame", f"{d['pupil_pixels']} / {d['fft_size']} / {d['frame_shape'][0]}x{d['frame_shape'][1]} px")
+    t.add_row("pupil / sensing pupil / FFT", f"{d['pupil_pixels']} / {d['sensing_pupil_pixels']} / {d['fft_size']} px")
+    t.add_row("detector frame", f"{d['frame_shape'][0]}x{d['frame_shape'][1]} px")
+    field = (
+        f'{d["wfs_field_arcsec"]:g}" (stop radius {d["field_stop_lambda_over_d"]:.1f} λ/D)' if d["wfs_field_arcsec"] else "sampled, no stop"
+    )
+    t.add_row("field of view", field)
     t.add_row("interaction matrix condition number", f"{d['condition_number']:.1f}")
     t.add_row("source", ("cache" if d["from_cache"] else "computed") + f" in {d['seconds']:.1f} s")
     if d["cache_file"]:
@@ -230,6 +264,7 @@ class OpticalGainsOptions:
     modes: int | None = _MODES
     modulation: float | None = _MODULATION
     oversampling: int = _OVERSAMPLING
+    wfs_field: float | None = WFS_FIELD
     screens: int = typer.Option(
         GAIN_SCREENS,
         "--screens",
@@ -257,7 +292,7 @@ def gains_cmd(o: OpticalGainsOptions) -> int:
     SEED.check(o.seed, "--seed")
     if o.out is not None:
         check_output_path(o.out, "--out", [("--config", o.config)])
-    setup = sensing_setup(o.config, o.mag, o.binning, o.modes, o.modulation, o.oversampling)
+    setup = sensing_setup(o.config, o.mag, o.binning, o.modes, o.modulation, o.oversampling, o.wfs_field)
     cache = array_cache(o.no_cache, o.cache_dir)
     status = f"optical gains of {setup.n_modes} modes on {o.screens} residual screens…"
     with nullcontext() if o.json_output else make_console(stderr=True).status(status):

@@ -306,6 +306,7 @@ class GainsOptions:
     no_vibrations: bool = NO_VIBRATIONS
     no_resonance: bool = NO_RESONANCE
     oversampling: int | None = common.OVERSAMPLING
+    wfs_field: float | None = common.WFS_FIELD
     out: Path | None = typer.Option(
         None, "--out", metavar="GAINS.toml", help="Write the optimised gains (one per mode; 'loop run --gains' reads it)."
     )

@@ -80,7 +80,7 @@ class SweepOptions:
         ...,
         metavar="GRID.toml",
         help="The grid: loop run parameters (magnitude, seeing, wind, L0, duration, binning, frame_rate, tt_control, "
-        "gain_method, band, seed, noise, vibrations, resonance, oversampling); a list is an axis.",
+        "gain_method, band, seed, noise, vibrations, resonance, oversampling, wfs_field); a list is an axis.",
     )
     scheduler: str | None = typer.Option(
         None,

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.gains import DEFAULT_FORGETTING, nominal_loop
@@ -194,9 +195,12 @@ def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> 
     before soulctl stored one) what its configuration attribute holds, which is checked in
     either case; ``observation``, when given, replaces the file's."""
     conf = tm.configuration()
+    # a soulctl record without the field ran the sampled one; another system's, SOUL's field
+    field = defaults.PREDATED_WFS_FIELD_ARCSEC if conf else defaults.WFS_FIELD_ARCSEC
     recorded = RunConfig(
         observation=observation or configuration_observation(conf, path),
         oversampling=configuration_member(conf, "oversampling", 2, path),
+        wfs_field_arcsec=configuration_member(conf, "field_of_view_arcsec", field, path),
         controller=ControllerSpec(forgetting=configuration_member(conf, "gains.forgetting", DEFAULT_FORGETTING, path)),
         structure=configuration_structure(conf, path),
     )

@@ -58,7 +58,7 @@ class RunRequest:
     ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
     calibration_noise: CalibrationNoise | None = None  # the loop's D measured at a finite flux; None: noiseless
     influence: str = DEFAULT_INFLUENCE  # the mirror's influence-function model (``optics.asm``)
-    field_of_view_arcsec: float = 0.0  # the pyramid's simulated field (``PyramidConfig``); 0: as sampled, no stop
+    field_of_view_arcsec: float = defaults.WFS_FIELD_ARCSEC  # the pyramid's simulated field (``PyramidConfig``); 0: as sampled, no stop
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -148,7 +148,7 @@ def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
         "seed": r.seed,
         "noise": r.noise,
         "oversampling": r.oversampling,
-        **({"field_of_view_arcsec": r.field_of_view_arcsec} if r.field_of_view_arcsec else {}),
+        "field_of_view_arcsec": r.field_of_view_arcsec,
         "gains": asdict(gains),
         "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
         "structure": asdict(r.structure) if r.structure else None,

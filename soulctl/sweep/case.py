@@ -33,6 +33,7 @@ DEFAULTS = {
     "vibrations": True,
     "resonance": True,
     "oversampling": defaults.OVERSAMPLING,
+    "wfs_field": defaults.WFS_FIELD_ARCSEC,
 }
 METRICS = ("strehl", "tt_jitter_mas", "residual_nm")
 DESCRIPTION_KEY = "_run_description"  # the row's resolved run description (TOML), written beside the results

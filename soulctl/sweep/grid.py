@@ -13,7 +13,8 @@ accepts): magnitude (R, the look-up table's range), seeing (arcsec), wind (m/s, 
 duration (s), binning (1-4; with it the look-up table's sub-apertures and modes for that
 binning), frame_rate (Hz; the Tip/Tilt IIR of the nearest tabulated rate, an integrator below
 750 Hz), tt_control (iir|int), gain_method (default|mgm|trial), band, seed, noise (bool),
-vibrations (bool), resonance (bool), oversampling (1-4).  Any other field of the run
+vibrations (bool), resonance (bool), oversampling (1-4), wfs_field (arcsec, 0-4; SOUL's 2.1 by
+default, 0: the sampled field without a stop).  Any other field of the run
 description (``soulctl.run_config``) is a parameter by its dotted name, e.g.
 ``"atmosphere.L0_m" = [20.0, 40.0]`` or ``"control.forgetting" = 1.0`` (a number, integer,
 boolean or text; checked as the run description checks it).  gain_method = "mgm": MGM with OGTL
@@ -87,6 +88,7 @@ PARAMETERS = {
     "vibrations": Parameter(bool),
     "resonance": Parameter(bool),
     "oversampling": Parameter(int, ranges.OVERSAMPLING),
+    "wfs_field": Parameter(float, ranges.WFS_FIELD_OF_VIEW_ARCSEC),
 }
 REQUIRED = ("magnitude",)
 # The parameters as fields of the run description (gain_method is the sweep's own).
@@ -102,6 +104,7 @@ FIELDS = {
     "band": "run.band",
     "seed": "run.seed",
     "oversampling": "run.oversampling",
+    "wfs_field": "run.wfs_field_arcsec",
     "noise": "detector.noise",
     "vibrations": "vibrations.enabled",
     "resonance": "structure.enabled",

@@ -7,7 +7,7 @@ output folder and the results file (with ``--resume``, its rows) and finds the c
 ``execute`` connects to the scheduler (or starts the local cluster), then creates the folder,
 takes its lock (``results.results_lock``: one sweep per folder) and runs the cases.
 
-Each distinct calibration (binning, modulation, modes, sampling) is one task, computed once
+Each distinct calibration (binning, modulation, modes, sampling, field of view) is one task, computed once
 and handed by Dask to the cases that need it (no shared file system needed).  Rows are
 appended by this process as the cases finish (``results.ResultsTable``): a worker that dies
 loses no row (Dask runs its task again elsewhere) and duplicates none (one row per case id).

@@ -51,6 +51,7 @@ from ..ranges import (
     SCHEMA_VERSION,
     SENSITIVITY,
     TELEMETRY_EVERY,
+    WFS_FIELD_OF_VIEW_ARCSEC,
     Range,
     number_text,
 )
@@ -185,6 +186,7 @@ RELATIONS = (
 CONFIGURATION_SCHEMA = {
     "observation": "an observation as `soulctl configure` writes it (JSON object); required unless --config or --mag",
     "oversampling": OVERSAMPLING,
+    "field_of_view_arcsec": WFS_FIELD_OF_VIEW_ARCSEC,  # absent: 0, written before SOUL's field was the default
     "gains.forgetting": FORGETTING,
     "structure": "null or {frequency_hz, damping, coupling} (soulctl.control.structure)",
 }

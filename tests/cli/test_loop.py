@@ -9,7 +9,7 @@ from soulctl.cli.app import main
 from soulctl.sweep.case import run_case
 from soulctl.telemetry.hdf5 import read_telemetry
 
-FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3"]
+FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.3"]
 
 
 def run(args, capsys, cache_dir):
@@ -79,7 +79,7 @@ def test_a_loop_lost_to_misregistration_exits_3_with_its_figures(tmp_path, capsy
 def test_a_sweep_case_lost_to_misregistration_is_diverged_with_its_figures(cache_dir):
     """The sweep's rule is `loop run`'s: status "diverged" with the reason, and the lost loop's
     figures kept (a Strehl-against-shift sweep keeps its curve)."""
-    case = {"magnitude": 16.5, "oversampling": 1, "duration": 0.3, "misregistration.shift_x_pitch": 2.0}
+    case = {"magnitude": 16.5, "oversampling": 1, "wfs_field": 0.0, "duration": 0.3, "misregistration.shift_x_pitch": 2.0}
     row = run_case(case, cache_dir=str(cache_dir))
     assert row["status"] == "diverged" and row["reason"].startswith("the loop is lost"), row
     assert 0 < row["strehl"] < 1 and row["residual_nm"] > 0
@@ -137,3 +137,19 @@ def test_gain_file_per_mode(tmp_path, capsys, cache_dir):
     short.write_text("gains = [0.3, 0.3, 0.2]\n")
     status, _, err = run([*FAINT, "--gains", str(short)], capsys, cache_dir)
     assert status == 2 and "3 gains but 90 modes" in err
+
+
+def test_the_default_pyramid_has_soul_s_field_of_view(capsys, cache_dir):
+    """SOUL's 2.1" WFS field is the default (``defaults.WFS_FIELD_ARCSEC``): the run records it, and
+    --wfs-field 0 (the sampled field, no stop) is another loop; out of range is one line."""
+    base = ["loop", "run", "--mag", "16.5", "--duration", "0.1", "--json"]
+    status, out, err = run(base, capsys, cache_dir)
+    assert status == 0, err
+    wide = json.loads(out)
+    assert wide["configuration"]["field_of_view_arcsec"] == 2.1 and wide["configuration"]["oversampling"] == 2
+    status, out, err = run([*base, "--wfs-field", "0"], capsys, cache_dir)
+    assert status == 0, err
+    sampled = json.loads(out)
+    assert sampled["configuration"]["field_of_view_arcsec"] == 0.0 and sampled["metrics"] != wide["metrics"]
+    status, out, err = run([*base, "--wfs-field", "4.5"], capsys, cache_dir)
+    assert status == 2 and out == "" and err.strip().splitlines() == ["soulctl: error: --wfs-field must be in 0..4 arcsec, got 4.5"]

@@ -7,8 +7,9 @@ import pytest
 
 from soulctl.cli.app import main
 from soulctl.optics.atmosphere import tilt_variance_rad2
+from soulctl.run_config import RunConfig
 
-SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1"]
+SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1", "--wfs-field", "0"]
 
 
 def run(args, capsys):
@@ -45,7 +46,9 @@ def test_calibrate_uses_and_fills_the_cache(tmp_path, capsys):
 
 
 def test_calibrate_from_the_look_up_table(cache_dir, capsys):
-    status, out, _ = run(["optics", "calibrate", "--mag", "16", "--oversampling", "1", "--cache-dir", str(cache_dir)], capsys)
+    status, out, _ = run(
+        ["optics", "calibrate", "--mag", "16", "--oversampling", "1", "--wfs-field", "0", "--cache-dir", str(cache_dir)], capsys
+    )
     assert status == 0
     assert "3 / 13" in out and "90" in out and "condition number" in out
 
@@ -75,7 +78,10 @@ def test_gains_table_csv_and_json(tmp_path, cache_dir, capsys):
         (["optics", "atmosphere", "--wind", "-2"], "--wind must be in 0..100"),
         (["optics", "calibrate", "--binning", "5"], "--binning must be one of 1, 2, 3, 4"),
         (["optics", "calibrate", "--binning", "4", "--modulation", "-1"], "--modulation must be in 0..20"),
-        (["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1"], "--modes must be in 2..671, got 700"),
+        (
+            ["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1", "--wfs-field", "0"],
+            "--modes must be in 2..671, got 700",
+        ),
         (["optics", "calibrate", "--binning", "4", "--oversampling", "9"], "--oversampling must be in 1..4, got 9"),
         (["optics", "calibrate", "--mag", "12", "--config", "x.toml"], "either --config or --mag"),
         (["optics", "gains", "--seeing", "0"], "seeing must be in 0.05..10"),
@@ -93,3 +99,23 @@ def test_gains_writes_nothing_on_bad_input(tmp_path, capsys):
     csv = tmp_path / "og.csv"
     status, _, _ = run(["optics", "gains", "--seeing", "-1", *SMALL, "--out", str(csv)], capsys)
     assert status == 2 and not csv.exists()
+
+
+def test_the_field_of_view_of_option_description_and_default(tmp_path, capsys, cache_dir):
+    """optics calibrate reads with the runs' pyramid: SOUL's 2.1" field by default (a stop of
+    55.8 lambda/D, a 120-pixel sensing pupil at o = 1: 3x), --config's [run] wfs_field_arcsec
+    when it has one, --wfs-field over both."""
+    base = ["optics", "calibrate", "--binning", "4", "--modes", "20", "--oversampling", "1", "--cache-dir", str(cache_dir), "--json"]
+    status, out, err = run(base, capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["wfs_field_arcsec"] == 2.1 and d["field_stop_lambda_over_d"] == pytest.approx(55.8, abs=0.05)
+    assert (d["pupil_pixels"], d["sensing_pupil_pixels"], d["fft_size"]) == (40, 120, 288)
+    description = tmp_path / "run.toml"
+    description.write_text(RunConfig().with_values({"star.magnitude_r": 16.5, "run.wfs_field_arcsec": 0.0}).to_toml())
+    status, out, err = run([*base, "--config", str(description)], capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["wfs_field_arcsec"] == 0.0 and d["sensing_pupil_pixels"] == d["pupil_pixels"] == 40 and d["fft_size"] == 96
+    status, out, err = run([*base, "--config", str(description), "--wfs-field", "1.5"], capsys)
+    assert status == 0 and json.loads(out)["wfs_field_arcsec"] == 1.5

@@ -26,7 +26,7 @@ from soulctl.telemetry.hdf5 import read_telemetry
 # the PWFS's linear range.  (At R17's own flux the loop is noise-dominated and OGTL's k ~ 4.6
 # amplifies the noise past the linear range; see docs/physics.md.)
 OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-SMALL = ["--oversampling", "1", "--seeing", "0.6"]
+SMALL = ["--oversampling", "1", "--wfs-field", "0", "--seeing", "0.6"]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -350,7 +350,7 @@ def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     checks the probe accepts it); without OGTL and on the coarser pupil, the run is not spent
     on OGTL's settling of up to 12 such periods, three times over."""
     period = default_period_s(observation_for_magnitude(18))  # 4.1 s at 160 Hz: 4 segments of 256 frames
-    args = ["optimize", "gains", "--mag", "18", "--no-ogtl", "--oversampling", "1", "--duration", f"{1.5 * period:g}"]
+    args = ["optimize", "gains", "--mag", "18", "--no-ogtl", "--oversampling", "1", "--wfs-field", "0", "--duration", f"{1.5 * period:g}"]
     status, out, err = cli([*args, "--measure", "0.3", "--json"], capsys, cache_dir)
     assert status == 0, err
     assert json.loads(out)["mgm_updates"] == 1
@@ -380,7 +380,20 @@ def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
     residual up by more than 5 %."""
     ratios = []
     for seed in (1, 2, 3):
-        args = ["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--seed", str(seed), "--gains", "0.05,0.05,0.05"]
+        args = [
+            "optimize",
+            "gains",
+            "--mag",
+            "16.5",
+            "--oversampling",
+            "1",
+            "--wfs-field",
+            "0",
+            "--seed",
+            str(seed),
+            "--gains",
+            "0.05,0.05,0.05",
+        ]
         args += ["--method", "mgm", "--no-ogtl", "--period", "1.1", "--duration", "3.3", "--measure", "0.3"]
         status = main([*args, "--json", "--cache-dir", str(cache_dir)])
         out, err = capsys.readouterr()
@@ -451,7 +464,15 @@ def test_a_sweep_case_whose_safety_net_could_not_recover_is_diverged(hopeless, c
     """The sweep's status "diverged" follows the same rule (a default case runs OGTL, and its
     safety net, when it lasts long enough)."""
     row = run_case(
-        {"magnitude": 17.0, "oversampling": 1, "seeing": 0.6, "duration": 6.0, "auxiliary.mgm": True, "auxiliary.period_s": 1.0},
+        {
+            "magnitude": 17.0,
+            "oversampling": 1,
+            "wfs_field": 0.0,
+            "seeing": 0.6,
+            "duration": 6.0,
+            "auxiliary.mgm": True,
+            "auxiliary.period_s": 1.0,
+        },
         cache_dir=str(cache_dir),
     )
     assert row["status"] == "diverged" and row["reason"].startswith("the safety net could not recover the loop (gave up at frame ")
@@ -463,7 +484,9 @@ def test_optimised_gains_that_leave_a_misregistered_loop_lost_exit_3(tmp_path, c
     gain file and exit 3 with the verdict in the JSON."""
     description = tmp_path / "moved.toml"
     status, out, err = cli(
-        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--misregistration", "2,0", "--print-config"], capsys, cache_dir
+        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--misregistration", "2,0", "--print-config"],
+        capsys,
+        cache_dir,
     )
     assert status == 0, err
     description.write_text(out)

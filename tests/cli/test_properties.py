@@ -87,6 +87,11 @@ def small(hi: float) -> st.SearchStrategy:
     return st.one_of(NUMBERS.filter(lambda t: not _in(t, 0.0, hi)), st.floats(min_value=0.0, max_value=hi).map(repr))
 
 
+# --wfs-field: anything but an accepted field above 0 (each a calibration of its own at a sensing
+# oversampling of 3 to 6, minutes at the limit); 0, the sampled field, is cheap
+FIELDS = NUMBERS.filter(lambda t: not _in(t, 0.0, 0.4))
+
+
 def _in(text: str, lo: float, hi: float) -> bool:
     try:
         v = float(text)
@@ -95,10 +100,24 @@ def _in(text: str, lo: float, hi: float) -> bool:
     return lo < v <= 10 * hi or v != v  # NaN is refused anyway, but keep "nan" in the other branch
 
 
-FAST_LOOP = ["--mag", "16.5", "--oversampling", "1", "--duration", "0.05"]
-OGTL_LOOP = ["--mag", "16.5", "--oversampling", "1", "--duration", "0.8", "--ogtl", "--period", "0.25"]
-OPTIMIZE = ["--mag", "16.5", "--oversampling", "1", "--no-ogtl", "--period", "1.1", "--duration", "1.1", "--measure", "0.1"]
-CHEAP_OPTICS = ["--binning", "4", "--oversampling", "1"]
+FAST_LOOP = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.05"]
+OGTL_LOOP = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.8", "--ogtl", "--period", "0.25"]
+OPTIMIZE = [
+    "--mag",
+    "16.5",
+    "--oversampling",
+    "1",
+    "--wfs-field",
+    "0",
+    "--no-ogtl",
+    "--period",
+    "1.1",
+    "--duration",
+    "1.1",
+    "--measure",
+    "0.1",
+]
+CHEAP_OPTICS = ["--binning", "4", "--oversampling", "1", "--wfs-field", "0"]
 
 # (command, base arguments, option, strategy, time limit in s)
 CASES = [
@@ -122,6 +141,7 @@ CASES = [
     ],
     *[("optics atmosphere", [], o, NUMBERS, 10) for o in ["--seeing", "--wind", "--L0"]],
     *[("optics calibrate", CHEAP_OPTICS, o, NUMBERS, 120) for o in ["--binning", "--modes", "--modulation", "--oversampling"]],
+    ("optics calibrate", CHEAP_OPTICS, "--wfs-field", FIELDS, 120),
     *[
         ("optics gains", [*CHEAP_OPTICS, "--screens", "1"], o, s, 120)
         for o, s in [
@@ -142,6 +162,7 @@ CASES = [
             ("--duration", small(0.1)),
             ("--seed", NUMBERS),
             ("--oversampling", NUMBERS),
+            ("--wfs-field", FIELDS),
             ("--gains", LISTS),
             ("--misregistration", LISTS),
             ("--ncpa", NUMBERS),
@@ -171,7 +192,7 @@ CASES = [
     ("rtc check", ["{gains}", "--mag", "16.5"], "--misregistration", REGISTRATIONS, 120),
     ("sweep", ["{grid}", "--out", "{out}", "--yes"], "--workers", NUMBERS, 180),
 ]
-GRID = "magnitude = 16.5\noversampling = 1\nduration = 0.05\n"
+GRID = "magnitude = 16.5\noversampling = 1\nwfs_field = 0\nduration = 0.05\n"
 
 
 class Timeout(Exception):

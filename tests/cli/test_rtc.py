@@ -120,7 +120,7 @@ def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, 
     from soulctl.loop.run import calibration_for
     from soulctl.optics.cache import ArrayCache
 
-    description = run_description(None, "16.5", {"run.oversampling": 1, **noise})
+    description = run_description(None, "16.5", {"run.oversampling": 1, "run.wfs_field_arcsec": 0.0, **noise})
     config, gains, table = tmp_path / "run.toml", tmp_path / "gains.toml", tmp_path / "chi.csv"
     config.write_text(description.to_toml())
     resolved = description.resolved()

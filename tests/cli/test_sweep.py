@@ -29,9 +29,9 @@ from soulctl.sweep.results import COLUMNS, ResultsTable, csv_line
 from soulctl.sweep.runner import run_sweep
 
 # 2 magnitudes x 2 seeings at 10x10 and 13x13 sub-apertures, 40-px pupil, 0.3 s each.
-GRID = "magnitude = [16.0, 17.0]\nseeing = [0.8, 1.2]\noversampling = 1\nduration = 0.3\nseed = 2\n"
+GRID = "magnitude = [16.0, 17.0]\nseeing = [0.8, 1.2]\noversampling = 1\nwfs_field = 0\nduration = 0.3\nseed = 2\n"
 # The smallest cases: 10x10 sub-apertures, 40-px pupil, 0.05 s.
-TINY = "magnitude = [16.6, 17.0, 17.5]\nbinning = 4\noversampling = 1\nduration = 0.05\n"
+TINY = "magnitude = [16.6, 17.0, 17.5]\nbinning = 4\noversampling = 1\nwfs_field = 0\nduration = 0.05\n"
 
 
 @pytest.fixture
@@ -67,6 +67,8 @@ def test_local_cluster_equals_loop_run_case_by_case_and_resume(grid, tmp_path, c
             f"{row['seeing']:g}",
             "--oversampling",
             "1",
+            "--wfs-field",
+            "0",
             "--duration",
             "0.3",
             "--seed",
@@ -107,7 +109,7 @@ def _worker_processes():
 
 
 def test_a_killed_worker_loses_and_duplicates_no_row(tmp_path, cache_dir):
-    cases = parse_grid({"magnitude": [16.0, 17.0, 17.5], "seeing": [0.8, 1.0], "oversampling": 1, "duration": 0.5})
+    cases = parse_grid({"magnitude": [16.0, 17.0, 17.5], "seeing": [0.8, 1.0], "oversampling": 1, "wfs_field": 0, "duration": 0.5})
     killed = []
 
     def kill_one(row, report):
@@ -453,7 +455,7 @@ def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path,
         assert b.startswith(a) and b[len(a) :].count(b"\n") == 1 and b.endswith(b"\n")
     final = results.read_text().splitlines()
     assert [ln.split(",")[0] for ln in final[1:]] == [
-        case_id(c) for c in parse_grid({"magnitude": [16.6, 17.0, 17.5], "binning": 4, "oversampling": 1, "duration": 0.05})
+        case_id(c) for c in parse_grid({"magnitude": [16.6, 17.0, 17.5], "binning": 4, "oversampling": 1, "wfs_field": 0, "duration": 0.05})
     ]
     # a crash in the middle of the last write: the file ends with part of a line
     results.write_text("\n".join(final[:-1]) + "\n" + final[-1][:50])
@@ -601,7 +603,7 @@ def test_a_run_description_field_is_a_grid_axis_by_its_dotted_name(tmp_path, cap
         description = tmp_path / "run.toml"
         description.write_text(
             f"[star]\nmagnitude_r = 17.0\n[wfs]\nbinning = 4\n[vibrations]\nscale = {row['vibrations.scale']}\n"
-            "[run]\noversampling = 1\nduration_s = 0.05\nseed = 3\n"
+            "[run]\noversampling = 1\nwfs_field_arcsec = 0\nduration_s = 0.05\nseed = 3\n"
         )
         status, out, err = cli(["loop", "run", "--config", str(description), "--json"], capsys, cache_dir)
         assert status == 0, err

@@ -36,7 +36,7 @@ OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0, 
 @pytest.fixture(scope="module")
 def setup(optics_cache):
     cal = calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 54), optics_cache)
-    request = OptimizeRequest(RunRequest(OBS, 0.8, seed=3, oversampling=1), "mgm", 1.0, 0.5, False, measure_s=0.2)
+    request = OptimizeRequest(RunRequest(OBS, 0.8, seed=3, oversampling=1, field_of_view_arcsec=0.0), "mgm", 1.0, 0.5, False, measure_s=0.2)
     design = default_gains(OBS, sampled_structure(request.run.structure, OBS.frame_rate_hz))
     return request, cal, design
 

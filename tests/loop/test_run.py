@@ -38,7 +38,7 @@ def test_request_limits():
     with pytest.raises(InputError, match="unknown band"):
         RunRequest(obs, band="L")
     with pytest.raises(InputError, match="too coarse for 500 modes: accepted up to 90"):
-        RunRequest(obs, oversampling=1)
+        RunRequest(obs, oversampling=1, field_of_view_arcsec=0.0)
     r = RunRequest(obs, duration_s=1.0)
     assert r.frames == 1700 and r.skip == 340
 
@@ -52,7 +52,9 @@ def test_a_run_longer_than_its_screens_says_the_turbulence_repeats(optics_cache,
     from soulctl.run_config import RunConfig
 
     obs = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-    base = RunConfig(observation=obs, oversampling=1).with_values({"atmosphere.wind_m_s": 100.0, "run.duration_s": 1.3})
+    base = RunConfig(observation=obs, oversampling=1, wfs_field_arcsec=0.0).with_values(
+        {"atmosphere.wind_m_s": 100.0, "run.duration_s": 1.3}
+    )
     grown = run(base.request(), optics_cache)
     assert not any("repeats" in n for n in grown.notes), grown.notes
     monkeypatch.setattr(atmosphere, "MAX_SCREEN_PIXELS", 512**2)
@@ -69,7 +71,9 @@ def test_the_thin_plate_mirror_reaches_the_loop(optics_cache):
     from soulctl.run_config import RunConfig
 
     obs = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-    config = RunConfig(observation=obs, oversampling=1, duration_s=0.05).with_values({"mirror.influence": "thin-plate"})
+    config = RunConfig(observation=obs, oversampling=1, duration_s=0.05, wfs_field_arcsec=0.0).with_values(
+        {"mirror.influence": "thin-plate"}
+    )
     request = dataclasses.replace(config.request(), registration=Misregistration(shift_x_pitch=0.2))
     cal = calibration_for(request, optics_cache)
     assert cal.basis.geometry.influence == "thin-plate"

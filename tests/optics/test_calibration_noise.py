@@ -20,7 +20,7 @@ from soulctl.optics.sensor import WavefrontSensor
 from soulctl.run_config import RunConfig
 
 OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-BASE = RunConfig(observation=OBS, duration_s=1.0, oversampling=1).with_values(
+BASE = RunConfig(observation=OBS, duration_s=1.0, oversampling=1, wfs_field_arcsec=0.0).with_values(
     {"atmosphere.seeing_arcsec": 0.6, "ncpa.rms_nm": 0.0}
 )  # the term alone
 

@@ -24,7 +24,7 @@ from soulctl.run_config import RunConfig
 # R11 flux on the 10x10 configuration (54 modes, 407 Hz), 40-px pupil, 0.6"
 FULL = 1.0  # the offsets applied in full (the default applies ``defaults.NCPA_OFFSET_FRACTION``)
 OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-BASE = RunConfig(observation=OBS, duration_s=1.0, oversampling=1).with_values({"atmosphere.seeing_arcsec": 0.6})
+BASE = RunConfig(observation=OBS, duration_s=1.0, oversampling=1, wfs_field_arcsec=0.0).with_values({"atmosphere.seeing_arcsec": 0.6})
 
 
 def test_the_aberration_is_the_instruments_own_draw_at_its_rms():

@@ -92,7 +92,7 @@ def _line(row):
         (lambda f: f.replace(",ok,", ",done,"), "line 2: status must be ok, diverged or failed, got 'done'"),
         (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,0.0,25.0,"), "line 2: wind must be in 0..100 m/s (> 0), got 0"),
         (lambda f: f.replace(",1.0,8.0,25.0,", ",1.0,9.0,25.0,"), "line 2: the row of case"),
-        (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 24 fields where the header has 23"),
+        (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 25 fields where the header has 24"),
         (lambda f: f.replace("case_id,", "case_id,band,", 1), "the column band appears more than once"),
         (lambda f: f.replace(",soulctl_version", ""), "lacks the columns soulctl_version"),
     ],

@@ -13,6 +13,7 @@ import pytest
 from astropy.io import fits
 
 from soulctl.cli.app import main
+from soulctl.loop.offline import recorded_run
 from soulctl.observation import observation_for_magnitude
 from soulctl.telemetry.formats import open_telemetry, read_record, write_record
 
@@ -33,7 +34,7 @@ def recorded(tmp_path_factory, optics_cache):
     config = root / "small.toml"
     OBS.write_toml(config)
     h5 = root / "loop.h5"
-    argv = ["loop", "run", "--config", config, "--oversampling", "1", "--seeing", "0.6", "--duration", "1.2", "--json"]
+    argv = ["loop", "run", "--config", config, "--oversampling", "1", "--wfs-field", "0", "--seeing", "0.6", "--duration", "1.2", "--json"]
     argv += ["--telemetry", h5, "--telemetry-fields", "all", "--cache-dir", optics_cache.directory]
     assert main([str(a) for a in argv]) == 0
     fits_path, folder = root / "loop.fits", root / "Data_20261126_120000"
@@ -132,7 +133,10 @@ def test_soulctl_reads_aot_files_built_with_aotpy(kind, tmp_path, capsys, record
     status, out, err = run(["telemetry", "psd", path, "--modes", "1,2,5", "--pseudo-open-loop", "--json"], capsys)
     assert status == 0, err
     assert set(json.loads(out)["psd_nm2_per_hz"]) == {"measured_modes", "command_modes", "pseudo_open_loop"}
-    # offline MGM on a foreign record: the observation from --config (modes, rate and delay agree)
+    # offline MGM on a foreign record: the observation from --config (modes, rate and delay agree),
+    # the pyramid SOUL's 2.1" field (a soulctl record without the field ran the sampled one, 0)
+    with open_telemetry(path) as tm:
+        assert recorded_run(tm, OBS, path).wfs_field_arcsec == 2.1
     status, out, err = _offline(path, recorded, capsys, "--config", recorded["config"])
     assert status == 0 and len(json.loads(out)["gains"]) == OBS.modes, err
 
@@ -226,7 +230,20 @@ def test_writing_a_record_refuses_an_existing_folder(tmp_path, recorded):
 
 
 def test_loop_run_writes_each_format_by_its_name(tmp_path, capsys, optics_cache):
-    small = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--duration", "0.3", "--cache-dir", optics_cache.directory]
+    small = [
+        "loop",
+        "run",
+        "--mag",
+        "16.5",
+        "--oversampling",
+        "1",
+        "--wfs-field",
+        "0",
+        "--duration",
+        "0.3",
+        "--cache-dir",
+        optics_cache.directory,
+    ]
     for target in (tmp_path / "run.fits", tmp_path / "Data_20261126_000001"):
         status, first, err = run([*small, "--telemetry", target, "--json"], capsys)
         assert status == 0, err

@@ -23,7 +23,7 @@ from soulctl.telemetry.recorder import MemorySink, ModalMoments, Ring, Series
 from soulctl.telemetry.schema import DEFAULT_FIELDS, TelemetryReader
 
 OBS = observation_for_magnitude(16.5)  # 90 modes, 250 Hz, 288 slopes: a fast loop
-SMALL = ["--mag", "16.5", "--oversampling", "1"]
+SMALL = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"]
 
 
 class Reader(AuxLoop):
@@ -37,7 +37,7 @@ class Reader(AuxLoop):
 
 @pytest.fixture(scope="module")
 def calibration(optics_cache):
-    return calibration_for(RunRequest(OBS, oversampling=1), optics_cache)
+    return calibration_for(RunRequest(OBS, oversampling=1, field_of_view_arcsec=0.0), optics_cache)
 
 
 def test_ring_series_and_moments_hold_what_numpy_computes():
