@@ -2,8 +2,11 @@
 ``CONFIRM_ABOVE_S``).
 
 A case costs ``CASE_FIXED_S`` (set-up, metrics) plus its frames times ``FRAME_MS`` of its
-binning and oversampling; each distinct calibration costs ``CALIBRATION_S`` once (less when
-the cache holds it).  Frames: ``duration`` x the frame rate for a plain run; for
+binning, oversampling and the pyramid's sensing oversampling (the oversampling, or the finer
+one its field of view needs: 3 for SOUL's 2.1"); each distinct calibration costs
+``CALIBRATION_S`` once (less when the cache holds it).  A sensing oversampling not measured
+(fields above 2.26") is costed as a loop at that oversampling, scaled by the FFT's area above 4.
+Frames: ``duration`` x the frame rate for a plain run; for
 ``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
 settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after) and the paired evaluation (two loops, each closed,
@@ -14,7 +17,8 @@ measured for ``duration``); for ``trial`` the closing, the settling, twice
 
 FRAME_MS, CASE_FIXED_S and CALIBRATION_S are CPU times measured by
 ``bench/bench_frame_cost.py`` (bench/results/frame_cost.json: one thread of the 2-core
-development machine, default conditions); a faster machine takes less, a busy one more.
+development machine, default conditions; the field of view's ratio from
+frame_cost_wfs_field.json); a faster machine takes less, a busy one more.
 The wall time divides the CPU time by the workers and by ``PARALLEL_EFFICIENCY`` for more than
 one (the local cluster measured 1.64x on 2 workers: bench/results/sweep.json).
 """
@@ -29,30 +33,59 @@ from ..control.gains import gain_groups
 from ..errors import InputError
 from ..loop.optimize import OGTL_SETTLING_PERIODS, OPTIMISER_OGTL, TRIAL_VALUES, default_sequence_s, evaluation_settle_s
 from ..loop.run import closing_frames
+from ..optics.pwfs import PyramidConfig
 from .case import DEFAULTS, observation_for, optimisation_period_s
 
-SOURCE = "bench/results/frame_cost.json (bench/bench_frame_cost.py)"
-# (binning, oversampling): (CPU ms per frame, CPU s per case, CPU s per calibration, cold), measured
-# by bench/bench_frame_cost.py (bench/results/frame_cost.json: the thin-plate mirror); oversampling 1 only up to 90 modes.
+SOURCE = "bench/results/frame_cost.json and frame_cost_wfs_field.json (bench/bench_frame_cost.py)"
+# (binning, oversampling, sensing oversampling): (CPU ms per frame, CPU s per case, CPU s per
+# calibration, cold), measured by bench/bench_frame_cost.py on one thread (the thin-plate
+# mirror): the sampled field's (o, o) on an idle machine (frame_cost.json); SOUL's 2.1" field's
+# (o, 3) as those times the ratio 2.1"/0" the bench measured side by side in one run with the
+# other core busy (frame_cost_wfs_field.json: 2.0-2.5x per frame at o = 2, 6x at o = 1; at o >= 3
+# the field needs no finer pupil and the two agree within the run's +-10 %).  Oversampling 1
+# only up to 90 modes.
 _MEASURED = {
-    (3, 1): (2.9, 0.24, 2.7),
-    (4, 1): (2.5, 0.25, 2.2),
-    (1, 2): (8.8, 0.92, 7.9),
-    (2, 2): (7.0, 0.95, 4.0),
-    (3, 2): (7.0, 0.9, 3.2),
-    (4, 2): (7.3, 0.81, 2.8),
-    (1, 3): (17.0, 3.2, 16.0),
-    (2, 3): (15.0, 2.9, 7.4),
-    (3, 3): (15.0, 3.2, 3.9),
-    (4, 3): (14.0, 3.3, 2.9),
-    (1, 4): (25.0, 5.3, 25.0),
-    (2, 4): (23.0, 5.3, 13.0),
-    (3, 4): (23.0, 5.0, 6.0),
-    (4, 4): (27.0, 4.6, 4.2),
+    (3, 1, 1): (2.9, 0.24, 2.7),
+    (4, 1, 1): (2.5, 0.25, 2.2),
+    (1, 2, 2): (8.8, 0.92, 7.9),
+    (2, 2, 2): (7.0, 0.95, 4.0),
+    (3, 2, 2): (7.0, 0.9, 3.2),
+    (4, 2, 2): (7.3, 0.81, 2.8),
+    (1, 3, 3): (17.0, 3.2, 16.0),
+    (2, 3, 3): (15.0, 2.9, 7.4),
+    (3, 3, 3): (15.0, 3.2, 3.9),
+    (4, 3, 3): (14.0, 3.3, 2.9),
+    (1, 4, 4): (25.0, 5.3, 25.0),
+    (2, 4, 4): (23.0, 5.3, 13.0),
+    (3, 4, 4): (23.0, 5.0, 6.0),
+    (4, 4, 4): (27.0, 4.6, 4.2),
+    (3, 1, 3): (17.7, 0.33, 6.0),
+    (4, 1, 3): (14.9, 0.49, 3.8),
+    (1, 2, 3): (17.7, 0.91, 15.9),
+    (2, 2, 3): (16.0, 0.94, 7.6),
+    (3, 2, 3): (17.6, 0.99, 5.5),
+    (4, 2, 3): (17.5, 0.68, 3.8),
 }
 FRAME_MS = {k: v[0] for k, v in _MEASURED.items()}
 CASE_FIXED_S = {k: v[1] for k, v in _MEASURED.items()}
 CALIBRATION_S = {k: v[2] for k, v in _MEASURED.items()}
+MEASURED_OVERSAMPLING = 4  # the finest the bench measures
+
+
+def measured_cost(table: dict, binning: int, oversampling: int, sensing: int) -> float | None:
+    """``table``'s cost for a binning, oversampling and sensing oversampling: measured, else a
+    loop at the sensing oversampling (at most the measured 4, the FFT's area scaled above it);
+    None when the loop's own sampling is not measured (a case refused at once: o = 1 above 90
+    modes)."""
+    if (binning, oversampling, sensing) in table:
+        return table[binning, oversampling, sensing]
+    if (binning, oversampling, oversampling) not in table:
+        return None
+    top = min(sensing, MEASURED_OVERSAMPLING)
+    base = table.get((binning, top, top))
+    return None if base is None else base * (sensing / top) ** 2
+
+
 PARALLEL_EFFICIENCY = 0.82  # bench/results/sweep.json: speed-up 1.64 on 2 workers
 CONFIRM_ABOVE_S = 3600.0  # estimated CPU time above which a terminal is asked before the sweep starts
 
@@ -122,8 +155,12 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
     """(frames, CPU seconds, calibration key) of one case."""
     p = {**DEFAULTS, **case}
     obs = _observation(case["magnitude"], case.get("binning"), case.get("frame_rate"), case.get("tt_control"))
-    key = (obs.binning, p["oversampling"]) if obs is not None else None
-    if obs is None or key not in FRAME_MS:
+    sensing = (
+        _sensing_oversampling(obs.binning, obs.modulation_lambda_over_d, p["oversampling"], p["wfs_field"]) if obs is not None else None
+    )
+    key = (obs.binning, p["oversampling"], sensing) if obs is not None and sensing is not None else None
+    frame_ms = measured_cost(FRAME_MS, *key) if key is not None else None
+    if obs is None or key is None or frame_ms is None:
         return 0, 0.0, None
     rate = obs.frame_rate_hz
     n = max(1, round(p["duration"] * rate))
@@ -137,7 +174,18 @@ def case_cost(case: dict) -> tuple[int, float, tuple | None]:
         else:
             scan = (len(gain_groups(obs.modes)) * (TRIAL_VALUES + 1) + 1) * max(1, round(default_sequence_s(obs) * rate))
             n = n_close + OGTL_SETTLING_PERIODS * period + 2 * n + scan + evaluation
-    return n, CASE_FIXED_S[key] + n * FRAME_MS[key] / 1e3, (obs.binning, obs.modes, obs.modulation_lambda_over_d, p["oversampling"])
+    fixed = measured_cost(CASE_FIXED_S, *key) or 0.0
+    return n, fixed + n * frame_ms / 1e3, (*key, obs.modes, obs.modulation_lambda_over_d, p["wfs_field"])
+
+
+@lru_cache(maxsize=4096)
+def _sensing_oversampling(binning: int, modulation: float, oversampling: int, field: float) -> int | None:
+    """The pyramid's sensing oversampling for a case (None: the configuration is refused)."""
+    try:
+        config = PyramidConfig(binning, modulation, oversampling=oversampling, field_of_view_arcsec=field)
+    except InputError:
+        return None
+    return config.sensing_oversampling
 
 
 def estimate(cases, workers: int | None) -> Estimate:
@@ -149,7 +197,7 @@ def estimate(cases, workers: int | None) -> Estimate:
         cpu += seconds
         if setup is not None and setup not in setups:
             setups.add(setup)
-            cpu += CALIBRATION_S[(setup[0], setup[3])]
+            cpu += measured_cost(CALIBRATION_S, *setup[:3]) or 0.0
     return Estimate(len(cases), frames, len(setups), cpu, workers)
 
 
