@@ -204,9 +204,9 @@ def live_phases(point) -> tuple[OptimizeResult, dict | None]:
     return result, None
 
 
-def run_path(mag: float, seeing: float, seed: int, variant: str) -> dict:
+def run_path(mag: float, seeing: float, seed: int, variant: str, wfs_field: float) -> dict:
     """The run's live phases at the point, its path per STEP_S and the net's restores."""
-    point = point_loops(mag, seeing, seed, variant)
+    point = point_loops(mag, seeing, seed, variant, wfs_field=wfs_field)
     request, loop = point.request, point.session.loop
     rate = request.run.observation.frame_rate_hz
     weak, singular = weak_directions(point.cal.interaction_matrix)
@@ -236,8 +236,9 @@ def line(row: dict) -> str:
 def main() -> None:
     p = point_arguments(__doc__)
     a = p.parse_args()
-    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "code": code_fingerprint(), "machine": machine()}
-    out |= run_path(a.mag, a.seeing, a.seed, a.variant)
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "wfs_field_arcsec": a.wfs_field}
+    out |= {"code": code_fingerprint(), "machine": machine()}
+    out |= run_path(a.mag, a.seeing, a.seed, a.variant, a.wfs_field)
     for row in out["path"]:
         print(line(row), flush=True)
     print(f"restores at {out['restores_s']} s; diverged {out['diverged']}")

@@ -14,7 +14,8 @@ Run:  python validation/faint_cases.py [--seeds 1,2,3] [--transient-s 60] [--ogt
 ``--vibrations`` replaces the default Tip/Tilt vibrations of the two paper cases (e.g. the
 on-sky level, ``lbt-onsky``: whether MGM, as on sky, brings those loops to the paper's range).
 ``--wfs-field`` gives the two paper cases' pyramid that field of view (``[run] wfs_field_arcsec``;
-2.1: SOUL's) and writes ``faint_cases_wfs_field_<ARCSEC>.json``.
+SOUL's 2.1, the default since it became the run's; 0: the sampled field, which
+``faint_cases.json`` holds, from before) and writes ``faint_cases_wfs_field_<ARCSEC>.json``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from soulctl import tables
+from soulctl import defaults, tables
 from soulctl.cli.common import default_cache_dir
 from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.files import atomic_write_text
@@ -68,7 +69,14 @@ def r165_observation():
 
 
 def paper_case(
-    label: str, obs, atmosphere: AtmosphereSpec, band: str, seeds, cache, vibrations: str | None = None, wfs_field: float = 0.0
+    label: str,
+    obs,
+    atmosphere: AtmosphereSpec,
+    band: str,
+    seeds,
+    cache,
+    vibrations: str | None = None,
+    wfs_field: float = defaults.WFS_FIELD_ARCSEC,
 ) -> dict:
     rows = []
     lines = {} if vibrations is None else {"vibrations": VibrationSpectrum.read(vibrations)}
@@ -158,11 +166,16 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=RESULTS / "faint_cases.json")
     p.add_argument("--only", default=None, help="comma list of R13, R16.5, ogtl, transient (default: all)")
     p.add_argument("--vibrations", default=None, help="the paper cases' vibrations: lbt, lbt-onsky or a file (default: the default)")
-    p.add_argument("--wfs-field", type=float, default=0.0, help="the paper cases' WFS field of view, arcsec (0: the sampled field)")
+    p.add_argument(
+        "--wfs-field",
+        type=float,
+        default=defaults.WFS_FIELD_ARCSEC,
+        help="the paper cases' WFS field of view, arcsec (0: the sampled field)",
+    )
     a = p.parse_args()
     if a.vibrations is not None and a.out == RESULTS / "faint_cases.json":  # not over the default level's results
         a.out = RESULTS / f"faint_cases_vibrations_{Path(a.vibrations).stem}.json"
-    if a.wfs_field and a.out == RESULTS / "faint_cases.json":
+    if a.out == RESULTS / "faint_cases.json":  # that file holds the sampled field's results
         a.out = RESULTS / f"faint_cases_wfs_field_{a.wfs_field:g}.json"
     cache = ArrayCache(default_cache_dir())
     seeds = [int(s) for s in a.seeds.split(",")]

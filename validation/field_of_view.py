@@ -73,11 +73,11 @@ def widen(oversampling: int, stop: float) -> None:
 
 
 def main() -> None:
-    p = point_arguments(__doc__)
+    p = point_arguments(__doc__, wfs_field=0.0)  # the loops' pyramid widened from the sampled one
     p.add_argument("--oversampling", type=int, default=4)
     a = p.parse_args()
     widen(a.oversampling, FIELD_STOP)
-    row = run_case(a.mag, a.seeing, a.seed, a.variant, str(default_cache_dir()))
+    row = run_case(a.mag, a.seeing, a.seed, a.variant, str(default_cache_dir()), wfs_field=a.wfs_field)
     sensor = {"oversampling": a.oversampling, "field_stop_lambda_over_d": FIELD_STOP}
     row |= {"code": code_fingerprint(), "machine": machine(), "sensor": sensor}
     w = row.get("windows") or {}

@@ -128,7 +128,7 @@ def main() -> None:
     p.add_argument("--windows", type=int, default=WINDOWS)
     a = p.parse_args()
     launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
-    request = point_request(a.mag, a.seeing, a.seed, a.variant, a.windows, influence=a.influence)
+    request = point_request(a.mag, a.seeing, a.seed, a.variant, a.windows, influence=a.influence, wfs_field=a.wfs_field)
     windows = request.windows
     cache = ArrayCache(default_cache_dir())
     calls = []

@@ -18,6 +18,10 @@ windows carry the one 0.5 s window as "before"/"after" and the windows apart):
 * MGM's Strehl after >= trial-and-error's - 0.01 (same magnitude, seeing, seed and OGTL: the
   same screens, ``session_seconds``).
 
+The pyramid has the runs' default field of view, SOUL's 2.1" (``defaults.WFS_FIELD_ARCSEC``;
+the rows of the codes before it became the default, up to a442873e85c5, ran the sampled field
+and make another table).
+
 The variants of one magnitude, seeing and seed run one after the other in one worker, those
 with the same OGTL setting sharing their *before* evaluation (``SharedEvaluations``).  Rows are
 appended to a JSON-lines file as points finish (a stopped run keeps what it did and is resumed
@@ -59,6 +63,7 @@ from rich.console import Console
 from rich.table import Table
 
 import soulctl
+from soulctl import defaults
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import default_gains, gain_groups
 from soulctl.control.structure import sampled_structure
@@ -119,11 +124,17 @@ def _cpuinfo() -> list[str]:
         return []
 
 
-def _run(obs, seeing: float, seed: int, influence: str = DEFAULT_INFLUENCE):
+def _run(obs, seeing: float, seed: int, influence: str = DEFAULT_INFLUENCE, wfs_field: float = defaults.WFS_FIELD_ARCSEC):
     """The run of a point: the look-up table's observation, defaults elsewhere (the mirror's
-    influence functions as asked: the grid ran on the Gaussian mirror, the default then)."""
+    influence functions and the pyramid's field of view as asked: the grid ran on the Gaussian
+    mirror and the sampled field, the defaults then)."""
     return RunConfig(
-        observation=obs, atmosphere=AtmosphereSpec(seeing_arcsec=seeing), seed=seed, ncpa=NcpaSpec(), influence=influence
+        observation=obs,
+        atmosphere=AtmosphereSpec(seeing_arcsec=seeing),
+        seed=seed,
+        ncpa=NcpaSpec(),
+        influence=influence,
+        wfs_field_arcsec=wfs_field,
     ).request()  # no NCPA, as the grid's first rows
 
 
@@ -143,14 +154,19 @@ def paired_windows(r) -> dict | None:
     }
 
 
-def point_arguments(doc: str, mag: float = 11.9, seeing: float = 1.5, seed: int = 3) -> argparse.ArgumentParser:
+def point_arguments(
+    doc: str, mag: float = 11.9, seeing: float = 1.5, seed: int = 3, wfs_field: float = defaults.WFS_FIELD_ARCSEC
+) -> argparse.ArgumentParser:
     """The command line of a script about one grid point (--mag, --seeing, --seed, --variant,
-    --out), its defaults the point asked about; the script adds its own options."""
+    --wfs-field, --out), its defaults the point asked about; the script adds its own options.
+    Results recorded before SOUL's 2.1" field was the runs' default are reproduced with
+    --wfs-field 0."""
     p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--mag", type=float, default=mag)
     p.add_argument("--seeing", type=float, default=seeing)
     p.add_argument("--seed", type=int, default=seed)
     p.add_argument("--variant", default="mgm+ogtl")
+    p.add_argument("--wfs-field", type=float, default=wfs_field, help="the pyramid's field of view, arcsec (0: the sampled field)")
     p.add_argument("--out", type=Path, default=None)
     return p
 
@@ -176,6 +192,7 @@ def point_request(
     window_s: float = WINDOW_S,
     influence: str = DEFAULT_INFLUENCE,
     modulation: float | None = None,
+    wfs_field: float = defaults.WFS_FIELD_ARCSEC,
 ) -> OptimizeRequest:
     """The `optimize gains` request of a grid point: the look-up table's observation (its
     modulation replaced by ``modulation`` lambda/D if given, for diagnostics), MGM for
@@ -186,7 +203,7 @@ def point_request(
         obs = replace(obs, modulation_lambda_over_d=modulation)
     duration = DURATION_PERIODS * default_period_s(obs)
     return OptimizeRequest(
-        _run(obs, seeing, seed, influence),
+        _run(obs, seeing, seed, influence, wfs_field),
         method,
         duration,
         None,
@@ -209,9 +226,16 @@ class PointLoops(NamedTuple):
     session: object
 
 
-def point_loops(mag: float, seeing: float, seed: int, variant: str = "mgm+ogtl", modulation: float | None = None) -> PointLoops:
+def point_loops(
+    mag: float,
+    seeing: float,
+    seed: int,
+    variant: str = "mgm+ogtl",
+    modulation: float | None = None,
+    wfs_field: float = defaults.WFS_FIELD_ARCSEC,
+) -> PointLoops:
     """``PointLoops`` of a grid point (``point_request``), MGM's plant with OGTL's chi."""
-    request = point_request(mag, seeing, seed, variant, modulation=modulation)
+    request = point_request(mag, seeing, seed, variant, modulation=modulation, wfs_field=wfs_field)
     r = request.run
     cache = ArrayCache(str(default_cache_dir()))
     cal = calibration_for(r, cache)
@@ -229,10 +253,11 @@ def run_case(
     windows: int = WINDOWS,
     window_s: float = WINDOW_S,
     influence: str = DEFAULT_INFLUENCE,
+    wfs_field: float = defaults.WFS_FIELD_ARCSEC,
 ) -> dict:
     """One `optimize gains` point; the row of the results."""
     t0 = time.perf_counter()
-    request = point_request(mag, seeing, seed, variant, windows, window_s, influence)
+    request = point_request(mag, seeing, seed, variant, windows, window_s, influence, wfs_field=wfs_field)
     cache = ArrayCache(cache_dir)
     r = optimize(request, cache)
     records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
@@ -242,6 +267,7 @@ def run_case(
         "seed": seed,
         "variant": variant,
         "influence": influence,
+        "wfs_field_arcsec": wfs_field,
         "period_s": request.period_s,
         "diverged_at": r.diverged_at,
         "diverged_in": r.diverged_in,

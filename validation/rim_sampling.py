@@ -143,11 +143,11 @@ def line(row: dict) -> str:
 
 
 def main() -> None:
-    p = point_arguments(__doc__)
+    p = point_arguments(__doc__, wfs_field=0.0)  # the loop's pyramid against SOUL's field: the sampled one
     p.add_argument("--times", default="11.6,12.4,13.2,14.0,16.0,20.0", help="seconds, comma-separated")
     p.add_argument("--snapshots", type=Path, default=None, help="the snapshots (.npz): read from it if it exists, else written to it")
     a = p.parse_args()
-    point = point_loops(a.mag, a.seeing, a.seed, a.variant)
+    point = point_loops(a.mag, a.seeing, a.seed, a.variant, wfs_field=a.wfs_field)
     diverged: dict | str | None = "not known: the snapshots were read from a file"
     if a.snapshots and a.snapshots.exists():
         with np.load(a.snapshots) as f:
