@@ -196,6 +196,11 @@ def _header(fields: list[str], where: str) -> tuple[str, ...]:
     if dup:
         raise InputError(f"{where}: the column {', '.join(dup)} appears more than once")
     missing = [c for c in COLUMNS if c not in fields]
+    if "wfs_field" in missing and "oversampling" in fields:
+        raise InputError(
+            f"{where} lacks the column wfs_field: it was written before SOUL's 2.1\" field of view became the default and "
+            "its rows ran the sampled field, which the grid's cases no longer are: choose another --out"
+        )
     if missing:
         raise InputError(
             f"{where} lacks the columns {', '.join(missing)} of a soulctl results file "

@@ -95,6 +95,7 @@ def _line(row):
         (lambda f: f.replace(",ok,", ",ok,,extra"), "line 2: 25 fields where the header has 24"),
         (lambda f: f.replace("case_id,", "case_id,band,", 1), "the column band appears more than once"),
         (lambda f: f.replace(",soulctl_version", ""), "lacks the columns soulctl_version"),
+        (lambda f: f.replace(",wfs_field", ""), "lacks the column wfs_field: it was written before SOUL's 2.1"),
     ],
 )
 def test_edited_rows_are_refused_naming_the_line(tmp_path, edit, message):
