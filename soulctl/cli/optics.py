@@ -314,7 +314,8 @@ def _render_gains(table: OpticalGainTable, setup: CalibrationSetup, seeing: floa
     g = table.gains
     t = Table(
         title=f'Optical gains at seeing {seeing:g}" (residual {table.residual_nm:.0f} nm RMS), '
-        f"binning {setup.pyramid.binning}, modulation {setup.pyramid.modulation_lambda_over_d:g} λ/D",
+        f"binning {setup.pyramid.binning}, modulation {setup.pyramid.modulation_lambda_over_d:g} λ/D, "
+        + (f'field {table.wfs_field_arcsec:g}"' if table.wfs_field_arcsec else "sampled field"),
         title_justify="left",
     )
     t.add_column("modes")

@@ -71,6 +71,8 @@ class OpticalGainTable:
     n_screens: int
     seed: int
     residual_nm: float  # mean RMS of the residual screens on the pupil
+    oversampling: int = 2  # the pyramid's: a table applies to a sensor of the same sampling and field
+    wfs_field_arcsec: float = 0.0
 
     def to_csv(self) -> str:
         head = [
@@ -79,6 +81,7 @@ class OpticalGainTable:
             f"controlled_fraction = {self.level.controlled_fraction}",
             f"# binning = {self.binning}, modulation_lambda_over_d = {self.modulation_lambda_over_d}, "
             f"modes = {len(self.gains)}, screens = {self.n_screens}, seed = {self.seed}, residual_nm = {self.residual_nm:.1f}",
+            f"# oversampling = {self.oversampling}, wfs_field_arcsec = {self.wfs_field_arcsec}",
             "mode,optical_gain,spread",
         ]
         rows = [f"{i + 1},{g:.5f},{s:.5f}" for i, (g, s) in enumerate(zip(self.gains, self.spread))]
@@ -92,6 +95,8 @@ class OpticalGainTable:
             "level": asdict(self.level),
             "binning": self.binning,
             "modulation_lambda_over_d": self.modulation_lambda_over_d,
+            "oversampling": self.oversampling,
+            "wfs_field_arcsec": self.wfs_field_arcsec,
             "n_screens": self.n_screens,
             "seed": self.seed,
             "residual_nm": self.residual_nm,
@@ -147,6 +152,8 @@ def optical_gains(calibration: Calibration, level: CorrectionLevel, n_screens: i
         n_screens=n_screens,
         seed=seed,
         residual_nm=rms,
+        oversampling=config.oversampling,
+        wfs_field_arcsec=config.field_of_view_arcsec,
     )
 
 

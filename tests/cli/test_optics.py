@@ -58,10 +58,11 @@ def test_gains_table_csv_and_json(tmp_path, cache_dir, capsys):
     args = ["optics", "gains", "--seeing", "0.8", *SMALL, "--screens", "1", "--cache-dir", str(cache_dir)]
     status, out, _ = run([*args, "--out", str(csv)], capsys)
     assert status == 0 and "Optical gains" in out and "1..2" in out
-    assert csv.read_text().count("\n") == 4 + 20
+    assert csv.read_text().count("\n") == 5 + 20 and "# oversampling = 1, wfs_field_arcsec = 0.0\n" in csv.read_text()
     status, out, _ = run([*args, "--json"], capsys)
     d = json.loads(out)
     assert len(d["optical_gains"]) == 20 and d["level"]["seeing_arcsec"] == 0.8
+    assert (d["oversampling"], d["wfs_field_arcsec"]) == (1, 0.0)  # the sensor the table belongs to
     assert np.all(np.array(d["optical_gains"]) <= 1.0)
     status, out, _ = run([*args, "--json", "--seed", "2"], capsys)
     assert json.loads(out)["optical_gains"] != d["optical_gains"]  # the seed matters
