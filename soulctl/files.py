@@ -93,7 +93,11 @@ def read_input_text(path: str | Path, what: str, max_bytes: int = MAX_TEXT_BYTES
 def read_toml(path: str | Path, what: str) -> dict:
     """A TOML file as a dict; a missing, unreadable, oversized or invalid file is an
     InputError naming ``what`` (e.g. "configuration file") and the path."""
-    text = read_input_text(path, what)
+    return parse_toml(read_input_text(path, what), path, what)
+
+
+def parse_toml(text: str, path: str | Path, what: str) -> dict:
+    """``text``, read from ``path``, as a dict; invalid TOML is an InputError naming ``what``."""
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

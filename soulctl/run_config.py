@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -328,18 +327,22 @@ def read_run_config(path: str | Path) -> RunConfig:
     if path.suffix.lower() in (".h5", ".hdf5", ".fits", ".fit", ".fts") or path.is_dir():
         from .telemetry.formats import stored_run_description
 
-        return RunConfig.from_dict(stored_run_description(path), f"telemetry file {path}")
-    from .files import read_input_text
-    from .telemetry.hdf5 import predated_field
+        return RunConfig.from_dict(stored(stored_run_description(path)), f"telemetry file {path}")
+    from .files import parse_toml, read_input_text
 
     text = read_input_text(path, "run description")
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"run description {path} is not valid TOML: {e}") from None
-    if text.startswith(HEADER):  # written by soulctl, resolved: without the key, it predates the default
-        data = predated_field(data)
-    return RunConfig.from_dict(data, f"run description {path}")
+    data = parse_toml(text, path, "run description")
+    return RunConfig.from_dict(stored(data) if text.startswith(HEADER) else data, f"run description {path}")
+
+
+def stored(description: dict) -> dict:
+    """A description soulctl stored (resolved, every key written: ``to_toml``'s file or a
+    telemetry file's) as it ran: without ``[run] wfs_field_arcsec`` it predates SOUL's field as
+    the default and ran ``defaults.PREDATED_WFS_FIELD_ARCSEC``."""
+    run = description.setdefault("run", {})
+    if isinstance(run, dict):
+        run.setdefault("wfs_field_arcsec", defaults.PREDATED_WFS_FIELD_ARCSEC)
+    return description
 
 
 # ---- the TOML form -------------------------------------------------------------------------

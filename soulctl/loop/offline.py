@@ -55,7 +55,7 @@ from ..observation import Observation
 from ..optics.cache import ArrayCache
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..ranges import LOOP_GAIN, PERIOD_S
-from ..run_config import ControllerSpec, RunConfig
+from ..run_config import ControllerSpec, RunConfig, stored
 from ..telemetry.formats import check_decimation, open_telemetry
 from ..telemetry.hdf5 import run_description_of
 from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
@@ -205,7 +205,7 @@ def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> 
         structure=configuration_structure(conf, path),
     )
     if tm.has("run_description"):
-        recorded = RunConfig.from_dict(run_description_of(tm), f"telemetry file {path}")
+        recorded = RunConfig.from_dict(stored(run_description_of(tm)), f"telemetry file {path}")
     return recorded if observation is None else dataclasses.replace(recorded, observation=observation)
 
 

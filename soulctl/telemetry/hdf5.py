@@ -55,7 +55,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .. import __version__, defaults
+from .. import __version__
 from ..errors import InputError
 from ..files import atomic_write, commit_or_replace, temporary_beside
 from ..ranges import TELEMETRY_SCHEMA_VERSION
@@ -188,25 +188,14 @@ def _write_records(f: h5py.File, recorder) -> None:
 
 
 def run_description_of(tm: TelemetryReader) -> dict:
-    """The stored run description of an open telemetry file, as a dict (one written before
-    ``wfs_field_arcsec`` had a default gets the 0 it ran with)."""
+    """The stored run description of an open telemetry file, as a dict."""
     text = tm.attribute("run_description", None)
     if text is None:
         raise InputError(f"telemetry file {tm.path} holds no run description (written by `loop run` before soulctl stored one)")
     try:
-        description = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"telemetry file {tm.path}: attribute run_description is not TOML ({e})") from None
-    return predated_field(description)
-
-
-def predated_field(description: dict) -> dict:
-    """A description soulctl stored (resolved, every key written) with the field of view it ran
-    when it lacks the key (``defaults.PREDATED_WFS_FIELD_ARCSEC``)."""
-    run = description.setdefault("run", {})
-    if isinstance(run, dict):
-        run.setdefault("wfs_field_arcsec", defaults.PREDATED_WFS_FIELD_ARCSEC)
-    return description
 
 
 def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
