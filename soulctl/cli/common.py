@@ -28,7 +28,6 @@ from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
 from .numbers import number
 from .output import console as make_console
 
-CONFIG = typer.Option(None, "--config", metavar="FILE", help="Observation TOML (from 'soulctl configure --out').")
 RUN_CONFIG = typer.Option(
     None,
     "--config",

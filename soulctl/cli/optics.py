@@ -17,6 +17,7 @@ from ..disturbance.turbulence import TurbulenceTipTilt
 from ..errors import InputError
 from ..files import check_output_path
 from ..observation import BINNINGS
+from ..optics.asm import AsmGeometry
 from ..optics.atmosphere import AtmosphereConfig, r0_at_wavelength
 from ..optics.cache import ArrayCache
 from ..optics.calibration import BasisSetup, CalibrationSetup, calibrate
@@ -36,8 +37,8 @@ from ..ranges import (
     WFS_FIELD_OF_VIEW_ARCSEC,
     WIND_M_S,
 )
-from ..run_config import read_run_config
-from .common import CACHE_DIR, CONFIG, NO_CACHE, WFS_FIELD, array_cache, observation_option, quantity_table
+from ..run_config import RunConfig, read_run_config
+from .common import CACHE_DIR, NO_CACHE, RUN_CONFIG, WFS_FIELD, array_cache, observation_option, quantity_table
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -57,27 +58,33 @@ def sensing_setup(
     binning: int | None,
     modes: int | None,
     modulation: float | None,
-    oversampling: int,
+    oversampling: int | None,
     wfs_field: float | None = None,
 ) -> CalibrationSetup:
-    """The calibration set-up from --config/--mag (the look-up table), overridden by explicit
-    --binning/--modes/--modulation; without either, binning 1 and the table's modes for it; the
-    field of view --wfs-field's, else --config's ``[run] wfs_field_arcsec``, else the runs' default."""
-    obs = observation_option(config, mag)
+    """The calibration set-up: with --config the pyramid and mirror its run holds (observation,
+    oversampling, field of view, influence functions: ``loop.run.calibration_setup``), with
+    --mag the table's row and the runs' defaults, without either binning 1 and the table's modes
+    for it; explicit --binning/--modes/--modulation/--oversampling/--wfs-field override."""
+    if config is not None and mag is not None:
+        raise InputError("give either --config or --mag, not both")
+    run = read_run_config(config) if config is not None else RunConfig()  # the runs' defaults
+    obs = run.observation if config is not None else observation_option(None, mag)
     b = binning if binning is not None else (obs.binning if obs else 1)
     if b not in BINNINGS:
         raise InputError(f"--binning must be one of 1, 2, 3, 4, got {b}")
     n = modes if modes is not None else (obs.modes if obs and binning is None else table_modes(b))
     r = modulation if modulation is not None else (obs.modulation_lambda_over_d if obs else 3.0)
-    MODULATION_LAMBDA_OVER_D.check(r, "--modulation")
-    MODES.check(n, "--modes")
-    OVERSAMPLING.check(oversampling, "--oversampling")
-    field = wfs_field
-    if field is None:  # a run description's field, else the runs' default
-        field = read_run_config(config).wfs_field_arcsec if config is not None else defaults.WFS_FIELD_ARCSEC
-    WFS_FIELD_OF_VIEW_ARCSEC.check(field, "--wfs-field")
-    pyramid = PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=oversampling, field_of_view_arcsec=field)
-    return CalibrationSetup(pyramid, n, BasisSetup())
+    o = oversampling if oversampling is not None else run.oversampling
+    field = wfs_field if wfs_field is not None else run.wfs_field_arcsec
+    for value, accepted, option in (
+        (r, MODULATION_LAMBDA_OVER_D, "--modulation"),
+        (n, MODES, "--modes"),
+        (o, OVERSAMPLING, "--oversampling"),
+        (field, WFS_FIELD_OF_VIEW_ARCSEC, "--wfs-field"),
+    ):
+        accepted.check(value, option)
+    pyramid = PyramidConfig(binning=b, modulation_lambda_over_d=r, oversampling=o, field_of_view_arcsec=field)
+    return CalibrationSetup(pyramid, n, BasisSetup(AsmGeometry(influence=run.influence)))
 
 
 _MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
@@ -93,7 +100,10 @@ _MODULATION = typer.Option(
     help=f"Modulation radius in lambda/D ({MODULATION_LAMBDA_OVER_D.text()}; default 3).",
 )
 _OVERSAMPLING = typer.Option(
-    defaults.OVERSAMPLING, "--oversampling", parser=number(OVERSAMPLING), help="Simulation pixels per binning-1 detector pixel (1..4)."
+    None,
+    "--oversampling",
+    parser=number(OVERSAMPLING),
+    help=f"Simulation pixels per binning-1 detector pixel (1..4; default: --config's, else {defaults.OVERSAMPLING}).",
 )
 _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
 
@@ -180,7 +190,9 @@ def _calibration_dict(cal, cache: ArrayCache) -> dict:
         "modulation_points": c.points,
         "wfs_wavelength_nm": c.wavelength_m * 1e9,
         "pupil_pixels": c.pupil.n_pixels,
+        "oversampling": c.oversampling,
         "wfs_field_arcsec": c.field_of_view_arcsec,
+        "influence": cal.setup.basis.asm.influence,
         "field_stop_lambda_over_d": c.stop_lambda_over_d,
         "sensing_pupil_pixels": c.sensing_pupil.n_pixels,
         "fft_size": c.fft_size,
@@ -195,12 +207,12 @@ def _calibration_dict(cal, cache: ArrayCache) -> dict:
 
 @app.command("calibrate")
 def calibrate_cmd(
-    config: Path | None = CONFIG,
+    config: Path | None = RUN_CONFIG,
     mag: str | None = _MAG,
     binning: int | None = _BINNING,
     modes: int | None = _MODES,
     modulation: float | None = _MODULATION,
-    oversampling: int = _OVERSAMPLING,
+    oversampling: int | None = _OVERSAMPLING,
     wfs_field: float | None = WFS_FIELD,
     no_cache: bool = NO_CACHE,
     cache_dir: Path | None = CACHE_DIR,
@@ -258,12 +270,12 @@ class OpticalGainsOptions:
         parser=number(FRACTION),
         help="Amplitude of the controlled modes left in the residual (0..1).",
     )
-    config: Path | None = CONFIG
+    config: Path | None = RUN_CONFIG
     mag: str | None = _MAG
     binning: int | None = _BINNING
     modes: int | None = _MODES
     modulation: float | None = _MODULATION
-    oversampling: int = _OVERSAMPLING
+    oversampling: int | None = _OVERSAMPLING
     wfs_field: float | None = WFS_FIELD
     screens: int = typer.Option(
         GAIN_SCREENS,

@@ -106,17 +106,44 @@ def test_the_field_of_view_of_option_description_and_default(tmp_path, capsys, c
     """optics calibrate reads with the runs' pyramid: SOUL's 2.1" field by default (a stop of
     55.8 lambda/D, a 120-pixel sensing pupil at o = 1: 3x), --config's [run] wfs_field_arcsec
     when it has one, --wfs-field over both."""
-    base = ["optics", "calibrate", "--binning", "4", "--modes", "20", "--oversampling", "1", "--cache-dir", str(cache_dir), "--json"]
-    status, out, err = run(base, capsys)
+    base = ["optics", "calibrate", "--binning", "4", "--modes", "20", "--cache-dir", str(cache_dir), "--json"]
+    status, out, err = run([*base, "--oversampling", "1"], capsys)
     assert status == 0, err
     d = json.loads(out)
     assert d["wfs_field_arcsec"] == 2.1 and d["field_stop_lambda_over_d"] == pytest.approx(55.8, abs=0.05)
     assert (d["pupil_pixels"], d["sensing_pupil_pixels"], d["fft_size"]) == (40, 120, 288)
     description = tmp_path / "run.toml"
-    description.write_text(RunConfig().with_values({"star.magnitude_r": 16.5, "run.wfs_field_arcsec": 0.0}).to_toml())
+    values = {"star.magnitude_r": 16.5, "run.wfs_field_arcsec": 0.0, "run.oversampling": 1}
+    description.write_text(RunConfig().with_values(values).to_toml())
     status, out, err = run([*base, "--config", str(description)], capsys)
     assert status == 0, err
     d = json.loads(out)
     assert d["wfs_field_arcsec"] == 0.0 and d["sensing_pupil_pixels"] == d["pupil_pixels"] == 40 and d["fft_size"] == 96
     status, out, err = run([*base, "--config", str(description), "--wfs-field", "1.5"], capsys)
     assert status == 0 and json.loads(out)["wfs_field_arcsec"] == 1.5
+
+
+def test_a_description_gives_the_whole_pyramid_and_mirror_it_runs(tmp_path, capsys, cache_dir):
+    """--config gives the calibration `loop run --config` makes (its oversampling, field and
+    influence functions, not only its star): the same cache key, the same interaction matrix;
+    --oversampling overrides the description's."""
+    from soulctl.loop.run import calibration_setup
+    from soulctl.optics.cache import ArrayCache
+    from soulctl.optics.calibration import calibrate
+
+    description = RunConfig().with_values(
+        {"star.magnitude_r": 17.0, "run.wfs_field_arcsec": 0.0, "run.oversampling": 1, "mirror.influence": "gaussian"}
+    )
+    path = tmp_path / "run.toml"
+    path.write_text(description.to_toml())
+    status, out, err = run(["optics", "calibrate", "--config", str(path), "--cache-dir", str(cache_dir), "--json"], capsys)
+    assert status == 0, err
+    d = json.loads(out)
+    assert (d["oversampling"], d["influence"], d["modes"], d["binning"]) == (1, "gaussian", 54, 4)
+    setup = calibration_setup(description.request())
+    assert d["cache_file"] == str(ArrayCache(cache_dir).path(setup.key()))
+    assert d["condition_number"] == pytest.approx(calibrate(setup, ArrayCache(cache_dir)).condition_number, rel=1e-12)
+    status, out, err = run(
+        ["optics", "calibrate", "--config", str(path), "--oversampling", "2", "--cache-dir", str(cache_dir), "--json"], capsys
+    )
+    assert status == 0 and json.loads(out)["oversampling"] == 2 and json.loads(out)["influence"] == "gaussian"
