@@ -20,13 +20,14 @@ from ..loop.run import calibration_for, loop_calibration
 from ..optics.cache import ArrayCache
 from ..optics.calibration import moved_mirror_response
 from ..optics.optical_gains import read_optical_gain_table
-from ..ranges import Range
+from ..ranges import WFS_FIELD_OF_VIEW_ARCSEC, Range
 from .common import (
     CACHE_DIR,
     JSON_OUTPUT,
     MISREGISTRATION,
     NO_CACHE,
     RUN_CONFIG,
+    WFS_FIELD,
     array_cache,
     misregistration_overrides,
     quantity_table,
@@ -63,6 +64,7 @@ class CheckOptions:
     gain_margin: float = typer.Option(1.0, "--gain-margin", parser=number(GAIN_MARGIN), help="Least gain margin per mode (1: stable).")
     phase_margin: float = typer.Option(0.0, "--phase-margin", parser=number(PHASE_MARGIN), help="Least phase margin per mode (deg).")
     misregistration: str | None = MISREGISTRATION
+    wfs_field: float | None = WFS_FIELD
     no_cache: bool = NO_CACHE
     cache_dir: Path | None = CACHE_DIR
     json_output: bool = JSON_OUTPUT
@@ -77,7 +79,8 @@ def check_cmd(o: CheckOptions) -> int:
     budget, and for an RTC description Lambda, Delta, Xi, Sigma rebuilt from the declared
     filters (--config/--mag) and compared.  With a mis-registration (--misregistration, or the
     [misregistration] of --config) also the coupled loop of the moved mirror: its eigenmodes'
-    stability and common gain margin (the modelled R D').  Exit 0 when all holds, 3 when a mode
+    stability and common gain margin (the modelled R D', calibrated on the pyramid of
+    --wfs-field, else --config's field, else SOUL's).  Exit 0 when all holds, 3 when a mode
     or eigenmode is unstable or below a margin or the matrices differ, 2 on malformed input.
 
     Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
@@ -88,8 +91,11 @@ def check_cmd(o: CheckOptions) -> int:
         (o.phase_margin, "--phase-margin", PHASE_MARGIN),
     ):
         accepted.check(value, option)
+    if o.wfs_field is not None:
+        WFS_FIELD_OF_VIEW_ARCSEC.check(o.wfs_field, "--wfs-field")
     input_file(o.params, "PARAMS")
-    description = run_description(o.config, o.mag, misregistration_overrides(o.misregistration))
+    field = {} if o.wfs_field is None else {"run.wfs_field_arcsec": o.wfs_field}
+    description = run_description(o.config, o.mag, misregistration_overrides(o.misregistration) | field)
     obs = description.observation
     comparison = None
     if is_rtc_file(o.params):

@@ -61,6 +61,8 @@ def test_bad_input_is_exit_2(tmp_path, capsys):
     assert status == 2 and "not found" in err
     status, _, err = _run(["rtc", "check", str(short), "--mag", MAG, "--modulus-margin", "2"], capsys)
     assert status == 2
+    status, _, err = _run(["rtc", "check", str(short), "--mag", MAG, "--wfs-field", "4.5"], capsys)
+    assert status == 2 and "--wfs-field must be in 0..4" in err
 
 
 def _description(obs, forgetting=0.99):
@@ -131,7 +133,7 @@ def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, 
     table.write_text("mode,optical_gain\n" + "".join(f"{i + 1},{x!r}\n" for i, x in enumerate(gamma.tolist())))
     check = ["rtc", "check", str(gains), "--config", str(config), "--chi-table", str(table), "--cache-dir", str(cache_dir)]
     run = ["loop", "run", "--config", str(config), "--duration", "0.3", "--no-ogtl", "--cache-dir", str(cache_dir), "--json"]
-    statuses = []
+    statuses, poles = [], []
     for shift in ("2,0", "0.5,0"):
         status, out, err = _run([*check, "--json", "--misregistration", shift], capsys)
         assert status in (0, 3) and "Traceback" not in err, err
@@ -144,10 +146,14 @@ def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, 
         for key in ("largest_pole", "margin", "largest_phase_deg"):
             assert verdict[key] == pytest.approx(in_run[key], rel=1e-9), key
         statuses.append(status)
+        poles.append(verdict["largest_pole"])
     if not noise:
         assert statuses == [3, 0]
         status, out, err = _run([*check, "--json", "--misregistration", "0,0"], capsys)  # registered: the per-mode checks only
         assert status == 0 and json.loads(out)["misregistration_stability"] is None
+        status, out, err = _run([*check, "--json", "--misregistration", "0.5,0", "--wfs-field", "2.1"], capsys)
+        assert status in (0, 3), err  # --wfs-field over the description's field: another pyramid, another R D'
+        assert json.loads(out)["misregistration_stability"]["largest_pole"] != pytest.approx(poles[1], rel=1e-6)
         moved = tmp_path / "moved.toml"
         moved.write_text(description.with_values({"misregistration.shift_x_pitch": 2.0}).to_toml())
         status, out, err = _run([*check[:4], str(moved), *check[5:]], capsys)
