@@ -19,9 +19,10 @@ import numpy as np
 
 from ..disturbance.vibrations import VibrationSpectrum
 from ..loop.metrics import pseudo_open_loop
-from ..loop.run import calibration_for
+from ..loop.run import calibration_setup
 from ..optics.atmosphere import r0_from_seeing
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
+from ..optics.calibration import controlled_basis
 from ..telemetry.analysis import nm_per_mas_tip_tilt
 from . import seeing
 from .lines import LineEstimate, fit_lines
@@ -147,14 +148,14 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
     if record.description is None:
         table, L0s = seeing.noll_variances(record.n_modes), (seeing.UNKNOWN_L0_M,)
     else:
-        calibration = calibration_for(record.description.request(), cache)
+        setup = calibration_setup(record.description.request())  # its basis and pupil, not its sensing
         L0s = seeing.L0_GRID
-        key = cache_key("von-karman-modal-variances", {"calibration": calibration.setup.key(), "L0": list(L0s)})
+        key = cache_key("von-karman-modal-variances", {"calibration": setup.key(), "L0": list(L0s)})
         hit = cache.load(key, EntrySpec({"variances": (len(L0s), record.n_modes)}))
         if hit is not None:
             table = hit["variances"]
         else:
-            table = seeing.basis_variances(calibration.basis, calibration.setup.pyramid.pupil, L0s)
+            table = seeing.basis_variances(controlled_basis(setup, cache), setup.pyramid.pupil, L0s)
             cache.store(key, {"variances": table})
     t = seeing.fit_turbulence(variance, table, L0s)
     r0 = r0_from_seeing(t.seeing_arcsec)

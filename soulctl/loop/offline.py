@@ -292,9 +292,10 @@ def offline_mgm(
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
-        calibration = calibration_for(description.request(), cache)
         seeing, seeing_from = plant_seeing(tm, description, chi_seeing_arcsec)
-        gamma = plant.optical_gains if plant.optical_gains is not None else optical_gain_table(calibration, cache, seeing)
+        gamma = plant.optical_gains  # the identified plant's; else the model's, from the run's calibration
+        if gamma is None:
+            gamma = optical_gain_table(calibration_for(description.request(), cache), cache, seeing)
         chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
         machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
         psd = []

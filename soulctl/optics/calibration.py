@@ -159,17 +159,23 @@ def calibration_entry(setup: CalibrationSetup) -> EntrySpec:
     return EntrySpec({"D": ("slopes", n), "R": (n, "slopes"), "reference": ("slopes",)}, {"slopes": (2, MAX_SLOPES)})
 
 
-@blas.on_one_thread  # the same D and R on every machine
-def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> Calibration:
-    """The interaction matrix, reconstructor and reference slopes of ``setup``, from the cache
-    when there (see the module docstring)."""
-    t0 = time.perf_counter()
+def controlled_basis(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> ModalBasis:
+    """The set-up's controlled modes of the mirror's basis (what a calibration's ``basis`` holds,
+    without sensing them)."""
     full = modal_basis(setup.basis, cache)
     if setup.n_modes > full.n_modes:  # the mirror's own count, not a cached entry's, decides
         full = modal_basis(setup.basis, cache, refresh=True)
     if setup.n_modes > full.n_modes:
         raise InputError(f"modes must be in 1..{full.n_modes} for this mirror, got {setup.n_modes}")
-    basis = full.truncated(setup.n_modes)
+    return full.truncated(setup.n_modes)
+
+
+@blas.on_one_thread  # the same D and R on every machine
+def calibrate(setup: CalibrationSetup, cache: ArrayCache = ArrayCache(None)) -> Calibration:
+    """The interaction matrix, reconstructor and reference slopes of ``setup``, from the cache
+    when there (see the module docstring)."""
+    t0 = time.perf_counter()
+    basis = controlled_basis(setup, cache)
     key = setup.key()
     hit = cache.load(key, calibration_entry(setup))
     if hit is not None:
