@@ -17,9 +17,11 @@ import sys
 import tempfile
 from pathlib import Path
 
+from cheap import CHEAP_PYRAMID
+
 RECORD = Path(__file__).parent / "data" / "run_regression.json"
 
-SMALL = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--seed", "3"]
+SMALL = ["--mag", "16.5", *CHEAP_PYRAMID, "--seed", "3"]
 CASES = {
     "loop run": ["loop", "run", *SMALL, "--duration", "0.8", "--seeing", "0.8", "--wind", "12", "--L0", "30"],
     "loop run, int, gains, no noise": [

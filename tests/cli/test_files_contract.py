@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 
@@ -25,9 +26,9 @@ WRITERS = [
     (["filter", "analyze", "--rate", "1000", "--gain", "0.3"], "--plot"),
     (["filter", "design", "--rate", "1700"], "--out"),
     (["filter", "design", "--rate", "1700"], "--plot"),
-    (["optics", "gains", "--binning", "4", "--oversampling", "1", "--wfs-field", "0"], "--out"),
-    (["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"], "--telemetry"),
-    (["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"], "--out"),
+    (["optics", "gains", "--binning", "4", *CHEAP_PYRAMID], "--out"),
+    (["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID], "--telemetry"),
+    (["optimize", "gains", "--mag", "16.5", *CHEAP_PYRAMID], "--out"),
 ]
 
 

@@ -4,12 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.sweep.case import run_case
 from soulctl.telemetry.hdf5 import read_telemetry
 
-FAINT = ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.3"]
+FAINT = ["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.3"]
 
 
 def run(args, capsys, cache_dir):

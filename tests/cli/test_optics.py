@@ -4,12 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.optics.atmosphere import tilt_variance_rad2
 from soulctl.run_config import RunConfig
 
-SMALL = ["--binning", "4", "--modes", "20", "--oversampling", "1", "--wfs-field", "0"]
+SMALL = ["--binning", "4", "--modes", "20", *CHEAP_PYRAMID]
 
 
 def run(args, capsys):
@@ -46,9 +47,7 @@ def test_calibrate_uses_and_fills_the_cache(tmp_path, capsys):
 
 
 def test_calibrate_from_the_look_up_table(cache_dir, capsys):
-    status, out, _ = run(
-        ["optics", "calibrate", "--mag", "16", "--oversampling", "1", "--wfs-field", "0", "--cache-dir", str(cache_dir)], capsys
-    )
+    status, out, _ = run(["optics", "calibrate", "--mag", "16", *CHEAP_PYRAMID, "--cache-dir", str(cache_dir)], capsys)
     assert status == 0
     assert "3 / 13" in out and "90" in out and "condition number" in out
 
@@ -80,7 +79,7 @@ def test_gains_table_csv_and_json(tmp_path, cache_dir, capsys):
         (["optics", "calibrate", "--binning", "5"], "--binning must be one of 1, 2, 3, 4"),
         (["optics", "calibrate", "--binning", "4", "--modulation", "-1"], "--modulation must be in 0..20"),
         (
-            ["optics", "calibrate", "--binning", "4", "--modes", "700", "--oversampling", "1", "--wfs-field", "0"],
+            ["optics", "calibrate", "--binning", "4", "--modes", "700", *CHEAP_PYRAMID],
             "--modes must be in 2..671, got 700",
         ),
         (["optics", "calibrate", "--binning", "4", "--oversampling", "9"], "--oversampling must be in 1..4, got 9"),

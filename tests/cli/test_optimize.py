@@ -7,6 +7,7 @@ import json
 import h5py
 import numpy as np
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.cli.common import parse_gains
@@ -26,7 +27,7 @@ from soulctl.telemetry.hdf5 import read_telemetry
 # the PWFS's linear range.  (At R17's own flux the loop is noise-dominated and OGTL's k ~ 4.6
 # amplifies the noise past the linear range; see docs/physics.md.)
 OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-SMALL = ["--oversampling", "1", "--wfs-field", "0", "--seeing", "0.6"]
+SMALL = [*CHEAP_PYRAMID, "--seeing", "0.6"]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -350,7 +351,7 @@ def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     checks the probe accepts it); without OGTL and on the coarser pupil, the run is not spent
     on OGTL's settling of up to 12 such periods, three times over."""
     period = default_period_s(observation_for_magnitude(18))  # 4.1 s at 160 Hz: 4 segments of 256 frames
-    args = ["optimize", "gains", "--mag", "18", "--no-ogtl", "--oversampling", "1", "--wfs-field", "0", "--duration", f"{1.5 * period:g}"]
+    args = ["optimize", "gains", "--mag", "18", "--no-ogtl", *CHEAP_PYRAMID, "--duration", f"{1.5 * period:g}"]
     status, out, err = cli([*args, "--measure", "0.3", "--json"], capsys, cache_dir)
     assert status == 0, err
     assert json.loads(out)["mgm_updates"] == 1
@@ -484,7 +485,7 @@ def test_optimised_gains_that_leave_a_misregistered_loop_lost_exit_3(tmp_path, c
     gain file and exit 3 with the verdict in the JSON."""
     description = tmp_path / "moved.toml"
     status, out, err = cli(
-        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--misregistration", "2,0", "--print-config"],
+        ["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--misregistration", "2,0", "--print-config"],
         capsys,
         cache_dir,
     )

@@ -22,6 +22,7 @@ import signal
 import time
 
 import pytest
+from cheap import CHEAP_PYRAMID
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -100,8 +101,8 @@ def _in(text: str, lo: float, hi: float) -> bool:
     return lo < v <= 10 * hi or v != v  # NaN is refused anyway, but keep "nan" in the other branch
 
 
-FAST_LOOP = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.05"]
-OGTL_LOOP = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.8", "--ogtl", "--period", "0.25"]
+FAST_LOOP = ["--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.05"]
+OGTL_LOOP = ["--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.8", "--ogtl", "--period", "0.25"]
 OPTIMIZE = [
     "--mag",
     "16.5",
@@ -117,7 +118,7 @@ OPTIMIZE = [
     "--measure",
     "0.1",
 ]
-CHEAP_OPTICS = ["--binning", "4", "--oversampling", "1", "--wfs-field", "0"]
+CHEAP_OPTICS = ["--binning", "4", *CHEAP_PYRAMID]
 
 # (command, base arguments, option, strategy, time limit in s)
 CASES = [

@@ -6,11 +6,12 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.run_config import RunConfig, read_run_config
 
-SMALL = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--seed", "5"]
+SMALL = ["--mag", "16.5", *CHEAP_PYRAMID, "--seed", "5"]
 EXAMPLES = sorted((Path(__file__).parents[2] / "examples").glob("*.toml"))
 
 

@@ -6,12 +6,13 @@ import time
 
 import pytest
 import tomli_w
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.observation import observation_for_magnitude
 from soulctl.ranges import MODES
 
-FAST = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.05"]
+FAST = ["--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.05"]
 
 
 def run(args, capsys, cache_dir=None):
@@ -51,7 +52,7 @@ def test_every_field_of_an_observation_file_is_checked(edit, words, tmp_path, ca
     assert edit[0] in text
     path.write_text(text.replace(*edit))
     refused(
-        *run(["loop", "run", "--config", path, "--oversampling", "1", "--wfs-field", "0", "--duration", "0.05"], capsys, cache_dir),
+        *run(["loop", "run", "--config", path, *CHEAP_PYRAMID, "--duration", "0.05"], capsys, cache_dir),
         f"run description {path}",  # loop run reads a run description (an observation file is one)
         *words,
     )
@@ -106,9 +107,9 @@ def test_huge_roots_are_refused(args, capsys):
 
 SEEDED = [
     ["loop", "run", *FAST],
-    ["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"],
+    ["optimize", "gains", "--mag", "16.5", *CHEAP_PYRAMID],
     ["filter", "design", "--rate", "1700"],
-    ["optics", "gains", "--binning", "4", "--oversampling", "1", "--wfs-field", "0"],
+    ["optics", "gains", "--binning", "4", *CHEAP_PYRAMID],
 ]
 
 
@@ -214,7 +215,7 @@ def test_vibration_lines_outside_their_physical_range_are_refused(field, value, 
 def test_the_whole_magnitude_range_runs_with_default_options(capsys, cache_dir):
     """R18.4 runs at ~100 Hz: the default 58 Hz vibration line is above its Nyquist frequency
     and is left out with a note, not a refusal."""
-    status, out, err = run(["loop", "run", "--mag", "18.4", "--oversampling", "1", "--wfs-field", "0", "--json"], capsys, cache_dir)
+    status, out, err = run(["loop", "run", "--mag", "18.4", *CHEAP_PYRAMID, "--json"], capsys, cache_dir)
     assert status == 0, err
     notes = json.loads(out)["notes"]
     assert any("58 Hz vibration line is left out" in n for n in notes)
@@ -251,15 +252,11 @@ def test_a_probe_slower_than_the_update_is_refused(capsys, cache_dir):
 
 
 def test_a_run_too_short_for_a_metric_reports_it_as_not_available(capsys, cache_dir):
-    status, out, err = run(
-        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.0001", "--json"], capsys, cache_dir
-    )
+    status, out, err = run(["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.0001", "--json"], capsys, cache_dir)
     assert status == 0, err
     m = json.loads(out, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))["metrics"]
     assert m["tt_jitter_mas"] is None and m["tt_jitter_pol_3hz_mas"] is None and m["rejection_13hz"] is None
-    status, out, err = run(
-        ["loop", "run", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0", "--duration", "0.0001"], capsys, cache_dir
-    )
+    status, out, err = run(["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.0001"], capsys, cache_dir)
     assert "n/a (run too short)" in out and "nan" not in out and "0.00 mas" not in out
 
 
@@ -275,9 +272,9 @@ def test_unicode_digits_are_the_same_digits(capsys):
     "args",
     [
         ["loop", "run", *FAST],
-        ["optimize", "gains", "--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"],
+        ["optimize", "gains", "--mag", "16.5", *CHEAP_PYRAMID],
         ["optics", "atmosphere"],
-        ["optics", "gains", "--binning", "4", "--oversampling", "1", "--wfs-field", "0"],
+        ["optics", "gains", "--binning", "4", *CHEAP_PYRAMID],
         ["filter", "design", "--rate", "1700"],
     ],
 )
@@ -350,7 +347,7 @@ def test_offline_optimisation_checks_every_option(tmp_path, capsys, cache_dir):
 
 def test_calibration_and_loop_refuse_the_same_sampling(capsys, cache_dir):
     refused(
-        *run(["optics", "calibrate", "--binning", "3", "--modes", "91", "--oversampling", "1", "--wfs-field", "0"], capsys, cache_dir),
+        *run(["optics", "calibrate", "--binning", "3", "--modes", "91", *CHEAP_PYRAMID], capsys, cache_dir),
         "accepted up to 90 modes",
     )
 

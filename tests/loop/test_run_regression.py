@@ -3,13 +3,9 @@
 auxiliary loops, optimize gains live and offline."""
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parents[1]))
-from regression_runs import ADAPTIVE, LINEAR_RTOL, RECORD, SAME_PLATFORM_RTOL, close, figures  # noqa: E402
+from regression_runs import ADAPTIVE, LINEAR_RTOL, RECORD, SAME_PLATFORM_RTOL, close, figures
 
 
 @pytest.fixture(scope="module")

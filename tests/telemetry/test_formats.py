@@ -11,6 +11,7 @@ import aotpy
 import numpy as np
 import pytest
 from astropy.io import fits
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.loop.offline import recorded_run
@@ -34,7 +35,7 @@ def recorded(tmp_path_factory, optics_cache):
     config = root / "small.toml"
     OBS.write_toml(config)
     h5 = root / "loop.h5"
-    argv = ["loop", "run", "--config", config, "--oversampling", "1", "--wfs-field", "0", "--seeing", "0.6", "--duration", "1.2", "--json"]
+    argv = ["loop", "run", "--config", config, *CHEAP_PYRAMID, "--seeing", "0.6", "--duration", "1.2", "--json"]
     argv += ["--telemetry", h5, "--telemetry-fields", "all", "--cache-dir", optics_cache.directory]
     assert main([str(a) for a in argv]) == 0
     fits_path, folder = root / "loop.fits", root / "Data_20261126_120000"

@@ -10,6 +10,7 @@ import tracemalloc
 import h5py
 import numpy as np
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.control.gains import LoopGains
@@ -23,7 +24,7 @@ from soulctl.telemetry.recorder import MemorySink, ModalMoments, Ring, Series
 from soulctl.telemetry.schema import DEFAULT_FIELDS, TelemetryReader
 
 OBS = observation_for_magnitude(16.5)  # 90 modes, 250 Hz, 288 slopes: a fast loop
-SMALL = ["--mag", "16.5", "--oversampling", "1", "--wfs-field", "0"]
+SMALL = ["--mag", "16.5", *CHEAP_PYRAMID]
 
 
 class Reader(AuxLoop):
