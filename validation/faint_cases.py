@@ -13,9 +13,10 @@ Run:  python validation/faint_cases.py [--seeds 1,2,3] [--transient-s 60] [--ogt
       [--only R13,R16.5,ogtl,transient] [--vibrations lbt|lbt-onsky|FILE] [--wfs-field ARCSEC]
 ``--vibrations`` replaces the default Tip/Tilt vibrations of the two paper cases (e.g. the
 on-sky level, ``lbt-onsky``: whether MGM, as on sky, brings those loops to the paper's range).
-``--wfs-field`` gives the two paper cases' pyramid that field of view (``[run] wfs_field_arcsec``;
+``--wfs-field`` gives every part's pyramid that field of view (``[run] wfs_field_arcsec``;
 SOUL's 2.1, the default since it became the run's; 0: the sampled field, which
-``faint_cases.json`` holds, from before) and writes ``faint_cases_wfs_field_<ARCSEC>.json``.
+``faint_cases.json`` holds, from before) and writes ``faint_cases_wfs_field_<ARCSEC>.json``, the
+transient's figures in ``transient_r13_wfs_field_<ARCSEC>/`` (the sampled field's: ``transient_r13/``).
 """
 
 from __future__ import annotations
@@ -115,30 +116,37 @@ def paper_case(
     }
 
 
-def transient(obs, seconds: float, cache) -> dict:
+def transient(obs, seconds: float, cache, wfs_field: float = defaults.WFS_FIELD_ARCSEC) -> dict:
     start = RunConfig(observation=obs).resolved().controller.gains
     low = RunConfig(
-        observation=obs, atmosphere=R13_NIGHT, band="FeII", ncpa=NO_NCPA, controller=ControllerSpec(gains=tuple(0.1 * g for g in start))
+        observation=obs,
+        atmosphere=R13_NIGHT,
+        band="FeII",
+        ncpa=NO_NCPA,
+        controller=ControllerSpec(gains=tuple(0.1 * g for g in start)),
+        wfs_field_arcsec=wfs_field,
     ).request()
     r = optimize(OptimizeRequest(low, "mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
-    (RESULTS / "transient_r13").mkdir(parents=True, exist_ok=True)
-    write_gain_figures(RESULTS / "transient_r13", {"mgm": r})
+    figures = RESULTS / ("transient_r13" if wfs_field == 0 else f"transient_r13_wfs_field_{wfs_field:g}")  # the first: the sampled field's
+    figures.mkdir(parents=True, exist_ok=True)
+    write_gain_figures(figures, {"mgm": r})
     settled = settling_time(r)
     return {
         "case": "R13 transient from 0.1x gains, MGM every 5 s",
+        "wfs_field_arcsec": wfs_field,
         "diverged_at": r.diverged_at,
         "before": r.before.strehl if r.before else None,
         "after": r.after.strehl if r.after else None,
         "settling_s": settled,
         "ok": bool(r.diverged_at is None and settled <= 60.0),
-        "figures": str(RESULTS / "transient_r13"),
+        "figures": str(figures.relative_to(RESULTS.parents[1])),
     }
 
 
-def ogtl_alone(seconds: float, cache) -> dict:
+def ogtl_alone(seconds: float, cache, wfs_field: float = defaults.WFS_FIELD_ARCSEC) -> dict:
     obs = observation_for_magnitude(17.5)
     result = run(
-        RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, duration_s=seconds, ncpa=NO_NCPA).request(),
+        RunConfig(observation=obs, atmosphere=AT_1_ARCSEC, duration_s=seconds, ncpa=NO_NCPA, wfs_field_arcsec=wfs_field).request(),
         cache,
         aux=LiveOptimisers(mgm=False, ogtl=True),
     )
@@ -148,6 +156,7 @@ def ogtl_alone(seconds: float, cache) -> dict:
     k_max = s["ogtl"]["k_max"]
     return {
         "case": f"OGTL alone, R17.5, {seconds:g} s",
+        "wfs_field_arcsec": wfs_field,
         "diverged_at": result.diverged_at,
         "k_min": float(k.min()),
         "k_max_seen": float(k.max()),
@@ -183,8 +192,8 @@ def main() -> None:
     parts = {
         "R13": lambda: paper_case("R13", observation(13.0, 980.0), R13_NIGHT, "FeII", seeds, cache, a.vibrations, a.wfs_field),
         "R16.5": lambda: paper_case("R16.5", r165_observation(), AT_1_ARCSEC, "Ks", seeds, cache, a.vibrations, a.wfs_field),
-        "ogtl": lambda: ogtl_alone(a.ogtl_s, cache),
-        "transient": lambda: transient(observation(13.0, 980.0), a.transient_s, cache),
+        "ogtl": lambda: ogtl_alone(a.ogtl_s, cache, a.wfs_field),
+        "transient": lambda: transient(observation(13.0, 980.0), a.transient_s, cache, a.wfs_field),
     }
     only = list(parts) if a.only is None else a.only.split(",")
     if set(only) - set(parts):

@@ -10,8 +10,11 @@ frame rate, binning and modes, seeing on the line of sight, default gains (not o
   R13     980 Hz 20x20, seeing 1.0": FeII SR 0.61-0.67 on sky with MGM (simulations 0.58).
   R16.5   390 Hz 10x10, seeing 1.0": Ks SR 0.19-0.23.
 Run:  python validation/loop_operating_points.py [--duration 2] [--seeds 1] [--cases 0,3] [--vibrations lbt-onsky]
-      [--influence thin-plate]
+      [--influence thin-plate] [--wfs-field ARCSEC]
       [--out validation/results.json]
+``--wfs-field``: the pyramid's field of view (default the runs', SOUL's 2.1"; 0: the sampled
+field, which ``loop_operating_points.json`` holds, from before); another field than 0 writes
+``loop_operating_points_wfs_field_<ARCSEC>.json`` unless --out says otherwise.
 """
 
 from __future__ import annotations
@@ -19,12 +22,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
+from soulctl import defaults
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import default_gains
 from soulctl.files import atomic_write_text
@@ -33,6 +38,9 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
+
+sys.path.insert(0, str(Path(__file__).parent))
+from optimize_magnitudes import code_fingerprint  # noqa: E402
 
 CASES = [
     # label, magnitude, rate, binning, modes, tt_control, tt_gain (None: default), seeing, band, paper
@@ -56,13 +64,23 @@ def observation(mag, rate, binning, modes, tt):
     return obs
 
 
-def _run(obs, seeing: float, duration: float, gains, band: str, seed: int, vibrations: str | None, influence: str) -> RunConfig:
+def _run(
+    obs, seeing: float, duration: float, gains, band: str, seed: int, vibrations: str | None, influence: str, wfs_field: float
+) -> RunConfig:
     """A case's run description: its observation and gains, defaults elsewhere (OGTL and the
     NCPA as `loop run` resolves them; ``vibrations`` a named profile instead of the default;
-    ``influence`` the mirror's model)."""
+    ``influence`` the mirror's model; ``wfs_field`` the pyramid's field of view)."""
     controller = ControllerSpec(gains=(gains.tip_tilt, gains.mid, gains.high))
     atmosphere = AtmosphereSpec(seeing_arcsec=seeing)
-    description = RunConfig(observation=obs, atmosphere=atmosphere, controller=controller, duration_s=duration, band=band, seed=seed)
+    description = RunConfig(
+        observation=obs,
+        atmosphere=atmosphere,
+        controller=controller,
+        duration_s=duration,
+        band=band,
+        seed=seed,
+        wfs_field_arcsec=wfs_field,
+    )
     if vibrations is not None:
         description = description.with_values({"vibrations.file": vibrations})
     if influence != DEFAULT_INFLUENCE:
@@ -77,8 +95,12 @@ def main() -> None:
     p.add_argument("--cases", default="all", help="comma list of case indices (0-based) or 'all'")
     p.add_argument("--vibrations", default=None, help="a named vibration profile (e.g. lbt-onsky) instead of the default")
     p.add_argument("--influence", default=DEFAULT_INFLUENCE, choices=INFLUENCES, help="the mirror's influence functions")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "loop_operating_points.json")
+    p.add_argument("--wfs-field", type=float, default=defaults.WFS_FIELD_ARCSEC, help="the pyramid's field of view, arcsec (0: sampled)")
+    p.add_argument("--out", type=Path, default=None)
     args = p.parse_args()
+    if args.out is None:  # loop_operating_points.json holds the sampled field's rows, from before
+        name = "loop_operating_points" + ("" if args.wfs_field == 0 else f"_wfs_field_{args.wfs_field:g}")
+        args.out = Path(__file__).parent / "results" / f"{name}.json"
     cache = ArrayCache(default_cache_dir())
     rows = []
     picked = range(len(CASES)) if args.cases == "all" else [int(i) for i in args.cases.split(",")]
@@ -90,7 +112,7 @@ def main() -> None:
             gains = dataclasses.replace(gains, tip_tilt=g_tt)
         for seed in range(1, args.seeds + 1):
             t0 = time.perf_counter()
-            description = _run(obs, seeing, args.duration, gains, band, seed, args.vibrations, args.influence)
+            description = _run(obs, seeing, args.duration, gains, band, seed, args.vibrations, args.influence, args.wfs_field)
             r = run(description.request(), cache, aux=description.auxiliary.live())
             m = r.metrics
             rows.append(
@@ -98,6 +120,7 @@ def main() -> None:
                     "case": label,
                     "seed": seed,
                     "influence": args.influence,
+                    "wfs_field_arcsec": args.wfs_field,
                     "band": band,
                     "paper": paper,
                     "gains": dataclasses.asdict(gains),
@@ -128,7 +151,7 @@ def main() -> None:
         )
     Console().print(t)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps({"duration_s": args.duration, "rows": rows}, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps({"code": code_fingerprint(), "duration_s": args.duration, "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
