@@ -85,15 +85,7 @@ def check_cmd(o: CheckOptions) -> int:
 
     Example: soulctl rtc check gains.toml --plant plant.toml --mag 13
     """
-    for value, option, accepted in (
-        (o.modulus_margin, "--modulus-margin", MARGIN),
-        (o.gain_margin, "--gain-margin", GAIN_MARGIN),
-        (o.phase_margin, "--phase-margin", PHASE_MARGIN),
-    ):
-        accepted.check(value, option)
-    if o.wfs_field is not None:
-        WFS_FIELD_OF_VIEW_ARCSEC.check(o.wfs_field, "--wfs-field")
-    input_file(o.params, "PARAMS")
+    _check_options(o)
     field = {} if o.wfs_field is None else {"run.wfs_field_arcsec": o.wfs_field}
     description = run_description(o.config, o.mag, misregistration_overrides(o.misregistration) | field)
     obs = description.observation
@@ -134,6 +126,19 @@ def check_cmd(o: CheckOptions) -> int:
     else:
         _render(checks, states, delay, ok, comparison, coupling, criteria)
     return 0 if ok else UNSAFE_EXIT
+
+
+def _check_options(o: CheckOptions) -> None:
+    """InputError naming the option and its accepted range, or the missing PARAMS file."""
+    for value, option, accepted in (
+        (o.modulus_margin, "--modulus-margin", MARGIN),
+        (o.gain_margin, "--gain-margin", GAIN_MARGIN),
+        (o.phase_margin, "--phase-margin", PHASE_MARGIN),
+        (o.wfs_field, "--wfs-field", WFS_FIELD_OF_VIEW_ARCSEC),
+    ):
+        if value is not None:
+            accepted.check(value, option)
+    input_file(o.params, "PARAMS")
 
 
 def _plant(o: CheckOptions, obs) -> tuple[np.ndarray, float]:
