@@ -9,6 +9,7 @@ import math
 import h5py
 import numpy as np
 import pytest
+from cheap import CHEAP_PYRAMID
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -38,10 +39,7 @@ def env(tmp_path_factory, optics_cache):
             "run",
             "--config",
             str(config),
-            "--oversampling",
-            "1",
-            "--wfs-field",
-            "0",
+            *CHEAP_PYRAMID,
             "--seeing",
             "0.6",
             "--duration",
@@ -151,10 +149,7 @@ def test_a_recorded_loop_gives_gains_loop_run_accepts(env, capsys):
                 "run",
                 "--config",
                 str(env["config"]),
-                "--oversampling",
-                "1",
-                "--wfs-field",
-                "0",
+                *CHEAP_PYRAMID,
                 "--duration",
                 "0.05",
                 "--gains",
@@ -391,10 +386,7 @@ def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
             "run",
             "--config",
             str(env["config"]),
-            "--oversampling",
-            "1",
-            "--wfs-field",
-            "0",
+            *CHEAP_PYRAMID,
             "--seeing",
             "0.6",
             "--duration",

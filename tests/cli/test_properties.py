@@ -106,10 +106,7 @@ OGTL_LOOP = ["--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.8", "--ogtl", "--
 OPTIMIZE = [
     "--mag",
     "16.5",
-    "--oversampling",
-    "1",
-    "--wfs-field",
-    "0",
+    *CHEAP_PYRAMID,
     "--no-ogtl",
     "--period",
     "1.1",

@@ -20,6 +20,7 @@ import tomllib
 
 import psutil
 import pytest
+from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.sweep import scheduler as dask_scheduler
@@ -65,10 +66,7 @@ def test_local_cluster_equals_loop_run_case_by_case_and_resume(grid, tmp_path, c
             f"{row['magnitude']:g}",
             "--seeing",
             f"{row['seeing']:g}",
-            "--oversampling",
-            "1",
-            "--wfs-field",
-            "0",
+            *CHEAP_PYRAMID,
             "--duration",
             "0.3",
             "--seed",
