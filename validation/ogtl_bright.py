@@ -73,11 +73,12 @@ def model_gamma(cal: Calibration, mode: int, snapshots: list[np.ndarray]) -> lis
     return out
 
 
-def run_with_snapshots(loop: ClosedLoop, task: OgtlTask, frames: int) -> list[np.ndarray]:
-    """Run ``frames`` with ``task`` added; the residual every SNAPSHOT_EVERY of its period over
-    the second half."""
-    loop.add_aux_loop(task)
-    every = max(1, round(SNAPSHOT_EVERY * task.period_frames))
+def run_with_snapshots(loop: ClosedLoop, tasks: list, period_frames: int, frames: int) -> list[np.ndarray]:
+    """Run ``frames`` with ``tasks`` added in their order; the residual every SNAPSHOT_EVERY of
+    ``period_frames`` over the second half."""
+    for task in tasks:
+        loop.add_aux_loop(task)
+    every = max(1, round(SNAPSHOT_EVERY * period_frames))
     snapshots = []
     for i in range(frames):
         residual = loop.step()
@@ -113,7 +114,7 @@ def small_case(wfs_field: float, seed: int, cache: ArrayCache) -> dict:
     cal = calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1, field_of_view_arcsec=wfs_field), 54), cache)
     loop = ClosedLoop(obs, cal, AtmosphereConfig.lbt_default(0.6), LoopGains(0.2, 0.25, 0.25), noise=True, seed=seed)
     task = OgtlTask(200)
-    snapshots = run_with_snapshots(loop, task, 2400)
+    snapshots = run_with_snapshots(loop, [task], task.period_frames, 2400)
     row = verdict("small", loop, cal, task.settings.mode - 1, snapshots, time.perf_counter() - t0)
     return {"wfs_field_arcsec": wfs_field, "seed": seed, **row}
 
@@ -136,10 +137,7 @@ def lut_case(wfs_field: float, seed: int, seconds: float, cache: ArrayCache) -> 
     loop.set_gains(initial)
     loop.run(n_close)
     ogtl = next(t for t in tasks if isinstance(t, OgtlTask))
-    for task in tasks:
-        if task is not ogtl:
-            loop.add_aux_loop(task)
-    snapshots = run_with_snapshots(loop, ogtl, frames - n_close)
+    snapshots = run_with_snapshots(loop, tasks, ogtl.period_frames, frames - n_close)  # in `loop run`'s order
     row = verdict("lut", loop, cal, ogtl.settings.mode - 1, snapshots, time.perf_counter() - t0)
     return {"wfs_field_arcsec": wfs_field, "seed": seed, "period_frames": ogtl.period_frames, **row}
 
