@@ -93,6 +93,7 @@ def verdict(name: str, loop: ClosedLoop, cal: Calibration, mode: int, snapshots:
     gamma = model_gamma(cal, mode, snapshots)
     inverse_k = float(1.0 / np.mean(k[-3:]))
     model = float(np.mean(gamma))
+    error = inverse_k / model - 1.0
     return {
         "case": name,
         "probe_mode": mode + 1,
@@ -100,9 +101,9 @@ def verdict(name: str, loop: ClosedLoop, cal: Calibration, mode: int, snapshots:
         "one_over_k_last3": inverse_k,
         "gamma_model": model,
         "gamma_model_scatter": float(np.std(gamma) / np.sqrt(len(gamma))),
-        "relative_error": inverse_k / model - 1.0,
+        "relative_error": error,
         "settled": bool(np.all(np.abs(np.diff(np.log(k[-4:]))) < 0.1)),
-        "ok": bool(abs(inverse_k / model - 1.0) <= TOLERANCE),
+        "ok": bool(abs(error) <= TOLERANCE),
         "seconds": seconds,
     }
 
