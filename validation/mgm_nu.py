@@ -6,7 +6,10 @@ OGTL settled to, as `optimize gains` judges) of:
 * the initial gains scaled by ``--scales`` (all modes at once);
 * MGM's gains, and MGM's gains divided by nu (Eq. gainUpdate: g_RTC(kappa) =
   (1 - rho) g_RTC(kappa - 1) + rho nu g_hat(kappa) settles at nu g_hat, every gain 10 % below
-  the model's optimum with the paper's nu = 0.9).
+  the model's optimum with the paper's nu = 0.9);
+* MGM's gains carried from the k the run ended at to the k the windows run at (x k_run /
+  k_eval, as ``MgmTask.update`` carries its own gains when OGTL moves k): the same loop gain
+  g k gamma MGM designed, if the optical gain is the same in both loops.
 
 The hypothesis: if the initial gains already sit near the model's optimum, lowering every gain
 by nu costs a little on each mode and the sum is what the point loses; MGM's gains / nu then
@@ -15,7 +18,7 @@ nothing, MGM's / nu recover most of MGM's loss - MGM's optimum is itself low the
 difference to the initial gains is given with the standard error of its paired windows.
 Not in CI (~25 min at R14.5 on one core).
 
-Run:  python validation/mgm_nu.py --mag 14.5 --seeing 1.0 --seed 2 [--out FILE]
+Run:  python validation/mgm_nu.py --mag 14.5 --seeing 1.0 --seed 2 [--windows 24] [--out FILE]
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
 
 
 def paired(result, metrics) -> tuple[float, float | None]:
@@ -49,11 +52,13 @@ def paired(result, metrics) -> tuple[float, float | None]:
     return pair.strehl_difference()
 
 
-def gain_sets(initial: np.ndarray, final: np.ndarray, nu: float, scales: list[float]) -> dict[str, np.ndarray]:
-    """The gain sets to evaluate besides the initial ones."""
+def gain_sets(initial: np.ndarray, final: np.ndarray, nu: float, scales: list[float], k_ratio: float) -> dict[str, np.ndarray]:
+    """The gain sets to evaluate besides the initial ones; ``k_ratio``: the run's final k
+    over the k the windows run at."""
     sets = {f"initial x {s:g}": initial * s for s in scales}
     sets["MGM's"] = final
     sets[f"MGM's / nu ({nu:g})"] = final / nu
+    sets[f"MGM's x k_run/k_eval ({k_ratio:.3f})"] = final * k_ratio
     return sets
 
 
@@ -82,10 +87,11 @@ def main() -> None:
     p.add_argument("--seeing", type=float, default=1.0)
     p.add_argument("--seed", type=int, default=2)
     p.add_argument("--scales", default="0.8,0.9,1.1", help="scales of all the initial gains")
+    p.add_argument("--windows", type=int, default=WINDOWS, help="the paired evaluation's windows (the grid's: %(default)s)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
     launched = code_fingerprint()  # the code imported now, whatever is installed while it runs
-    request = point_request(a.mag, a.seeing, a.seed, "mgm+ogtl")
+    request = point_request(a.mag, a.seeing, a.seed, "mgm+ogtl", a.windows)
     obs, windows = request.run.observation, request.windows
     cache = ArrayCache(default_cache_dir())
     result = optimize(request, cache)
@@ -98,7 +104,10 @@ def main() -> None:
     out["before"], out["after"] = result.before.strehl, result.after.strehl
     out["settled_k"] = result.before.settled.k
     out["initial_gains"], out["final_gains"] = initial.tolist(), final.tolist()
-    out["sets"] = evaluate_sets(request, result, cache, gain_sets(initial, final, nu, [float(s) for s in a.scales.split(",")]))
+    out["k_run"] = result.sensitivities[1]
+    k_ratio = result.sensitivities[1] / result.before.settled.k
+    scales = [float(s) for s in a.scales.split(",")]
+    out["sets"] = evaluate_sets(request, result, cache, gain_sets(initial, final, nu, scales, k_ratio))
     out["code"] = launched
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
