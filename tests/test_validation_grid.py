@@ -7,6 +7,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 _PATH = Path(__file__).resolve().parent.parent / "validation" / "optimize_magnitudes.py"
@@ -127,3 +128,36 @@ def test_the_shared_evaluation_takes_what_evaluate_takes(grid):
     with grid.SharedEvaluations():
         wrapped = list(inspect.signature(optimize.evaluate).parameters)
     assert wrapped == list(inspect.signature(optimize.evaluate).parameters)
+
+
+def _split_module():
+    spec = importlib.util.spec_from_file_location("mgm_split", _PATH.parent / "mgm_split.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_split_swaps_one_group_at_a_time():
+    split = _split_module()
+    initial, final = np.full(250, 0.5), np.full(250, 0.2)
+    sets = split.gain_sets(initial, final)
+    tt = sets["initial with MGM's tip-tilt"]
+    assert np.all(tt[:2] == 0.2) and np.all(tt[2:] == 0.5)
+    mid = sets["MGM's with the initial modes 3-120"]
+    assert np.all(mid[2:120] == 0.5) and np.all(mid[:2] == 0.2) and np.all(mid[120:] == 0.2)
+    assert np.all(sets["initial"] == initial) and np.all(sets["MGM's"] == final)
+    assert initial[0] == 0.5 and final[0] == 0.2  # the swaps copy, not alias
+
+
+def test_the_split_pairs_window_by_window():
+    split = _split_module()
+    reference = [0.40, 0.45, 0.38, 0.47]  # the turbulence moves every window; the pairing removes it
+    rows = [
+        {"gains": "initial", "windows": reference},
+        {"gains": "lower", "windows": [w - 0.01 for w in reference]},
+        {"gains": "noisy", "windows": [w + d for w, d in zip(reference, (0.01, -0.01, 0.01, -0.01))]},
+    ]
+    (d0, e0), (d1, e1), (d2, e2) = split.paired_differences(rows)
+    assert d0 == 0 and e0 == 0
+    assert d1 == pytest.approx(-0.01) and e1 == pytest.approx(0, abs=1e-12)
+    assert d2 == pytest.approx(0, abs=1e-12) and e2 == pytest.approx(0.01 * np.sqrt(4 / 3) / np.sqrt(4))  # ddof = 1
