@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import default_gains, gain_groups
 from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import FrozenK, evaluate, session_seconds
+from soulctl.loop.optimize import FrozenK, OptimizeResult, evaluate, session_seconds
 from soulctl.loop.run import calibration_for, closed_loop_for
 from soulctl.optics.cache import ArrayCache
 
@@ -76,21 +77,21 @@ def evaluate_sets(recorded: dict, names: list[str]) -> list[dict]:
     return rows
 
 
-def paired_differences(rows: list[dict]) -> list[tuple[float, float]]:
-    """Each set's mean difference to ``initial`` window by window, and its standard error."""
-    reference = np.array(next(r["windows"] for r in rows if r["gains"] == "initial"))
-    out = []
-    for r in rows:
-        d = np.array(r["windows"]) - reference
-        out.append((float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))))
-    return out
+def paired_differences(rows: list[dict]) -> list[tuple[float, float | None]]:
+    """Each set's mean difference to ``initial`` window by window, and its standard error, as
+    the grid judges a row (``OptimizeResult.strehl_difference``)."""
+    reference = SimpleNamespace(window_strehls=next(r["windows"] for r in rows if r["gains"] == "initial"))
+    return [
+        OptimizeResult.strehl_difference(SimpleNamespace(before=reference, after=SimpleNamespace(window_strehls=r["windows"])))
+        for r in rows
+    ]
 
 
 def pair(rows: list[dict]) -> None:
     """The table of the sets' paired differences to ``initial``."""
     for r, (diff, error) in zip(rows, paired_differences(rows)):
         groups = ", ".join(f"{v:.3f}" for v in r["groups"].values())
-        print(f"| {r['gains']} | {groups} | {diff:+.4f} ± {error:.4f} | {r['own_settled_k']:.2f} |")
+        print(f"| {r['gains']} | {groups} | {diff:+.4f} ± {error or 0.0:.4f} | {r['own_settled_k']:.2f} |")
 
 
 def main() -> None:
