@@ -56,6 +56,8 @@ def gain_sets(initial: np.ndarray, final: np.ndarray) -> dict[str, np.ndarray]:
 def evaluate_sets(recorded: dict, names: list[str]) -> list[dict]:
     """Each named set's windows, at the recorded k (``initial``: at its own settled k)."""
     request = point_request(recorded["mag"], recorded["seeing"], recorded["seed"], recorded["variant"], recorded["windows"])
+    if request.run.ncpa is not None and request.run.ncpa.compensated:
+        raise SystemExit("mgm_split freezes k without NCPA offsets; this point's request applies them")
     obs = request.run.observation
     cache = ArrayCache(default_cache_dir())
     cal = calibration_for(request.run, cache)
@@ -72,6 +74,8 @@ def evaluate_sets(recorded: dict, names: list[str]) -> list[dict]:
         m = evaluate(request, cal, design, sets[name], k, False, None, task, freeze)
         groups = {g: float(sets[name][idx].mean()) for g, idx in gain_groups(len(sets[name]))}
         own = m.settled.k if m.settled else None
+        if name == "initial" and own != k:
+            raise SystemExit(f"the initial gains settled at k = {own}, not the recorded {k}: not the recorded run")
         rows.append({"gains": name, "groups": groups, "strehl": m.strehl, "windows": list(m.window_strehls), "own_settled_k": own})
         print(f"{name:36s} Strehl {m.strehl:.4f}, own settled k {own:.4f} (recorded {k:.4f})", flush=True)
     return rows
