@@ -6,10 +6,11 @@ the threads they have, and floating-point sums depend on their order: the KL bas
 2e-6), and a closed loop amplifies the last bit (the R16.5 default run read 0.072 with one
 thread and 0.078 with two).  The functions that build a model (``on_one_thread``: the basis,
 the calibrations, the optical-gain and variance tables, the sky-like calibration error, modes
-derived from a telemetry file) and the loop therefore run their BLAS on one thread: the same
-seed gives the same numbers on every machine, whichever path (CLI, sweep, re-run) computed
-them.  The cost is small: the loop's products are matrix-vector ones, and the basis builds in
-2.0 s on one thread against 2.6 s on two (80-pixel pupil).  scipy.fft's threads are not BLAS
+derived from a telemetry file, the Tip/Tilt filter design) and the loop therefore run their
+BLAS on one thread: the same seed gives the same numbers on every machine, whichever path
+(CLI, sweep, re-run) computed them.  The cost is small: the loop's products are matrix-vector
+ones, and the basis builds in 2.0 s on one thread against 2.6 s on two (80-pixel pupil); the
+design, whose products are short sums, ran as fast on one thread with half the CPU time.  scipy.fft's threads are not BLAS
 and keep the cores; the pyramid's sums are ordered apart (``optics.pwfs.SUM_SHARES``).
 """
 
