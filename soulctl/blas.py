@@ -10,8 +10,8 @@ derived from a telemetry file, the Tip/Tilt filter design) and the loop therefor
 BLAS on one thread: the same seed gives the same numbers on every machine, whichever path
 (CLI, sweep, re-run) computed them.  The cost is small: the loop's products are matrix-vector
 ones, and the basis builds in 2.0 s on one thread against 2.6 s on two (80-pixel pupil); the
-design, whose products are short sums, ran as fast on one thread with half the CPU time.  scipy.fft's threads are not BLAS
-and keep the cores; the pyramid's sums are ordered apart (``optics.pwfs.SUM_SHARES``).
+design, whose products are short sums, ran as fast on one thread with half the CPU time.
+scipy.fft's threads are not BLAS and keep the cores; the pyramid's sums are ordered apart (``optics.pwfs.SUM_SHARES``).
 """
 
 from __future__ import annotations
