@@ -1,6 +1,8 @@
 """The paths that build a closed loop (loop run, loop run --mgm --ogtl, optimize gains live and
 offline, a sweep row), each on a small configuration: the command lines and the figures they
-gave, recorded on the code before the run description replaced the four run builders.
+gave, recorded on the code before the run description replaced the four run builders, and
+recorded again when MGM's significance test changed the gains MGM applies (its three cases
+moved; the others by the last bits of the recording machine only, within LINEAR_RTOL).
 
     python tests/regression_runs.py          # rewrites tests/data/run_regression.json
 

@@ -151,7 +151,11 @@ class MgmTask(AuxLoop):
     scatter; gamma changes with the turbulence over minutes, not from one 2-3 s update to the
     next, while OGTL's estimate of it scatters by 15-20 % at the faint end.  With one window
     and the latest gamma, MGM with OGTL ended 0.004-0.010 below the initial gains at R17.5 and
-    R18.5, 0.6" (docs/physics.md)."""
+    R18.5, 0.6" (docs/physics.md).
+
+    A mode's gain moves only where the mean PSD predicts a significant fall of J
+    (``ModalGainMachine.significant``, each window's Welch segments counted); the record's
+    ``held`` counts the modes that kept their gain (still carried to the new k)."""
 
     name = "mgm"
 
@@ -168,7 +172,7 @@ class MgmTask(AuxLoop):
         self.ogtl = ogtl
         self.probe_gain = float(probe_gain)
         self.rho_scale = 1.0
-        self.windows: deque[tuple[tuple, float]] = deque(maxlen=psd_updates)  # (POL spectra, k of the window)
+        self.windows: deque[tuple[tuple, float, int]] = deque(maxlen=psd_updates)  # (POL spectra, k of the window, its Welch segments)
         self.gammas: deque[float] = deque(maxlen=psd_updates)
 
     def damp(self) -> None:
@@ -193,20 +197,22 @@ class MgmTask(AuxLoop):
         mirror = pseudo_open_loop(np.zeros_like(window.command_modes), window.command_modes, window.delay_frames, self.machine.structure)
         measured = window.measured_modes / self.machine.chi
         spectra = self.machine.pol_spectra(measured[n + 1 :], mirror[n + 1 :])
-        self.windows.append((spectra, window.sensitivity))
+        self.windows.append((spectra, window.sensitivity, mgm.segments_of(usable, self.machine.settings)))
         self.gammas.append(self.gamma(rtc.sensitivity))
-        psd = np.mean([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k in self.windows], axis=0)
+        psd = np.mean([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k, _ in self.windows], axis=0)
         optimum, info = self.machine.optimum_of_psd(psd)
         scale = self.chi_scale(window.sensitivity)
+        moves = self.machine.significant(psd, window.gains * scale, optimum, [s for _, _, s in self.windows])
         optimum = optimum / scale
         settings = dataclasses.replace(self.machine.settings, rho=self.machine.settings.rho * self.rho_scale)
-        gains = mgm.update_gains(window.gains, optimum, settings) * (window.sensitivity / rtc.sensitivity)
+        gains = mgm.update_gains(window.gains, optimum, settings, moves) * (window.sensitivity / rtc.sensitivity)
         rtc.set_gains(gains)
         return {
             "gains": gains,
             "optimum": optimum,
             "chi_scale": scale,
             "noise_dominated": int(np.sum(info["noise_dominated"])),
+            "held": int(np.sum(~moves)),
             "psd_windows": len(self.windows),
         }
 

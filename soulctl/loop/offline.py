@@ -15,7 +15,8 @@ files that do not record it), gamma_i times the file's k otherwise.
 
 The optimum is the live MGM's, noise rule included (``ModalGainMachine.optimum_of_psd`` of the
 window's prewhitened POL PSD).  The gains returned are always a vector `loop run --gains`
-accepts: MGM's update (Eq. gainUpdate, from the gains in force during the window) capped at
+accepts: MGM's update (Eq. gainUpdate, from the gains in force during the window, for the
+modes whose fall of J is significant, ``ModalGainMachine.significant``; the others keep theirs) capped at
 (1 - margin) of each mode's nominal maximum stable gain (chi = 1, the check of `loop run`) with the file's structural
 resonance, `loop run`'s default one and none, and at 10 (``ranges.LOOP_GAIN``).  MGM's own
 limit, (1 - margin) g_max / chi_i, lies above the nominal one where chi_i < 1; the modes
@@ -303,8 +304,10 @@ def offline_mgm(
             measured, commands = data[i] if data else _window_data(tm, rows, [cols], True, path)[0]
             pol = pseudo_open_loop(measured / chi[cols], commands, delay, machine.structure if cols.start == 0 else None)
             psd.append(machine.pol_psd(pol[n + 1 :], cols))
-    optimum, _ = machine.optimum_of_psd(np.concatenate(psd))
-    gains = mgm.update_gains(previous, optimum, settings)
+    psd_all = np.concatenate(psd)
+    optimum, _ = machine.optimum_of_psd(psd_all)
+    moves = machine.significant(psd_all, previous, optimum, [mgm.segments_of(window - n - 1, settings)])
+    gains = mgm.update_gains(previous, optimum, settings, moves)
     limits = nominal_limits(observation, structure, settings.margin)
     capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
     gains = np.minimum(gains, limits)

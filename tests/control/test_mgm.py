@@ -251,7 +251,11 @@ def test_machine_matches_single_modes_and_steps():
         assert alone.upper[0] == pytest.approx(machine.upper[i], rel=1e-12)
         assert alone.optimum(pol[:, i : i + 1])[0][0] == pytest.approx(g[i], rel=1e-9)
     prev = np.full(6, 0.3)
-    np.testing.assert_allclose(machine.step(prev, pol), 0.5 * prev + 0.45 * g)
+    plain = ModalGainMachine(filters, chi, 2.0, 1700.0, MgmSettings(significance=0), structure=structure)
+    np.testing.assert_allclose(plain.step(prev, pol), 0.5 * prev + 0.45 * g)  # Eq. gainUpdate for every mode
+    moves = machine.significant(info["psd"], prev, g, [mgm.segments_of(3000, machine.settings)])
+    assert moves.any() and not moves.all()  # mode 4's optimum (0.289) is no better than its 0.3 by 2 standard errors
+    np.testing.assert_allclose(machine.step(prev, pol), np.where(moves, 0.5 * prev + 0.45 * g, prev))
     with pytest.raises(InputError):
         machine.optimum(pol[:, :5])
 
