@@ -83,6 +83,14 @@ def test_rows_without_ogtl_of_code_that_changed_only_ogtl_count(grid, tmp_path):
     assert not grid.read_rows([a], {"abc"}, without_ogtl=frozenset({"other"}))
 
 
+def test_trial_rows_of_code_that_changed_only_mgm_count(grid, tmp_path):
+    a = tmp_path / "a.jsonl"
+    a.write_text("\n".join(json.dumps(_row(v, 0.1, 0.2, code="old")) for v in ("mgm", "trial+ogtl", "mgm+ogtl", "trial")) + "\n")
+    assert [r["variant"] for r in grid.read_rows([a], {"abc"}, without_mgm=frozenset({"old"}))] == ["trial+ogtl", "trial"]
+    both = grid.read_rows([a], {"abc"}, without_mgm=frozenset({"old"}), without_ogtl=frozenset({"old"}))
+    assert [r["variant"] for r in both] == ["trial"]
+
+
 def test_rows_without_a_restore_of_code_that_changed_only_the_restore_count(grid, tmp_path):
     """A code named for two differences (OGTL and the restores) needs both conditions."""
     a = tmp_path / "a.jsonl"

@@ -35,12 +35,13 @@ Table of several files' rows made with the current code (each row carries the fi
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
       [--code-before-give-up HASH[,HASH...]] [--code-without-ogtl HASH[,HASH...]]
-      [--code-without-restores HASH[,HASH...]]
+      [--code-without-restores HASH[,HASH...]] [--code-without-mgm HASH[,HASH...]]
 The first of these admits rows of code that differs from the current only in what follows the
 safety net's giving up, when they have fewer restores than a give-up needs (those runs were
 alike); the second the rows without OGTL of code that differs only where OGTL runs; the third
-the rows without a safety restore of code that differs only in what a restore sets.  A
-fingerprint given to several differs in each way, and its rows must meet each condition.
+the rows without a safety restore of code that differs only in what a restore sets; the fourth
+the trial-and-error rows of code that differs only in MGM.  A fingerprint given to several
+differs in each way, and its rows must meet each condition.
 """
 
 from __future__ import annotations
@@ -410,6 +411,7 @@ def read_rows(
     before_give_up: frozenset = frozenset(),
     without_ogtl: frozenset = frozenset(),
     without_restores: frozenset = frozenset(),
+    without_mgm: frozenset = frozenset(),
 ) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
     (None: any), or with older code whose differences from the current leave the row alike,
@@ -418,12 +420,13 @@ def read_rows(
     the rows that way cannot reach: ``before_give_up`` what follows the safety net's giving up
     (rows with fewer restores than a give-up needs, ``FEWEST_RESTORES``), ``without_ogtl``
     where OGTL runs (variants without it), ``without_restores`` what a safety restore sets
-    (rows without a restore).  A code in several sets differs in each of their ways: its rows
-    need every condition."""
+    (rows without a restore), ``without_mgm`` MGM (trial-and-error's rows).  A code in several
+    sets differs in each of their ways: its rows need every condition."""
     conditions = (
         (before_give_up, lambda r: r["safety_restores"] < FEWEST_RESTORES),
         (without_ogtl, lambda r: not r["variant"].endswith("+ogtl")),
         (without_restores, lambda r: r["safety_restores"] == 0),
+        (without_mgm, lambda r: not r["variant"].startswith("mgm")),
     )
     unique: dict = {}
     for path in paths:
@@ -543,11 +546,17 @@ def main() -> None:
         default="",
         help="with --table: also the rows without a safety restore of these fingerprints (comma-separated)",
     )
+    p.add_argument(
+        "--code-without-mgm",
+        default="",
+        help="with --table: also the trial-and-error rows of these fingerprints (comma-separated)",
+    )
     a = p.parse_args()
     wanted = set(_cases(a))
     if a.table:
         codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
-        extra = [frozenset(filter(None, x.split(","))) for x in (a.code_before_give_up, a.code_without_ogtl, a.code_without_restores)]
+        named = (a.code_before_give_up, a.code_without_ogtl, a.code_without_restores, a.code_without_mgm)
+        extra = [frozenset(filter(None, x.split(","))) for x in named]
         rows = read_rows(a.table, codes, wanted, *extra)
         report(rows, Console(width=200))
         print(not_run(wanted, rows))
