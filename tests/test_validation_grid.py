@@ -89,6 +89,10 @@ def test_trial_rows_of_code_that_changed_only_mgm_count(grid, tmp_path):
     assert [r["variant"] for r in grid.read_rows([a], {"abc"}, without_mgm=frozenset({"old"}))] == ["trial+ogtl", "trial"]
     both = grid.read_rows([a], {"abc"}, without_mgm=frozenset({"old"}), without_ogtl=frozenset({"old"}))
     assert [r["variant"] for r in both] == ["trial"]
+    newer = _row("trial", 0.1, 0.15, code="abc")  # the current code's row of a case takes its place
+    a.write_text(a.read_text() + json.dumps(newer) + "\n")
+    rows = grid.read_rows([a], {"abc"}, without_mgm=frozenset({"old"}))
+    assert sorted((r["variant"], r["code"]) for r in rows) == [("trial", "abc"), ("trial+ogtl", "old")]
 
 
 def test_rows_without_a_restore_of_code_that_changed_only_the_restore_count(grid, tmp_path):

@@ -415,7 +415,8 @@ def read_rows(
 ) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
     (None: any), or with older code whose differences from the current leave the row alike,
-    one per case (the first: a case run twice on one code gives the same row), restricted to
+    one per case (the first, a row of ``codes`` before any older code's: a case run twice on
+    one code gives the same row, and an older code's may be of another machine), restricted to
     ``wanted`` cases if given.  Each further set names code that differs in one way, and admits
     the rows that way cannot reach: ``before_give_up`` what follows the safety net's giving up
     (rows with fewer restores than a give-up needs, ``FEWEST_RESTORES``), ``without_ogtl``
@@ -429,16 +430,20 @@ def read_rows(
         (without_mgm, lambda r: not r["variant"].startswith("mgm")),
     )
     unique: dict = {}
+    current: set = set()  # the cases whose row is of ``codes``: an older code's row gives way to it
     for path in paths:
         for r in (json.loads(line) for line in path.read_text().splitlines() if line.strip()):
-            code = r.get("code")
+            code, key = r.get("code"), _key(r)
+            if wanted is not None and key not in wanted:
+                continue
             if codes is None or code in codes:
-                admitted = True
-            else:
-                ways = [ok for named, ok in conditions if code in named]
-                admitted = bool(ways) and all(ok(r) for ok in ways)
-            if admitted and (wanted is None or _key(r) in wanted):
-                unique.setdefault(_key(r), r)
+                if key not in current:
+                    unique[key] = r
+                    current.add(key)
+                continue
+            ways = [ok for named, ok in conditions if code in named]
+            if ways and all(ok(r) for ok in ways):
+                unique.setdefault(key, r)
     return list(unique.values())
 
 
