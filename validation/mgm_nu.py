@@ -33,15 +33,14 @@ import numpy as np
 
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains, gain_groups
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, design_gains, point_request  # noqa: E402
 
 
 def paired(result, metrics) -> tuple[float, float | None]:
@@ -64,9 +63,8 @@ def gain_sets(initial: np.ndarray, final: np.ndarray, nu: float, scales: list[fl
 
 def evaluate_sets(request: OptimizeRequest, result, cache: ArrayCache, sets: dict[str, np.ndarray]) -> list[dict]:
     """Each set's paired evaluation against the initial gains, at *before*'s settled k."""
-    obs = request.run.observation
     cal = calibration_for(request.run, cache)
-    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))
+    design = design_gains(request.run)
     k, offsets = result.sensitivities[0], result.offsets[0]
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
     rows = []

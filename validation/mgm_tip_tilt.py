@@ -31,8 +31,7 @@ import numpy as np
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.control import mgm
-from soulctl.control.gains import default_gains, unit_loops
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import unit_loops
 from soulctl.disturbance.turbulence import TurbulenceTipTilt
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
@@ -40,7 +39,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_arguments, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, design_gains, point_arguments, point_request  # noqa: E402
 
 SEGMENTS = (256, 512, 1024, 2048, 4096, 8192)
 SYNTHETIC_FRAMES = 2**20  # ~23 min at 750 Hz: the long-series estimate is the Welch estimator's mean
@@ -100,9 +99,8 @@ def _welch_optimum(machine: mgm.ModalGainMachine, pol: np.ndarray) -> np.ndarray
 def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float]) -> list[dict]:
     """Check 2: paired evaluations of the initial gains with Tip/Tilt scaled, and the cross
     combinations of the initial and MGM's gains (as ``evaluate_pair`` evaluates)."""
-    obs = request.run.observation
     cal = calibration_for(request.run, cache)
-    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))
+    design = design_gains(request.run)
     k, offsets = result.sensitivities[0], result.offsets[0]
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
 

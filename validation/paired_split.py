@@ -15,8 +15,7 @@ import sys
 from pathlib import Path
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains, gain_groups
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
 from soulctl.loop.run import calibration_for
@@ -24,7 +23,7 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, design_gains, windows_for  # noqa: E402
 
 
 def main() -> None:
@@ -44,7 +43,7 @@ def main() -> None:
     cache = ArrayCache(default_cache_dir())
     r = optimize(request, cache)
     cal = calibration_for(request.run, cache)
-    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))  # as optimize's
+    design = design_gains(request.run)
     (k0, k1), (o0, o1) = r.sensitivities, r.offsets
     cells = {}
     for gname, g in (("initial", r.initial_gains), ("optimised", r.gains)):

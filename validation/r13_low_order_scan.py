@@ -17,8 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
@@ -28,7 +26,7 @@ from soulctl.run_config import RunConfig
 sys.path.insert(0, str(Path(__file__).parent))
 from faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402
 from gain_optimisation import observation  # noqa: E402
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from optimize_magnitudes import code_fingerprint, design_gains  # noqa: E402
 
 SCALES = (1.25, 1.5, 1.75)
 LOW = slice(2, 10)  # modes 3-10
@@ -55,8 +53,7 @@ def r13_case(seed: int):
     the calibration and the design gains."""
     run = RunConfig(observation=observation(13.0, 980.0), atmosphere=R13_NIGHT, band="FeII", seed=seed, ncpa=NO_NCPA).request()
     cache = ArrayCache(default_cache_dir())
-    design = run.gains or default_gains(run.observation, sampled_structure(run.structure, run.observation.frame_rate_hz))
-    return OptimizeRequest(run, "mgm", measure_s=1.0), cache, calibration_for(run, cache), design
+    return OptimizeRequest(run, "mgm", measure_s=1.0), cache, calibration_for(run, cache), design_gains(run)
 
 
 def main() -> None:

@@ -33,14 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import TIP_TILT, default_gains
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import TIP_TILT
 from soulctl.loop.optimize import OptimizeRequest, evaluate, ogtl_task, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from optimize_magnitudes import code_fingerprint, design_gains  # noqa: E402
 from paper_nights import NIGHTS, night_request  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -65,8 +64,7 @@ def paired(after: dict, before: dict) -> list[float]:
 def split(request: OptimizeRequest, cache: ArrayCache, result) -> dict:
     """The evaluations of the module docstring on ``result``'s run."""
     cal = calibration_for(request.run, cache)
-    obs = request.run.observation
-    design = request.run.gains or default_gains(obs, sampled_structure(request.run.structure, obs.frame_rate_hz))  # as `optimize`
+    design = design_gains(request.run)
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
     period = request.frames(request.period)
 
