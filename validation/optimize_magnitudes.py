@@ -36,11 +36,13 @@ the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
       python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
       [--code-before-give-up HASH[,HASH...]] [--code-without-ogtl HASH[,HASH...]]
       [--code-without-restores HASH[,HASH...]] [--code-without-mgm HASH[,HASH...]]
+      [--code-calibrated-k HASH[,HASH...]]
 The first of these admits rows of code that differs from the current only in what follows the
 safety net's giving up, when they have fewer restores than a give-up needs (those runs were
 alike); the second the rows without OGTL of code that differs only where OGTL runs; the third
 the rows without a safety restore of code that differs only in what a restore sets; the fourth
-the trial-and-error rows of code that differs only in MGM.  A fingerprint given to several
+the trial-and-error rows of code that differs only in MGM; the fifth the rows of code before
+the optimisers waited for OGTL's calibrated k that this wait cannot have changed.  A fingerprint given to several
 differs in each way, and its rows must meet each condition.
 """
 
@@ -281,6 +283,7 @@ def run_case(
         "before": r.before.strehl if r.before else None,
         "after": r.after.strehl if r.after else None,
         "safety_restores": r.safety_events,
+        "optimiser_held": r.held,
         "during_run": {k: v.strehl for k, v in r.during_run.items()},
         "sensitivities": list(r.sensitivities),
         "sensitivities_evaluated": [m.sensitivity if m else None for m in (r.before, r.after)],
@@ -365,8 +368,9 @@ def _key(row: dict) -> tuple:
     return (row["mag"], row["seeing"], row["seed"], row["variant"])
 
 
-def judged(row: dict, which: str) -> float:
-    """The Strehl ratio a check uses: the windows' mean where the row has them, else the one window."""
+def judged(row: dict, which: str) -> float | None:
+    """The Strehl ratio a check uses: the windows' mean where the row has them, else the one
+    window (None: a diverged evaluation's)."""
     w = row.get("windows")
     return w[f"mean_{which}"] if w else row[which]
 
@@ -418,6 +422,7 @@ def read_rows(
     without_ogtl: frozenset = frozenset(),
     without_restores: frozenset = frozenset(),
     without_mgm: frozenset = frozenset(),
+    calibrated_k: frozenset = frozenset(),
 ) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
     (None: any), or with older code whose differences from the current leave the row alike,
@@ -427,13 +432,17 @@ def read_rows(
     the rows that way cannot reach: ``before_give_up`` what follows the safety net's giving up
     (rows with fewer restores than a give-up needs, ``FEWEST_RESTORES``), ``without_ogtl``
     where OGTL runs (variants without it), ``without_restores`` what a safety restore sets
-    (rows without a restore), ``without_mgm`` MGM (trial-and-error's rows).  A code in several
-    sets differs in each of their ways: its rows need every condition."""
+    (rows without a restore), ``without_mgm`` MGM (trial-and-error's rows), ``calibrated_k``
+    the optimiser's wait for OGTL's calibrated k (rows without OGTL, or whose OGTL had raised
+    k above 1 by the end of *before*: k rises only on an estimate it acted on, so OGTL was
+    calibrated when the optimiser began).  A code in several sets differs in each of their
+    ways: its rows need every condition."""
     conditions = (
         (before_give_up, lambda r: r["safety_restores"] < FEWEST_RESTORES),
         (without_ogtl, lambda r: not r["variant"].endswith("+ogtl")),
         (without_restores, lambda r: r["safety_restores"] == 0),
         (without_mgm, lambda r: not r["variant"].startswith("mgm")),
+        (calibrated_k, lambda r: not r["variant"].endswith("+ogtl") or r["sensitivities"][0] > 1.0),
     )
     unique: dict = {}
     current: set = set()  # the cases whose row is of ``codes``: an older code's row gives way to it
@@ -474,7 +483,7 @@ def report(rows: list[dict], console: Console) -> None:
     for r in bad:
         b, a = judged(r, "before"), judged(r, "after")
         error = (r.get("windows") or {}).get("standard_error", float("nan"))
-        case = f'R{r["mag"]:g} {r["seeing"]:g}" seed {r["seed"]} {r["variant"]}'
+        case = _case(r)
         if r["diverged_at"] is not None or a is None or b is None:
             console.print(f"  miss: {case}: diverged in the {r.get('diverged_in') or 'run'} at frame {r['diverged_at']}")
             continue
@@ -486,6 +495,16 @@ def not_run(wanted: set, rows: list[dict]) -> str:
     missing = sorted({c[:3] for c in wanted - {_key(r) for r in rows}})
     points = ", ".join(f'R{m:g} {s:g}" s{seed}' for m, s, seed in missing)
     return f"not run on this code: {len(missing)} points" + (f": {points}" if missing else "")
+
+
+def _case(row: dict) -> str:
+    return f'R{row["mag"]:g} {row["seeing"]:g}" seed {row["seed"]} {row["variant"]}'
+
+
+def _judged_text(row: dict) -> str:
+    """The windows' before -> after of a row; "-" for a side that has none (a diverged evaluation)."""
+    b, a = judged(row, "before"), judged(row, "after")
+    return " -> ".join("-" if x is None else f"{x:.4f}" for x in (b, a))
 
 
 def _cases(a) -> list[tuple]:
@@ -519,12 +538,8 @@ def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s:
                 row["code"] = launched
                 f.write(json.dumps(row) + "\n")
                 f.flush()
-                print(
-                    f'R{row["mag"]:g} {row["seeing"]:g}" seed {row["seed"]} {row["variant"]}: '
-                    f"{row['before']} -> {row['after']} (windows: {judged(row, 'before'):.4f} -> {judged(row, 'after'):.4f}; "
-                    f"diverged at {row['diverged_at']}), {row['seconds']:.0f} s",
-                    flush=True,
-                )
+                outcome = f"{row['before']} -> {row['after']} (windows: {_judged_text(row)}; diverged at {row['diverged_at']})"
+                print(f"{_case(row)}: {outcome}, {row['seconds']:.0f} s", flush=True)
 
 
 def main() -> None:
@@ -558,6 +573,11 @@ def main() -> None:
         help="with --table: also the rows without a safety restore of these fingerprints (comma-separated)",
     )
     p.add_argument(
+        "--code-calibrated-k",
+        default="",
+        help="with --table: also the rows of these fingerprints without OGTL or whose k had left 1 by the end of before (comma-separated)",
+    )
+    p.add_argument(
         "--code-without-mgm",
         default="",
         help="with --table: also the trial-and-error rows of these fingerprints (comma-separated)",
@@ -566,7 +586,7 @@ def main() -> None:
     wanted = set(_cases(a))
     if a.table:
         codes = None if a.code == "any" else set((a.code or code_fingerprint()).split(","))
-        named = (a.code_before_give_up, a.code_without_ogtl, a.code_without_restores, a.code_without_mgm)
+        named = (a.code_before_give_up, a.code_without_ogtl, a.code_without_restores, a.code_without_mgm, a.code_calibrated_k)
         extra = [frozenset(filter(None, x.split(","))) for x in named]
         rows = read_rows(a.table, codes, wanted, *extra)
         report(rows, Console(width=200))

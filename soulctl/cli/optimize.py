@@ -94,6 +94,7 @@ def _result_dict(result: OptimizeResult) -> dict:
         "trial_best": [float(g) for g in tm.aux_arrays("trial").get("best", []) if math.isfinite(g)] if r.method == "trial" else None,
         "mgm_updates": len(tm.aux.get("mgm", [])),
         "safety_restores": result.safety_events,
+        "optimiser_held": result.held,
         "auxiliary_summary": aux_summary({name: tm.aux_arrays(name) for name in tm.aux}),
     } | ({} if result.coupling is None else {"misregistration_stability": result.coupling.to_dict()})
 
@@ -400,6 +401,9 @@ def _report(o: GainsOptions, results: dict[str, OptimizeResult]) -> int:
     else:
         console = make_console()
         _render(results, console)
+        for m, x in results.items():
+            if x.held is not None:
+                console.print(f"{m}: {x.held}")
         if o.out is not None and not failures:
             console.print(f"gains written to {o.out}")
         if o.plot is not None:

@@ -5,7 +5,7 @@
   RMS grows (``control.ogtl``);
 * :class:`MgmTask` - the Modal Gain Machine: every period, per-mode gains from the
   pseudo-open-loop PSDs of the window (``control.mgm``), scaled by k_window / k_now when OGTL
-  changed k in the same update (the paper's step 7);
+  changed k in the same update (the paper's step 7); with OGTL, from its first calibrated k on;
 * :class:`TrialAndErrorTask` - the three-group gain scan (``control.trial``);
 * :class:`LiveMetricsTask` - modal residual RMS, a Strehl estimate and the guide star's
   magnitude from the detected flux, recorded every period.
@@ -68,6 +68,12 @@ class OgtlTask(AuxLoop):
 
     def damp(self) -> None:
         self.step_scale *= 0.5
+
+    @property
+    def calibrated(self) -> bool:
+        """k has acted on a reliable estimate (``chi_now`` is known): before it, the loop's
+        optical gain is unknown within the factor k_max, and k may yet move that far."""
+        return self.chi_now is not None
 
     def _set_ceiling(self, k: float) -> None:
         """k is not raised past ``k`` (its value before the spiral) for the hold, which doubles."""
@@ -137,11 +143,14 @@ class MgmTask(AuxLoop):
 
     With ``ogtl`` (the run's OGTL task), the model is scaled by what OGTL knows of the probed
     mode's optical gain gamma: chi_i = chi_model,i x gamma x k, gamma OGTL's latest chi
-    that k acted on over its k, or, before it has one (a noise-dominated loop where OGTL holds
-    k), ``probe_gain``, the table's gamma of the probed mode.  Not an estimate held while the
-    commands grew: at R16.5 (CI's short case) the only one past the SNR rule was such, 0.093
-    against the table's 0.177, and MGM's first update raised every gain ~10x.  The safety
-    net's ``damp`` halves rho.
+    that k acted on over its k.  Not an estimate held while the commands grew: at R16.5 (CI's
+    short case) the only one past the SNR rule was such, 0.093 against the table's 0.177, and
+    MGM's first update raised every gain ~10x.  Before OGTL has one (``OgtlTask.calibrated``)
+    MGM waits: gains tuned at a k that OGTL then raises by up to k_max are over-driven by that
+    factor once it does (R18.5 1.5": OGTL held k = 1 through the run, MGM raised every gain
+    ~5x on the table's gamma, and the paired evaluation's OGTL, settling at k = 6.8, diverged;
+    docs/physics.md, "An optimiser waits for a calibrated k").  The safety net's ``damp``
+    halves rho.
 
     Memory of ``psd_updates`` windows (``mgm.PSD_UPDATES``, the newest included): the optimum
     of an update is of the mean prewhitened POL PSD of these windows, each rebuilt at the
@@ -164,13 +173,11 @@ class MgmTask(AuxLoop):
         period_frames: int,
         machine: mgm.ModalGainMachine,
         ogtl: OgtlTask | None = None,
-        probe_gain: float = 1.0,
         psd_updates: int = mgm.PSD_UPDATES,
     ):
         super().__init__(period_frames)
         self.machine = machine
         self.ogtl = ogtl
-        self.probe_gain = float(probe_gain)
         self.rho_scale = 1.0
         self.windows: deque[tuple[tuple, float, int]] = deque(maxlen=psd_updates)  # (POL spectra, k of the window, its Welch segments)
         self.gammas: deque[float] = deque(maxlen=psd_updates)
@@ -179,10 +186,11 @@ class MgmTask(AuxLoop):
         self.rho_scale *= 0.5
 
     def gamma(self, k_now: float) -> float:
-        """The probed mode's optical gain as OGTL knows it now (it has run for this update)."""
+        """The probed mode's optical gain as OGTL knows it now (it has run for this update;
+        ``update`` asks only once it is calibrated); 1 without OGTL (the model's own)."""
         if self.ogtl is not None and self.ogtl.chi_now is not None:
             return self.ogtl.chi_now / k_now
-        return self.probe_gain
+        return 1.0
 
     def chi_scale(self, k: float) -> float:
         """chi of the probed mode at ``k`` relative to the model's: the memory's gamma x k with
@@ -190,6 +198,8 @@ class MgmTask(AuxLoop):
         return float(np.exp(np.mean(np.log(self.gammas)))) * k if self.ogtl is not None else 1.0
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
+        if self.ogtl is not None and not self.ogtl.calibrated:
+            return {}  # nothing recorded, no gain moved: MGM's record count tells the waits
         n, _ = fractional_taps(window.delay_frames)
         usable = window.frames - n - 1  # the first n + 1 frames lack their commands
         if usable < mgm.min_frames(self.machine.settings):

@@ -30,11 +30,6 @@ def mgm_chi(gamma: np.ndarray, ogtl: bool, probe_mode: int) -> np.ndarray:
     return gamma / gamma[probe_mode - 1] if ogtl else gamma.copy()
 
 
-def probe_gain(calibration: Calibration, cache: ArrayCache, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC) -> float:
-    """gamma of the probed mode in the reference table: MGM's chi scale before OGTL has a reliable estimate."""
-    return float(optical_gain_table(calibration, cache, seeing_arcsec)[probe_mode - 1])
-
-
 def plant_model(
     calibration: Calibration, cache: ArrayCache, ogtl: bool, probe_mode: int, seeing_arcsec: float = CHI_TABLE_SEEING_ARCSEC
 ) -> np.ndarray:

@@ -10,7 +10,9 @@ One continuous closed loop in phases:
    ``OGTL_MAX_SETTLING_PERIODS`` updates for k to settle (``_settled``);
 1. *before*: ``measure_s`` at the initial gains (OGTL running when asked);
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
-   scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``);
+   scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``); with OGTL
+   only if it has a calibrated k by then (a reliable estimate that k acted on), otherwise the
+   phase runs at the initial gains and the result says why (``held``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
 4. *evaluation*: the initial and the optimised gains, each in a loop closed afresh on the run's
    own turbulence and noise (``evaluate``): with OGTL closed much as the run was (k = 1 for
@@ -80,7 +82,7 @@ from ..optics.pupil import LBT_DIAMETER_M
 from ..ranges import DURATION_S, EVALUATION_WINDOWS, MEASURE_S, MIN_MEASURE_FRAMES, OPTIMISATION_S, PERIOD_S, PROBE_MIN_CYCLES, SEQUENCE_S
 from .auxloop import RtcParameters
 from .auxloops import LiveMetricsTask, MgmTask, OgtlTask, SafetyNet, TrialAndErrorTask, could_not_recover
-from .chi_model import mgm_chi, optical_gain_table, plant_model, probe_gain
+from .chi_model import mgm_chi, optical_gain_table, plant_model
 from .metrics import band_wavelength
 from .run import RunRequest, calibration_for, closed_loop_for, closing_frames, registration_stability
 from .simulation import ClosedLoop, LoopDiverged
@@ -111,6 +113,9 @@ SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts withi
 # 0.2 s the evaluation measured MGM's gains mid-transient (Strehl 0.129 -> 0.111), with 1 s in
 # the steady state (0.127 -> 0.152; over 1-3 s the residual is 386 against 401 nm).
 EVALUATION_SETTLE_S = 1.0
+# An optimiser with OGTL starts only once OGTL has a calibrated k (``OgtlTask.calibrated``); the
+# result's ``held`` when its settling ended without one:
+UNCALIBRATED_K = "OGTL had no reliable probe estimate by the end of its settling: k uncalibrated, the initial gains kept"
 OPTIMISER_OGTL = True  # `optimize gains` and a sweep's optimised cases run OGTL unless told not to
 
 
@@ -334,6 +339,7 @@ class OptimizeResult:
     sensitivities: tuple[float, float] = (1.0, 1.0)  # k at the end of *before* and at the end of the run
     coupling: CouplingStability | None = None  # a mis-registered loop's stability with the optimised gains
     offsets: tuple[bool, bool] = (False, False)  # NCPA offsets in force then (OGTL applies them)
+    held: str | None = None  # why the optimiser did not run (the initial gains kept), None if it ran
 
     def failure(self) -> str | None:
         """Why the optimisation failed (exit status 3, no gain file): the loop diverged, its
@@ -459,7 +465,7 @@ class LiveOptimisers:
         tasks: list = [ogtl] if ogtl is not None else []
         if self.mgm:
             machine = mgm_machine(obs, request.structure, chi, period_settings(period, obs), gains.forgetting)
-            tasks.append(MgmTask(period, machine, ogtl, probe_gain(calibration, cache, self.ogtl_settings.mode, seeing)))
+            tasks.append(MgmTask(period, machine, ogtl))
         tasks.append(LiveMetricsTask(period, gamma, band_wavelength(request.band), obs.magnitude_r, loop.sensor.photons_per_frame))
         tasks.append(safety_net(obs.frame_rate_hz, tasks))
         return tasks, initial_gains(gains, request, calibration, cache, loop, chi, noise, self.ogtl, self.ogtl_settings.mode)
@@ -748,8 +754,7 @@ def _optimiser(
     obs = request.run.observation
     if request.method == "mgm":
         machine = mgm_machine(obs, request.run.structure, chi, request.settings_for_rate(obs.frame_rate_hz), forgetting)
-        gamma = probe_gain(calibration, cache, request.ogtl_settings.mode, request.chi_seeing)
-        return MgmTask(request.frames(request.period), machine, ogtl, gamma), request.frames(request.duration)
+        return MgmTask(request.frames(request.period), machine, ogtl), request.frames(request.duration)
     sequence = request.frames(request.sequence)
     settle = max(1, sequence // 5)
     incumbents = [float(np.mean(initial[modes])) for _, modes in gain_groups(len(chi))]
@@ -781,6 +786,7 @@ class _Session:
     loop: ClosedLoop
     aux: list  # OGTL (when on) and the live metrics, from the settling phase on
     optimiser: MgmTask | TrialAndErrorTask
+    ogtl: OgtlTask | None  # the run's OGTL task (also in ``aux``), None without OGTL
     n_opt: int  # frames of the optimisation phase
     net: SafetyNet
     period: int  # frames per update
@@ -813,7 +819,7 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     frames = {"closing": n_close, "settle": n_settle, "measure": n_measure, "skip": skip}
 
     net = safety_net(obs.frame_rate_hz, aux + [optimiser])
-    return _Session(loop, aux, optimiser, n_opt, net, period, frames, lambda: request_ogtl_task(request, cal, cache, noise))
+    return _Session(loop, aux, optimiser, ogtl, n_opt, net, period, frames, lambda: request_ogtl_task(request, cal, cache, noise))
 
 
 def _measure(loop: ClosedLoop, s: _Session, wavelength: float, tick) -> tuple[PhaseMetrics, tuple[int, int]]:
@@ -840,11 +846,16 @@ def _live_phases(s: _Session, result: OptimizeResult, wavelength: float, tick) -
     result.during_run["before"], result.phases["before"] = _measure(loop, s, wavelength, tick)
     k_before, offsets_before = loop.rtc_parameters.sensitivity, loop.rtc_parameters.slope_offset is not None
     start = loop.frame
-    loop.remove_aux_loop(s.net)  # the net acts after the optimiser in an update
-    loop.add_aux_loop(s.optimiser)
-    loop.add_aux_loop(s.net)
-    _run_optimiser(loop, s.optimiser, s.n_opt, tick)
-    loop.remove_aux_loop(s.optimiser)
+    if s.ogtl is not None and not s.ogtl.calibrated:
+        # gains tuned at a k OGTL has not calibrated are over-driven when it does (``MgmTask``)
+        result.held = UNCALIBRATED_K
+        loop.run(s.n_opt, progress=tick)
+    else:
+        loop.remove_aux_loop(s.net)  # the net acts after the optimiser in an update
+        loop.add_aux_loop(s.optimiser)
+        loop.add_aux_loop(s.net)
+        _run_optimiser(loop, s.optimiser, s.n_opt, tick)
+        loop.remove_aux_loop(s.optimiser)
     result.phases["optimisation"] = (start, loop.frame)
     result.gains = loop.rtc_parameters.gains
     result.during_run["after"], result.phases["after"] = _measure(loop, s, wavelength, tick)

@@ -53,6 +53,25 @@ def recorded(tmp_path_factory, cache_dir):
     return path
 
 
+def test_an_optimiser_waits_for_a_calibrated_k(monkeypatch, capsys, cache_dir):
+    """OGTL's probe never reaches the SNR threshold (every estimate replaced by one at SNR 1):
+    k stays uncalibrated at 1 through the settling, and the optimiser does not run - its gains
+    tuned at that k would be over-driven by the factor OGTL later raises it by (R18.5 1.5"
+    seed 2: MGM raised every gain ~5x at k = 1, and the paired evaluation, whose OGTL settled
+    at 6.8, diverged).  Exit 0 with the initial gains, the reason in the JSON; the paired
+    evaluation then compares a gain set with itself: exactly zero."""
+    from soulctl.control import ogtl
+
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(0.3, 0.3, 1.0))
+    args = ["optimize", "gains", *SMALL, "--method", "mgm", "--period", "1", "--duration", "2", "--measure", "0.2", "--json"]
+    status, out, err = cli(args, capsys, cache_dir)
+    assert status == 0, err
+    d = json.loads(out)
+    assert d["optimiser_held"] and "uncalibrated" in d["optimiser_held"] and d["mgm_updates"] == 0
+    assert d["gains"] == d["initial_gains"] and d["sensitivity"] == 1.0
+    assert d["strehl_difference"]["mean"] == 0.0
+
+
 def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir):
     """Both methods on one seed, with OGTL; MGM alone on that seed then gives MGM's gains and
     figures to the bit (the same seed, the same numbers, whichever way the command ran it)."""

@@ -244,6 +244,10 @@ class _OgtlEstimate:
 
     chi_now: float | None = None
 
+    @property
+    def calibrated(self) -> bool:
+        return self.chi_now is not None
+
 
 def test_live_mgm_scales_its_plant_by_the_mean_optical_gain_of_its_memory():
     """OGTL's estimate of the probed mode's optical gain scatters from one update to the next
@@ -261,7 +265,7 @@ def test_live_mgm_scales_its_plant_by_the_mean_optical_gain_of_its_memory():
     measured = red - red.mean(axis=0) + rng.normal(0.0, 2.0, (frames, 3))
     machine = ModalGainMachine([Filter.integrator(1.0)] * 3, np.array([1.0, 0.8, 1.2]), 1.5, 1000.0, MgmSettings(segment=64))
     ogtl = _OgtlEstimate()
-    task = MgmTask(frames, machine, ogtl, probe_gain=0.4)
+    task = MgmTask(frames, machine, ogtl)
     z = np.zeros((frames, 3))
     window = TelemetryWindow(0, 1000.0, 1.5, measured, z, z, np.zeros((frames, 4)), np.ones(frames), np.full(3, 0.2), k)
     reference = machine.optimum((measured / machine.chi)[2:])[0]  # the first n + 1 = 2 frames are left out
@@ -464,14 +468,29 @@ def test_ogtl_hands_mgm_no_optical_gain_from_an_estimate_held_while_the_commands
     assert task.chi_now == pytest.approx(0.25 * records[2]["sensitivity"], rel=1e-12)
 
 
-def test_live_mgm_takes_the_tables_gamma_while_ogtl_has_acted_on_no_estimate(monkeypatch):
+def test_live_mgm_waits_while_ogtl_has_acted_on_no_estimate(monkeypatch):
     """Every estimate below the SNR threshold but one, made while the commands grew: OGTL never
-    moved k on an estimate, so MGM's gamma is the table's (``probe_gain``), not that one."""
+    moved k on an estimate, so it is not calibrated, and MGM waits - no gain moves, nothing is
+    recorded - until it is.  Tuned at such a k (on the table's gamma, before), the gains are
+    over-driven by the factor OGTL later raises k by (R18.5 1.5": ~5x at k = 1, the paired
+    evaluation's OGTL settled at 6.8 and its loop diverged)."""
     from soulctl.control import ogtl
+    from soulctl.control.filters import Filter
+    from soulctl.control.mgm import MgmSettings, ModalGainMachine
 
     estimates = [ogtl.Estimate(0.09, 0.09, 1.0), ogtl.Estimate(0.09, 0.0009, 100.0), ogtl.Estimate(0.09, 0.09, 1.0)]
     task, records = _ogtl_on_commands(monkeypatch, estimates, (1.0, 2.0, 2.0))
-    assert [r["status"] for r in records] == [ogtl.LOW_SNR, ogtl.GROWING, ogtl.LOW_SNR] and task.chi_now is None
-    machine = MgmTask.__new__(MgmTask)
-    machine.ogtl, machine.probe_gain = task, 0.177
-    assert machine.gamma(records[-1]["sensitivity"]) == 0.177
+    assert [r["status"] for r in records] == [ogtl.LOW_SNR, ogtl.GROWING, ogtl.LOW_SNR] and not task.calibrated
+    rng = np.random.default_rng(3)
+    frames = 640
+    measured = np.cumsum(rng.normal(0.0, 1.0, (frames, 3)), axis=0) + rng.normal(0.0, 2.0, (frames, 3))
+    machine = ModalGainMachine([Filter.integrator(1.0)] * 3, np.ones(3), 1.5, 1000.0, MgmSettings(segment=64))
+    mgm_task = MgmTask(frames, machine, task)
+    z, gains = np.zeros((frames, 3)), np.full(3, 0.2)
+    window = TelemetryWindow(0, 1000.0, 1.5, measured, z, z, np.zeros((frames, 4)), np.ones(frames), gains, 1.0)
+    rtc = RtcParameters(3, gains, lambda g: None, 1.0)
+    assert mgm_task.update(window, rtc) == {}
+    np.testing.assert_array_equal(rtc.gains, gains)
+    task.chi_now = 1.0  # a reliable estimate k acted on: MGM updates
+    record = mgm_task.update(window, rtc)
+    assert record["psd_windows"] == 1 and not np.array_equal(rtc.gains, gains)
