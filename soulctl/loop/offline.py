@@ -33,7 +33,7 @@ missing field, a field of the wrong type, shape or range (NaN and infinite value
 fields that disagree, a mode count, frame rate or delay that differs from the configuration's,
 a loop that diverged, recorded gains outside 0..10, measured modes without signal (constant
 over the window), a window shorter than 4 PSD segments of 64 frames (the minimum duration is
-given).
+given), an OGTL that never calibrated k (``check_ogtl_calibrated``).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.gains import DEFAULT_FORGETTING, nominal_loop
-from ..control.ogtl import PROBE_MODE
+from ..control.ogtl import GROWING, LOW_SNR, NO_ESTIMATE, PROBE_MODE
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import max_stable_gain
 from ..errors import InputError
@@ -191,6 +191,24 @@ def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
     return int(mode)
 
 
+def check_ogtl_calibrated(tm: TelemetryReader, path) -> None:
+    """InputError if the file's OGTL never acted on an estimate (``/aux/ogtl/status`` all held:
+    probe SNR below the threshold, commands growing or no estimate): its k was not calibrated,
+    so chi_i = gamma_i / gamma_probe, MGM's plant with OGTL, does not hold and the loop's optical
+    gain is unknown within OGTL's k_max - the live optimisers wait for a calibrated k for the
+    same reason (``loop.optimize``).  Files that do not record the status pass."""
+    ds = tm.dataset("aux/ogtl/status")
+    if ds is None or ds.shape[:1] == (0,) or not np.issubdtype(ds.dtype, np.number):
+        return
+    status = np.asarray(ds[...], dtype=float).reshape(-1)
+    held = np.isin(status, (LOW_SNR, GROWING, NO_ESTIMATE))
+    if held.all():
+        raise InputError(
+            f"telemetry file {path}: OGTL never acted on a reliable estimate ({status.size} updates, all held), so k was not "
+            "calibrated and the loop's optical gain is unknown; record a run in which OGTL calibrates k"
+        )
+
+
 def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> RunConfig:
     """The run a telemetry file records: its stored run description, else (files written
     before soulctl stored one) what its configuration attribute holds, which is checked in
@@ -293,6 +311,8 @@ def offline_mgm(
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
+        if ogtl:
+            check_ogtl_calibrated(tm, path)
         seeing, seeing_from = plant_seeing(tm, description, chi_seeing_arcsec)
         gamma = plant.optical_gains  # the identified plant's; else the model's, from the run's calibration
         if gamma is None:

@@ -378,7 +378,7 @@ def test_any_corruption_exits_2_with_one_line_or_0_with_gains_loop_run_accepts(e
 def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
     """A run made with --probe-mode 10: offline MGM takes chi_i = gamma_i / gamma_10 (it assumed
     mode 30, the default, whatever the run had probed); a file whose probe mode is not a mode
-    is refused."""
+    is refused, and so is one whose OGTL never acted on an estimate (k never calibrated)."""
     h5 = tmp_path / "probe10.h5"
     status = main(
         [
@@ -425,3 +425,15 @@ def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
         and "/aux/ogtl/mode must hold the probed mode, an integer in 1..54" in err
         and err.count("\n") == 1
     )
+    # a run whose OGTL never acted on an estimate: k uncalibrated, MGM's plant unknown
+    from soulctl.control import ogtl
+
+    with h5py.File(h5, "r") as f:
+        statuses = f["aux/ogtl/status"][...]
+    assert not np.isin(statuses, (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE)).all()  # this run's OGTL acted
+    held = tmp_path / "held.h5"
+    held.write_bytes(h5.read_bytes())
+    with h5py.File(held, "r+") as f:
+        f["aux/ogtl/status"][...] = ogtl.LOW_SNR
+    status, _, err, out_file = offline(held, env, capsys)
+    assert status == 2 and not out_file.exists() and "OGTL never acted on a reliable estimate" in err and err.count("\n") == 1
