@@ -95,6 +95,20 @@ def test_trial_rows_of_code_that_changed_only_mgm_count(grid, tmp_path):
     assert sorted((r["variant"], r["code"]) for r in rows) == [("trial", "abc"), ("trial+ogtl", "old")]
 
 
+def test_rows_the_wait_for_a_calibrated_k_cannot_reach_count(grid, tmp_path):
+    """Rows of code before the optimisers waited for OGTL's calibrated k count without OGTL, or
+    where k had left 1 by the end of *before* (OGTL raises k only on an estimate it acted on);
+    of two admitted older rows of a case the later in the file (the newer run) counts."""
+    a = tmp_path / "a.jsonl"
+    rows = [_row(v, 0.1, 0.2, code="old") | {"sensitivities": [k, k]} for v, k in (("mgm", 1.0), ("mgm+ogtl", 1.0), ("trial+ogtl", 2.3))]
+    a.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    assert [r["variant"] for r in grid.read_rows([a], {"abc"}, calibrated_k=frozenset({"old"}))] == ["mgm", "trial+ogtl"]
+    newer = _row("trial+ogtl", 0.1, 0.3, code="newer") | {"sensitivities": [2.1, 2.1]}
+    a.write_text(a.read_text() + json.dumps(newer) + "\n")
+    kept = grid.read_rows([a], {"abc"}, calibrated_k=frozenset({"old", "newer"}))
+    assert [(r["variant"], r["code"]) for r in kept] == [("mgm", "old"), ("trial+ogtl", "newer")]
+
+
 def test_rows_without_a_restore_of_code_that_changed_only_the_restore_count(grid, tmp_path):
     """A code named for two differences (OGTL and the restores) needs both conditions."""
     a = tmp_path / "a.jsonl"

@@ -426,8 +426,9 @@ def read_rows(
 ) -> list[dict]:
     """The rows of ``paths`` (JSON lines) made with one of the code fingerprints ``codes``
     (None: any), or with older code whose differences from the current leave the row alike,
-    one per case (the first, a row of ``codes`` before any older code's: a case run twice on
-    one code gives the same row, and an older code's may be of another machine), restricted to
+    one per case (a row of ``codes`` before any older code's, the first: a case run twice on
+    one code gives the same row, and an older code's may be of another machine; of the older
+    codes' the last in the files, the newest run), restricted to
     ``wanted`` cases if given.  Each further set names code that differs in one way, and admits
     the rows that way cannot reach: ``before_give_up`` what follows the safety net's giving up
     (rows with fewer restores than a give-up needs, ``FEWEST_RESTORES``), ``without_ogtl``
@@ -457,8 +458,8 @@ def read_rows(
                     current.add(key)
                 continue
             ways = [ok for named, ok in conditions if code in named]
-            if ways and all(ok(r) for ok in ways):
-                unique.setdefault(key, r)
+            if ways and all(ok(r) for ok in ways) and key not in current:
+                unique[key] = r  # the last admitted: the newest run of the case
     return list(unique.values())
 
 
