@@ -48,7 +48,7 @@ from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.gains import DEFAULT_FORGETTING, nominal_loop
-from ..control.ogtl import GROWING, LOW_SNR, NO_ESTIMATE, PROBE_MODE
+from ..control.ogtl import GROWING, LOW_SNR, NO_ESTIMATE, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import max_stable_gain
 from ..errors import InputError
@@ -196,11 +196,14 @@ def check_ogtl_calibrated(tm: TelemetryReader, path) -> None:
     probe SNR below the threshold, commands growing or no estimate): its k was not calibrated,
     so chi_i = gamma_i / gamma_probe, MGM's plant with OGTL, does not hold and the loop's optical
     gain is unknown within OGTL's k_max - the live optimisers wait for a calibrated k for the
-    same reason (``loop.optimize``).  Files that do not record the status pass."""
+    same reason (``loop.optimize``); InputError too for statuses that are not OGTL's (integers
+    in 0..len(STATUS) - 1).  Files that do not record the status pass."""
     ds = tm.dataset("aux/ogtl/status")
-    if ds is None or ds.shape[:1] == (0,) or not np.issubdtype(ds.dtype, np.number):
+    if ds is None or ds.size == 0:
         return
-    status = np.asarray(ds[...], dtype=float).reshape(-1)
+    status = np.asarray(ds[...], dtype=float).reshape(-1) if np.issubdtype(ds.dtype, np.number) else np.array([math.nan])
+    if not np.all(np.isin(status, np.arange(len(STATUS)))):
+        raise InputError(f"telemetry file {path}: /aux/ogtl/status must hold OGTL's update statuses, integers in 0..{len(STATUS) - 1}")
     held = np.isin(status, (LOW_SNR, GROWING, NO_ESTIMATE))
     if held.all():
         raise InputError(

@@ -11,7 +11,7 @@ One continuous closed loop in phases:
 1. *before*: ``measure_s`` at the initial gains (OGTL running when asked);
 2. *optimisation*: the optimiser live as an auxiliary loop - trial-and-error (the three-group
    scan, its length set by the scan) or MGM (every ``period_s`` for ``duration_s``); with OGTL
-   only if it has a calibrated k by then (a reliable estimate that k acted on), otherwise the
+   only if it has a calibrated k by the end of *before* (a reliable estimate k acted on), otherwise the
    phase runs at the initial gains and the result says why (``held``);
 3. *after*: ``measure_s`` at the optimised gains, frozen (OGTL still running);
 4. *evaluation*: the initial and the optimised gains, each in a loop closed afresh on the run's
@@ -114,8 +114,8 @@ SAFETY_RUN_FRAMES = 5  # the net runs every 5 frames: its fast trip reacts withi
 # the steady state (0.127 -> 0.152; over 1-3 s the residual is 386 against 401 nm).
 EVALUATION_SETTLE_S = 1.0
 # An optimiser with OGTL starts only once OGTL has a calibrated k (``OgtlTask.calibrated``); the
-# result's ``held`` when its settling ended without one:
-UNCALIBRATED_K = "OGTL had no reliable probe estimate by the end of its settling: k uncalibrated, the initial gains kept"
+# result's ``held`` when its settling and *before* ended without one:
+UNCALIBRATED_K = "OGTL had acted on no reliable probe estimate when the optimiser was to start: k uncalibrated, the initial gains kept"
 OPTIMISER_OGTL = True  # `optimize gains` and a sweep's optimised cases run OGTL unless told not to
 
 

@@ -139,6 +139,8 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
             )
             failure = optimised.failure()
             row.update(_outcome(None if failure is None else f"{failure} ({p['gain_method']})", optimised.after))
+            if row["status"] == "ok" and optimised.held is not None:
+                row["reason"] = f"{optimised.held} ({p['gain_method']})"  # ok, at the initial gains
     except InputError as e:
         row["reason"] = str(e)
     except Exception as e:  # recorded, never stops the sweep

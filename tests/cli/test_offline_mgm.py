@@ -437,3 +437,10 @@ def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
         f["aux/ogtl/status"][...] = ogtl.LOW_SNR
     status, _, err, out_file = offline(held, env, capsys)
     assert status == 2 and not out_file.exists() and "OGTL never acted on a reliable estimate" in err and err.count("\n") == 1
+    for bad in (np.full(statuses.shape, np.nan), np.full(statuses.shape, 7), np.array([b"updated"] * statuses.size)):
+        with h5py.File(held, "r+") as f:
+            del f["aux/ogtl/status"]
+            f["aux/ogtl/status"] = bad
+        status, _, err, out_file = offline(held, env, capsys)
+        assert status == 2 and not out_file.exists() and "aux/ogtl/status" in err and err.count("\n") == 1  # text: the schema's own refusal
+        assert bad.dtype.kind == "S" or "/aux/ogtl/status must hold OGTL's update statuses, integers in 0..6" in err

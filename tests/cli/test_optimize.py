@@ -58,18 +58,20 @@ def test_an_optimiser_waits_for_a_calibrated_k(monkeypatch, capsys, cache_dir):
     k stays uncalibrated at 1 through the settling, and the optimiser does not run - its gains
     tuned at that k would be over-driven by the factor OGTL later raises it by (R18.5 1.5"
     seed 2: MGM raised every gain ~5x at k = 1, and the paired evaluation, whose OGTL settled
-    at 6.8, diverged).  Exit 0 with the initial gains, the reason in the JSON; the paired
-    evaluation then compares a gain set with itself: exactly zero."""
+    at 6.8, diverged).  MGM and trial-and-error alike: exit 0 with the initial gains, the reason
+    in the JSON; the paired evaluation then compares a gain set with itself: exactly zero."""
     from soulctl.control import ogtl
 
     monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: ogtl.Estimate(0.3, 0.3, 1.0))
-    args = ["optimize", "gains", *SMALL, "--method", "mgm", "--period", "1", "--duration", "2", "--measure", "0.2", "--json"]
-    status, out, err = cli(args, capsys, cache_dir)
+    args = ["optimize", "gains", *SMALL, "--method", "both", "--period", "1", "--duration", "2", "--measure", "0.2", "--sequence", "0.1"]
+    status, out, err = cli([*args, "--json"], capsys, cache_dir)
     assert status == 0, err
-    d = json.loads(out)
-    assert d["optimiser_held"] and "uncalibrated" in d["optimiser_held"] and d["mgm_updates"] == 0
-    assert d["gains"] == d["initial_gains"] and d["sensitivity"] == 1.0
-    assert d["strehl_difference"]["mean"] == 0.0
+    both = json.loads(out)
+    assert both["mgm"]["mgm_updates"] == 0
+    for d in both.values():
+        assert d["optimiser_held"] and "uncalibrated" in d["optimiser_held"]
+        assert d["gains"] == d["initial_gains"] and d["sensitivity"] == 1.0
+        assert d["strehl_difference"]["mean"] == 0.0
 
 
 def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir):
