@@ -177,10 +177,15 @@ def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bo
     return kept
 
 
-def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int:
+def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int | None:
     """The mode OGTL probed (``/aux/ogtl/mode`` at its last update; 1-based), or PROBE_MODE in
     files written before it was recorded: MGM's chi_i = gamma_i / gamma_probe needs it (a run
-    made with --probe-mode 10 read as mode 30 got the wrong chi for every mode)."""
+    made with --probe-mode 10 read as mode 30 got the wrong chi for every mode).  None in a file
+    without OGTL (no ``/aux/ogtl``); InputError if its OGTL never calibrated k
+    (``check_ogtl_calibrated``)."""
+    if not len(tm.group("aux/ogtl") or ()):
+        return None
+    check_ogtl_calibrated(tm, path)
     ds = tm.dataset("aux/ogtl/mode")
     if ds is None or ds.shape[:1] == (0,):
         return PROBE_MODE
@@ -309,13 +314,11 @@ def offline_mgm(
         if window <= n + 1:  # only with ``settings`` given: welch_settings refuses short windows
             raise InputError(f"telemetry file {path}: the window after the last change of gains or k holds {window} frames")
         sensitivity = float(k[start - first]) if k is not None else 1.0
-        ogtl = len(tm.group("aux/ogtl") or ()) > 0
         rows = slice(start, frames)
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
-        probe_mode = recorded_probe_mode(tm, n_modes, path) if ogtl else None
-        if ogtl:
-            check_ogtl_calibrated(tm, path)
+        probe_mode = recorded_probe_mode(tm, n_modes, path)
+        ogtl = probe_mode is not None
         seeing, seeing_from = plant_seeing(tm, description, chi_seeing_arcsec)
         gamma = plant.optical_gains  # the identified plant's; else the model's, from the run's calibration
         if gamma is None:
