@@ -36,7 +36,7 @@ def predicted(task: auxloops.MgmTask, gains_now: np.ndarray, k: float) -> dict:
     """The update's prediction from the task's memory, in the machine's gains (RTC gains x
     the chi scale at the window's k, as the update converts them)."""
     m = task.machine
-    psds = np.array([mgm.psd_of_spectra(parts, 1.0 / task.chi_scale(kw)) for parts, kw, _ in task.windows])  # as MgmTask.update
+    psds = task.window_psds()
     scale = task.chi_scale(k)
     now = gains_now * scale
     hat, info = m.optimum_of_psd(psds.mean(axis=0))

@@ -552,7 +552,10 @@ def main() -> None:
     p.add_argument("--windows", type=int, default=WINDOWS)
     p.add_argument("--window", type=float, default=WINDOW_S)
     p.add_argument(
-        "--influence", default=DEFAULT_INFLUENCE, choices=INFLUENCES, help="the mirror's influence functions (the grid ran on 'gaussian')"
+        "--influence",
+        default=DEFAULT_INFLUENCE,
+        choices=INFLUENCES,
+        help="the mirror's influence functions (every row of the results file: the default, thin-plate)",
     )
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=OUT)

@@ -93,6 +93,9 @@ STATUS = (
     "lowered: raising k lost optical gain",
 )
 UPDATED, LOW_SNR, GROWING, NO_ESTIMATE, STEP_LIMITED, AT_BOUND, SPIRAL = range(len(STATUS))
+# The statuses of an update that did not act on an estimate (none, or one OGTL does not trust):
+# k has not been calibrated by it, and an optimiser waits for one that did (``OgtlTask.calibrated``).
+HELD = frozenset((LOW_SNR, GROWING, NO_ESTIMATE))
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,8 @@ class OgtlTask(AuxLoop):
         self.frequency_hz = math.nan
         self.step_scale = 1.0  # the safety net halves it after a recovery
         self._commands_rms: float | None = None  # of the previous window (the growth rule)
-        self.chi_now: float | None = None  # the latest chi of the probed mode that k acted on, at the k it set
+        self.chi_now: float | None = None  # the latest chi of the probed mode that k acted on, at ``_chi_k``
+        self._chi_k = 1.0  # the k chi_now is at: the one OGTL set last, unless the safety net restored another
         self._last: tuple[float, float] | None = None  # (k, chi_hat) of the last reliable estimate
         self.ceiling = math.inf  # k's ceiling after a spiral (``ogtl.spiralling``), for ``_ceiling_left`` reliable estimates
         self._ceiling_left = 0
@@ -72,8 +73,22 @@ class OgtlTask(AuxLoop):
     @property
     def calibrated(self) -> bool:
         """k has acted on a reliable estimate (``chi_now`` is known): before it, the loop's
-        optical gain is unknown within the factor k_max, and k may yet move that far."""
+        optical gain is unknown within the factor k_max, and k may yet move that far.  A
+        safety-net restore to a k of before does not undo it: gamma is still known."""
         return self.chi_now is not None
+
+    @property
+    def gamma_now(self) -> float | None:
+        """The probed mode's optical gain from the latest estimate k acted on (None before)."""
+        return None if self.chi_now is None else self.chi_now / self._chi_k
+
+    def follow(self, rtc: RtcParameters) -> None:
+        """Carry ``chi_now`` to the k in force when another set it (the safety net's restore of
+        a good state's k): chi = gamma k, and gamma is not what the restore changed.  Without
+        this, MGM's gamma was off by the ratio of the two k."""
+        if self.chi_now is not None and rtc.sensitivity != self._chi_k:
+            self.chi_now *= rtc.sensitivity / self._chi_k
+        self._chi_k = rtc.sensitivity
 
     def _set_ceiling(self, k: float) -> None:
         """k is not raised past ``k`` (its value before the spiral) for the hold, which doubles."""
@@ -86,6 +101,7 @@ class OgtlTask(AuxLoop):
             self.ceiling = math.inf
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
+        self.follow(rtc)
         m = self.settings.mode - 1
         est = ogtl.estimate(window.measured_modes[:, m], window.mirror_modes[:, m], self.frequency_hz, window.rate_hz, window.first_frame)
         others = np.arange(window.command_modes.shape[1]) != m  # the probe is not the loop's motion
@@ -105,12 +121,13 @@ class OgtlTask(AuxLoop):
             self._count_down()
         # chi_now (MGM's gamma, the offsets' scale) only from an estimate k acted on: one made while
         # the commands grow is of a loop in transient, which OGTL itself does not trust to move k
-        acted = reliable and status != ogtl.GROWING
+        acted = status not in ogtl.HELD
         if acted:
             self.chi_now = est.chi * k / window.sensitivity
         elif self.chi_now is not None:
-            self.chi_now *= k / window.sensitivity
+            self.chi_now *= k / self._chi_k
         rtc.set_sensitivity(k)
+        self._chi_k = rtc.sensitivity
         if self.chi_now is not None:
             rtc.scale_slope_offset(ogtl.offset_scale(self.chi_now))
         calibrated = acted and self.chi_now is not None and abs(self.chi_now - 1.0) <= ogtl.OFFSETS_CHI_TOLERANCE
@@ -124,7 +141,7 @@ class OgtlTask(AuxLoop):
             "optical_gain": est.chi / window.sensitivity,
             "sensitivity": k,
             "status": status,
-            "held": status in (ogtl.LOW_SNR, ogtl.GROWING, ogtl.NO_ESTIMATE),
+            "held": status in ogtl.HELD,
             "offsets_applied": bool(applied),
             "offset_scale": rtc.offset_scale,
             "mode": self.settings.mode,
@@ -185,17 +202,25 @@ class MgmTask(AuxLoop):
     def damp(self) -> None:
         self.rho_scale *= 0.5
 
-    def gamma(self, k_now: float) -> float:
+    def gamma(self, rtc: RtcParameters) -> float:
         """The probed mode's optical gain as OGTL knows it now (it has run for this update;
-        ``update`` asks only once it is calibrated); 1 without OGTL (the model's own)."""
-        if self.ogtl is not None and self.ogtl.chi_now is not None:
-            return self.ogtl.chi_now / k_now
-        return 1.0
+        ``update`` asks only once it is calibrated), carried to the k in force; 1 without OGTL
+        (the model's own)."""
+        if self.ogtl is None:
+            return 1.0
+        self.ogtl.follow(rtc)
+        gamma = self.ogtl.gamma_now
+        return 1.0 if gamma is None else gamma
 
     def chi_scale(self, k: float) -> float:
         """chi of the probed mode at ``k`` relative to the model's: the memory's gamma x k with
         OGTL (geometric mean), 1 without."""
         return float(np.exp(np.mean(np.log(self.gammas)))) * k if self.ogtl is not None else 1.0
+
+    def window_psds(self) -> np.ndarray:
+        """The POL PSD of each window in the memory, rebuilt at the memory's chi scale (the
+        update's optimum is of their mean)."""
+        return np.array([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k, _ in self.windows])
 
     def update(self, window: TelemetryWindow, rtc: RtcParameters) -> dict:
         if self.ogtl is not None and not self.ogtl.calibrated:
@@ -208,8 +233,8 @@ class MgmTask(AuxLoop):
         measured = window.measured_modes / self.machine.chi
         spectra = self.machine.pol_spectra(measured[n + 1 :], mirror[n + 1 :])
         self.windows.append((spectra, window.sensitivity, mgm.segments_of(usable, self.machine.settings)))
-        self.gammas.append(self.gamma(rtc.sensitivity))
-        psd = np.mean([mgm.psd_of_spectra(parts, 1.0 / self.chi_scale(k)) for parts, k, _ in self.windows], axis=0)
+        self.gammas.append(self.gamma(rtc))
+        psd = np.mean(self.window_psds(), axis=0)
         optimum, info = self.machine.optimum_of_psd(psd)
         scale = self.chi_scale(window.sensitivity)
         moves = self.machine.significant(psd, window.gains * scale, optimum, [s for _, _, s in self.windows])

@@ -48,7 +48,7 @@ from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.gains import DEFAULT_FORGETTING, nominal_loop
-from ..control.ogtl import GROWING, LOW_SNR, NO_ESTIMATE, PROBE_MODE, STATUS
+from ..control.ogtl import HELD, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import max_stable_gain
 from ..errors import InputError
@@ -209,7 +209,7 @@ def check_ogtl_calibrated(tm: TelemetryReader, path) -> None:
     status = np.asarray(ds[...], dtype=float).reshape(-1) if np.issubdtype(ds.dtype, np.number) else np.array([math.nan])
     if not np.all(np.isin(status, np.arange(len(STATUS)))):
         raise InputError(f"telemetry file {path}: /aux/ogtl/status must hold OGTL's update statuses, integers in 0..{len(STATUS) - 1}")
-    held = np.isin(status, (LOW_SNR, GROWING, NO_ESTIMATE))
+    held = np.isin(status, sorted(HELD))
     if held.all():
         raise InputError(
             f"telemetry file {path}: OGTL never acted on a reliable estimate ({status.size} updates, all held), so k was not "

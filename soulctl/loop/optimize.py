@@ -734,7 +734,7 @@ def _settled(records: list[dict]) -> bool:
     R15.5, 1.5"'s at k = 2.25 of the ~10 its evaluations reach in their twelve updates, and
     trial-and-error, scanning at a quarter of that k, kept 3x the initial gain of modes 3-120,
     which diverged in the evaluation (docs/physics.md).  A bound still ends it."""
-    if not records or records[-1]["status"] in (ogtl_model.LOW_SNR, ogtl_model.NO_ESTIMATE, ogtl_model.GROWING):
+    if not records or records[-1]["status"] in ogtl_model.HELD:
         return False
     previous = records[-2]["sensitivity"] if len(records) > 1 else 1.0
     return abs(math.log(records[-1]["sensitivity"] / previous)) < SETTLED_LOG_STEP

@@ -243,10 +243,18 @@ class _OgtlEstimate:
     """What MGM reads of OGTL: its latest reliable chi of the probed mode at the current k."""
 
     chi_now: float | None = None
+    k = 1.0
 
     @property
     def calibrated(self) -> bool:
         return self.chi_now is not None
+
+    def follow(self, rtc) -> None:
+        self.k = rtc.sensitivity
+
+    @property
+    def gamma_now(self) -> float | None:
+        return None if self.chi_now is None else self.chi_now / self.k
 
 
 def test_live_mgm_scales_its_plant_by_the_mean_optical_gain_of_its_memory():
@@ -494,3 +502,34 @@ def test_live_mgm_waits_while_ogtl_has_acted_on_no_estimate(monkeypatch):
     task.chi_now = 1.0  # a reliable estimate k acted on: MGM updates
     record = mgm_task.update(window, rtc)
     assert record["psd_windows"] == 1 and not np.array_equal(rtc.gains, gains)
+
+
+def test_a_safety_restore_of_k_leaves_ogtl_calibrated_and_mgm_on_the_same_optical_gain(monkeypatch):
+    """OGTL acts on gamma = 0.25 at k = 1 and raises k to 1.5; the safety net then restores a
+    good state's k = 1 (``SafetyNet._restore`` sets the RTC's k).  gamma is what OGTL knows
+    and the restore did not change it: MGM reads 0.25, not chi / k of the old k (0.375, the
+    bug: chi_now stayed at the k OGTL had set), OGTL stays calibrated, and its next update,
+    held for the SNR, keeps chi = 0.25 k."""
+    from soulctl.control import ogtl
+    from soulctl.control.filters import Filter
+    from soulctl.control.mgm import MgmSettings, ModalGainMachine
+
+    estimates = [ogtl.Estimate(0.25, 0.0025, 100.0), ogtl.Estimate(0.09, 0.09, 1.0)]
+    given = iter(estimates)
+    monkeypatch.setattr(ogtl, "estimate", lambda *a, **kw: next(given))
+    task, frames, gains = OgtlTask(100), 100, np.full(40, 0.3)
+    rtc = RtcParameters(40, gains, lambda g: None, 1.0)
+    c = np.ones((frames, 40))
+
+    def update() -> dict:
+        window = TelemetryWindow(0, 1000.0, 1.5, c, c, c, np.zeros((frames, 4)), np.ones(frames), gains, rtc.sensitivity)
+        return task.update(window, rtc)
+
+    assert update()["sensitivity"] == 1.5 and task.gamma_now == pytest.approx(0.25, rel=1e-12)
+    rtc.set_sensitivity(1.0)  # the net's restore
+    machine = ModalGainMachine([Filter.integrator(1.0)] * 3, np.ones(3), 1.5, 1000.0, MgmSettings(segment=64))
+    assert MgmTask(frames, machine, task).gamma(rtc) == pytest.approx(0.25, rel=1e-12)
+    assert task.calibrated and task.chi_now == pytest.approx(0.25, rel=1e-12)
+    record = update()
+    assert record["status"] == ogtl.LOW_SNR and record["sensitivity"] == 1.0
+    assert task.chi_now == pytest.approx(0.25, rel=1e-12) and task.calibrated
