@@ -29,8 +29,6 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
 from soulctl.loop.run import calibration_for, closed_loop_for, registration_stability, run
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import moved_mirror_response
@@ -57,8 +55,8 @@ def case_row(label: str, repeat: int, duration: float, cache: ArrayCache) -> dic
     request = config.request()
     obs = request.observation
     cal = calibration_for(request, cache)
-    structure = sampled_structure(request.structure, obs.frame_rate_hz)
-    gains = request.gains or default_gains(obs, structure)
+    structure = request.sampled_structure()
+    gains = request.design_gains()
     moved = dataclasses.replace(request, registration=SHIFT)
 
     loop = closed_loop_for(moved, cal, gains, structure)  # the verdict reads its gains, k and R

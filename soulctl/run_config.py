@@ -53,9 +53,9 @@ from pathlib import Path
 import tomli_w
 
 from . import defaults, tables
-from .control.gains import DEFAULT_FORGETTING, LoopGains, default_gains
+from .control.gains import DEFAULT_FORGETTING, LoopGains, design_gains
 from .control.ogtl import PROBE_MODE, OgtlSettings
-from .control.structure import StructuralResonance, sampled_structure
+from .control.structure import StructuralResonance
 from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
 from .errors import InputError
 from .loop.metrics import BANDS
@@ -140,7 +140,7 @@ class AtmosphereSpec:
 @dataclass(frozen=True, kw_only=True)
 class ControllerSpec:
     """The modal gains: ``gains`` the paper's three groups (Tip/Tilt, modes 3-120, 121-last) or
-    ``mode_gains`` one per mode (neither: ``control.gains.default_gains``), and the leaky
+    ``mode_gains`` one per mode (neither: ``control.gains.design_gains``), and the leaky
     integrators' forgetting factor (1: pure integrators)."""
 
     gains: tuple[float, ...] = ()
@@ -273,7 +273,7 @@ class RunConfig:
         aux = self.auxiliary.resolved(self.observation, self.duration_s)
         if self.controller.gains or self.controller.mode_gains:
             return dataclasses.replace(self, auxiliary=aux)
-        g = default_gains(self.observation, sampled_structure(self.structure, self.observation.frame_rate_hz))
+        g = design_gains(self.observation, self.structure)
         return dataclasses.replace(
             self,
             controller=dataclasses.replace(self.controller, gains=(float(g.tip_tilt), float(g.mid), float(g.high))),

@@ -28,8 +28,7 @@ from rich.table import Table
 
 from soulctl import tables
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import LoopGains, default_gains
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, optimize
 from soulctl.observation import observation_for_magnitude, tt_filter_roots
@@ -111,7 +110,7 @@ def main() -> None:
         row["trial"] = summary(optimize(OptimizeRequest(run, "trial", measure_s=args.measure_s), cache))
         row["mgm"] = summary(optimize(OptimizeRequest(run, "mgm", duration_s=args.mgm_s, measure_s=args.measure_s), cache))
         if args.transient_s > 0:
-            start = default_gains(obs, sampled_structure(run.structure, rate))
+            start = run.design_gains()
             low = dataclasses.replace(run, gains=LoopGains(0.1 * start.tip_tilt, 0.1 * start.mid, 0.1 * start.high))
             transient = optimize(OptimizeRequest(low, "mgm", duration_s=args.transient_s, period_s=5.0, measure_s=args.measure_s), cache)
             row["mgm_from_low_gains"] = {**summary(transient), "settling_s": settling_time(transient)}

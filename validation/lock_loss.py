@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import _new_loop, evaluate, evaluation_settle_s, optimize
 from soulctl.loop.run import closing_frames
@@ -52,7 +51,7 @@ def settle_path(point, gains: np.ndarray) -> dict:
     ``settled_evaluation_loop``, repeated here because that function's loop is out of reach
     once it raises LoopDiverged, and the path up to the divergence is what is wanted."""
     request, rate = point.request, point.request.run.observation.frame_rate_hz
-    loop = _new_loop(request, point.cal, point.design, sampled_structure(request.run.structure, rate))
+    loop = _new_loop(request, point.cal, point.design, request.run.sampled_structure())
     loop.set_gains(gains)
     loop.rtc_parameters.hold_slope_offset()
     loop.run(closing_frames(rate))

@@ -40,7 +40,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, design_gains, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
 
 
 def paired(result, metrics) -> tuple[float, float | None]:
@@ -64,7 +64,7 @@ def gain_sets(initial: np.ndarray, final: np.ndarray, nu: float, scales: list[fl
 def evaluate_sets(request: OptimizeRequest, result, cache: ArrayCache, sets: dict[str, np.ndarray]) -> list[dict]:
     """Each set's paired evaluation against the initial gains, at *before*'s settled k."""
     cal = calibration_for(request.run, cache)
-    design = design_gains(request.run)
+    design = request.run.design_gains()
     k, offsets = result.sensitivities[0], result.offsets[0]
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
     rows = []

@@ -25,8 +25,7 @@ import numpy as np
 
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import default_gains, gain_groups
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import FrozenK, OptimizeResult, evaluate, session_seconds
 from soulctl.loop.run import calibration_for, closed_loop_for
@@ -58,11 +57,10 @@ def evaluate_sets(recorded: dict, names: list[str]) -> list[dict]:
     request = point_request(recorded["mag"], recorded["seeing"], recorded["seed"], recorded["variant"], recorded["windows"])
     if request.run.ncpa is not None and request.run.ncpa.compensated:
         raise SystemExit("mgm_split freezes k without NCPA offsets; this point's request applies them")
-    obs = request.run.observation
     cache = ArrayCache(default_cache_dir())
     cal = calibration_for(request.run, cache)
-    structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
-    design = request.run.gains or default_gains(obs, structure)
+    structure = request.run.sampled_structure()
+    design = request.run.design_gains()
     sensor = closed_loop_for(request.run, cal, design, structure, duration_s=session_seconds(request)).sensor
     noise = sensor.modal_noise_nm(cal.reconstructor)
     sets = gain_sets(np.array(recorded["initial_gains"]), np.array(recorded["final_gains"]))

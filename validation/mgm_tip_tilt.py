@@ -39,7 +39,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, design_gains, point_arguments, point_request  # noqa: E402
+from optimize_magnitudes import WINDOWS, code_fingerprint, point_arguments, point_request  # noqa: E402
 
 SEGMENTS = (256, 512, 1024, 2048, 4096, 8192)
 SYNTHETIC_FRAMES = 2**20  # ~23 min at 750 Hz: the long-series estimate is the Welch estimator's mean
@@ -100,7 +100,7 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     """Check 2: paired evaluations of the initial gains with Tip/Tilt scaled, and the cross
     combinations of the initial and MGM's gains (as ``evaluate_pair`` evaluates)."""
     cal = calibration_for(request.run, cache)
-    design = design_gains(request.run)
+    design = request.run.design_gains()
     k, offsets = result.sensitivities[0], result.offsets[0]
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
 

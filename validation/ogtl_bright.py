@@ -38,8 +38,7 @@ import numpy as np
 
 from soulctl import defaults
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import LoopGains, default_gains
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
 from soulctl.loop.auxloops import OgtlTask
 from soulctl.loop.optimize import LiveOptimisers
@@ -128,8 +127,8 @@ def lut_case(wfs_field: float, seed: int, seconds: float, cache: ArrayCache) -> 
     config = RunConfig(observation=obs, atmosphere=at_1_arcsec, seed=seed, ncpa=NcpaSpec(), wfs_field_arcsec=wfs_field)
     request = config.request()
     cal = calibration_for(request, cache)
-    structure = sampled_structure(request.structure, obs.frame_rate_hz)
-    gains = request.gains or default_gains(obs, structure)
+    structure = request.sampled_structure()
+    gains = request.design_gains()
     n_close = closing_frames(obs.frame_rate_hz)
     frames = n_close + round(seconds * obs.frame_rate_hz)
     request = dataclasses.replace(request, duration_s=frames / obs.frame_rate_hz)

@@ -68,8 +68,7 @@ from rich.table import Table
 import soulctl
 from soulctl import defaults
 from soulctl.cli.common import default_cache_dir
-from soulctl.control.gains import LoopGains, default_gains, gain_groups
-from soulctl.control.structure import sampled_structure
+from soulctl.control.gains import gain_groups
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
 from soulctl.loop.chi_model import plant_model
@@ -229,12 +228,6 @@ class PointLoops(NamedTuple):
     session: object
 
 
-def design_gains(run) -> LoopGains:
-    """A run request's design gains as ``optimize`` takes them: its own, or the defaults of its
-    structure sampled at its frame rate (the paired evaluation's ``design``)."""
-    return run.gains or default_gains(run.observation, sampled_structure(run.structure, run.observation.frame_rate_hz))
-
-
 def point_loops(
     mag: float,
     seeing: float,
@@ -248,7 +241,7 @@ def point_loops(
     r = request.run
     cache = ArrayCache(str(default_cache_dir()))
     cal = calibration_for(r, cache)
-    design = design_gains(r)
+    design = r.design_gains()
     chi = plant_model(cal, cache, True, request.ogtl_settings.mode, request.chi_seeing)
     return PointLoops(request, cache, cal, design, _session(request, cal, cache, design, chi))
 

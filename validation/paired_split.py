@@ -23,7 +23,7 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, design_gains, windows_for  # noqa: E402
+from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +43,7 @@ def main() -> None:
     cache = ArrayCache(default_cache_dir())
     r = optimize(request, cache)
     cal = calibration_for(request.run, cache)
-    design = design_gains(request.run)
+    design = request.run.design_gains()
     (k0, k1), (o0, o1) = r.sensitivities, r.offsets
     cells = {}
     for gname, g in (("initial", r.initial_gains), ("optimised", r.gains)):

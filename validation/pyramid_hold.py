@@ -30,8 +30,6 @@ import numpy as np
 
 from soulctl.cli.common import default_cache_dir
 from soulctl.cli.loop import IDEAL
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.chi_model import optical_gain_table
 from soulctl.loop.run import calibration_for, calibration_setup, closed_loop_for
@@ -117,8 +115,8 @@ def one(
     request = RunConfig().with_values(values | {"run.duration_s": duration}).request()
     obs = request.observation
     cal = calibration_at(request, wavelengths_nm, cache, stop)
-    structure = sampled_structure(request.structure, obs.frame_rate_hz)
-    gains = request.gains or default_gains(obs, structure)
+    structure = request.sampled_structure()
+    gains = request.design_gains()
     loop = closed_loop_for(request, cal, gains, structure)
     switch, n = round(linear_s * obs.frame_rate_hz), round(duration * obs.frame_rate_hz)
     linear_until(loop, cal, switch)

@@ -26,7 +26,7 @@ from soulctl.run_config import RunConfig
 sys.path.insert(0, str(Path(__file__).parent))
 from faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402
 from gain_optimisation import observation  # noqa: E402
-from optimize_magnitudes import code_fingerprint, design_gains  # noqa: E402
+from optimize_magnitudes import code_fingerprint  # noqa: E402
 
 SCALES = (1.25, 1.5, 1.75)
 LOW = slice(2, 10)  # modes 3-10
@@ -53,7 +53,7 @@ def r13_case(seed: int):
     the calibration and the design gains."""
     run = RunConfig(observation=observation(13.0, 980.0), atmosphere=R13_NIGHT, band="FeII", seed=seed, ncpa=NO_NCPA).request()
     cache = ArrayCache(default_cache_dir())
-    return OptimizeRequest(run, "mgm", measure_s=1.0), cache, calibration_for(run, cache), design_gains(run)
+    return OptimizeRequest(run, "mgm", measure_s=1.0), cache, calibration_for(run, cache), run.design_gains()
 
 
 def main() -> None:

@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.control import mgm
-from soulctl.control.structure import sampled_structure
 from soulctl.files import atomic_write_text
 from soulctl.loop.metrics import band_wavelength, pseudo_open_loop
 from soulctl.loop.optimize import mgm_machine, plant_model, settled_evaluation_loop
@@ -77,7 +76,7 @@ def spans_of_mgm(request, cal, cache, design, gains) -> list[dict]:
     obs = request.run.observation
     rows, first, _, delay = recorded_loop(request, cal, design, gains, 16.0)
     chi = plant_model(cal, cache, True, 30)
-    machine = mgm_machine(obs, sampled_structure(request.run.structure, obs.frame_rate_hz), chi, mgm.MgmSettings())
+    machine = mgm_machine(obs, request.run.sampled_structure(), chi, mgm.MgmSettings())
     mirror = pseudo_open_loop(np.zeros_like(rows["command_modes"]), rows["command_modes"], delay, machine.structure)
     pol = rows["measured_modes"] / chi + mirror
     skip = int(delay) + 1

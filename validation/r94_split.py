@@ -39,7 +39,7 @@ from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 
 sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, design_gains  # noqa: E402
+from optimize_magnitudes import code_fingerprint  # noqa: E402
 from paper_nights import NIGHTS, night_request  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -64,7 +64,7 @@ def paired(after: dict, before: dict) -> list[float]:
 def split(request: OptimizeRequest, cache: ArrayCache, result) -> dict:
     """The evaluations of the module docstring on ``result``'s run."""
     cal = calibration_for(request.run, cache)
-    design = design_gains(request.run)
+    design = request.run.design_gains()
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
     period = request.frames(request.period)
 

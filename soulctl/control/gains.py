@@ -172,6 +172,13 @@ def default_gains(observation: Observation, structure: StructuralResonance | Non
     return LoopGains(round(tt, 3), round(0.5 * g_ho, 3), round(0.4 * g_ho, 3))
 
 
+def design_gains(observation: Observation, structure: StructuralResonance | None, gains: LoopGains | None = None) -> LoopGains:
+    """The gains a run starts from: ``gains`` when given, else ``default_gains`` for the
+    structural resonance as the frame rate samples it (``sampled_structure``: none above
+    Nyquist), the one rule every run, optimisation and check uses."""
+    return gains or default_gains(observation, sampled_structure(structure, observation.frame_rate_hz))
+
+
 def _named_groups(observation: Observation, gains: LoopGains) -> list[tuple[str, float, bool]]:
     """(name, gain, is Tip/Tilt) of each distinct gain to check."""
     if gains.modes is not None:

@@ -62,13 +62,11 @@ from ..control.gains import (
     LoopGains,
     capped_gains,
     check_stability,
-    default_gains,
     gain_groups,
     nominal_loop,
     unit_loops,
 )
 from ..control.ogtl import OgtlSettings
-from ..control.structure import sampled_structure
 from ..control.transfer import max_stable_gain
 from ..control.trial import scan_around, scan_gains
 from ..disturbance.modal_psd import cutoff_hz, modal_psd
@@ -398,7 +396,7 @@ def trial_scans(request: OptimizeRequest, chi: np.ndarray, initial: np.ndarray |
     and one to 0.8 g_max ran noise-dominated R16.5-17.5 loops at k ~ 3 away.  Without,
     TRIAL_VALUES gains from 5 % of that top to the top (``scan_gains``)."""
     obs = request.run.observation
-    structure = sampled_structure(request.run.structure, obs.frame_rate_hz)
+    structure = request.run.sampled_structure()
     shapes = trial_shapes(initial) if initial is not None else [np.ones(m.stop - m.start) for _, m in gain_groups(len(chi))]
     scans = []
     for (_, modes), shape in zip(gain_groups(len(chi)), shapes):
@@ -704,7 +702,7 @@ def settled_evaluation_loop(
     ``ogtl`` started from k = 1 (it applies them once k is calibrated); settled for
     ``evaluation_settle_s``.  Raises LoopDiverged."""
     r = request.run
-    loop = _new_loop(request, cal, design, sampled_structure(r.structure, r.observation.frame_rate_hz))
+    loop = _new_loop(request, cal, design, r.sampled_structure())
     loop.set_gains(gains)
     loop.rtc_parameters.hold_slope_offset()  # NCPA offsets once k is set, as OGTL applies them
     loop.run(closing_frames(r.observation.frame_rate_hz), progress=progress)
@@ -800,7 +798,7 @@ def _session(request: OptimizeRequest, cal: Calibration, cache: ArrayCache, gain
     OGTL's updates and MGM's windows are whole periods: tasks run when frame % period == 0)."""
     r = request.run
     obs = r.observation
-    loop = _new_loop(request, cal, gains, sampled_structure(r.structure, obs.frame_rate_hz))
+    loop = _new_loop(request, cal, gains, r.sampled_structure())
     if request.ogtl:
         loop.rtc_parameters.hold_slope_offset()  # OGTL applies the NCPA offsets once k is calibrated
     noise = loop.sensor.modal_noise_nm(cal.reconstructor)
@@ -899,8 +897,8 @@ def optimize(
     request's, already computed."""
     r = request.run
     obs = r.observation
-    structure = sampled_structure(r.structure, obs.frame_rate_hz)
-    gains = r.gains or default_gains(obs, structure)
+    structure = r.sampled_structure()
+    gains = r.design_gains()
     if not r.allow_unstable:
         check_stability(obs, gains, structure)
     cal = calibration or calibration_for(r, cache)

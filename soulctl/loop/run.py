@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import defaults
 from ..control.coupling import CouplingStability, registration_verdict
-from ..control.gains import LoopGains, check_stability, default_gains
+from ..control.gains import LoopGains, check_stability, design_gains
 from ..control.ogtl import OFFSETS_CHI_TOLERANCE
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ
@@ -45,7 +45,7 @@ class RunRequest:
     wind_m_s: float = defaults.WIND_M_S
     L0_m: float = defaults.L0_M
     duration_s: float = defaults.DURATION_S
-    gains: LoopGains | None = None  # None: default_gains
+    gains: LoopGains | None = None  # None: control.gains.design_gains
     band: str = defaults.BAND
     seed: int = defaults.SEED
     noise: bool = True
@@ -71,6 +71,14 @@ class RunRequest:
         check_sampling(self.observation.modes, self.oversampling)
         check_influence(self.influence)
         WFS_FIELD_OF_VIEW_ARCSEC.check(self.field_of_view_arcsec, "WFS field of view")
+
+    def sampled_structure(self) -> StructuralResonance | None:
+        """The structural resonance as the frame rate samples it (None above Nyquist)."""
+        return sampled_structure(self.structure, self.observation.frame_rate_hz)
+
+    def design_gains(self) -> LoopGains:
+        """The gains the run starts from (``control.gains.design_gains``)."""
+        return design_gains(self.observation, self.structure, self.gains)
 
     @property
     def frames(self) -> int:
@@ -343,8 +351,8 @@ def run(
     ``sink``: where every frame's records go (``telemetry.hdf5.Hdf5Writer``), described
     (rate, delay, modes, configuration) before the first frame."""
     obs = request.observation
-    structure = sampled_structure(request.structure, obs.frame_rate_hz)
-    gains = request.gains or default_gains(obs, structure)
+    structure = request.sampled_structure()
+    gains = request.design_gains()
     if not request.allow_unstable:
         check_stability(obs, gains, structure)
     t0 = time.perf_counter()

@@ -1,6 +1,8 @@
 """The gains module: the paper's groups, per-mode <-> per-state mapping, defaults, stability,
 capping and the gain file, each against an independent statement of what it must give."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from soulctl.control.gains import (
     capped_gains,
     check_stability,
     default_gains,
+    design_gains,
     gain_groups,
     gains_toml,
     group_summary,
@@ -82,6 +85,23 @@ def test_default_gains_pass_the_stability_check_and_a_too_high_gain_does_not():
     assert g.mid == pytest.approx(0.5 * g_max, abs=1e-3)
     with pytest.raises(InputError, match=rf"modes 3-120 gain .* \(maximum stable gain {g_max:.3f}\)"):
         check_stability(OBS, LoopGains(g.tip_tilt, 1.05 * g_max, g.high), structure)
+
+
+def test_design_gains_keep_a_sampled_resonance_drop_one_above_nyquist_and_keep_given_gains():
+    """The one rule runs, optimisations and checks start from: the 127 Hz resonance lowers an
+    integrator's Tip/Tilt gain at 1700 Hz (0.17 against 0.26 without it), is left out at 250 Hz
+    (where the resonance model itself refuses the rate), and explicit gains pass unchanged."""
+    integrator = dataclasses.replace(OBS, tt_control="int", tt_zeros=(), tt_poles=())
+    with_resonance = design_gains(integrator, StructuralResonance())
+    assert with_resonance == default_gains(integrator, StructuralResonance())
+    assert with_resonance.tip_tilt < 0.8 * default_gains(integrator, None).tip_tilt
+    slow = observation_for_magnitude(16.5)
+    assert slow.frame_rate_hz < 2 * StructuralResonance().frequency_hz
+    with pytest.raises(InputError, match="needs a frame rate above"):
+        default_gains(slow, StructuralResonance())
+    assert design_gains(slow, StructuralResonance()) == default_gains(slow, None)
+    given = LoopGains(0.1, 0.2, 0.3)
+    assert design_gains(slow, StructuralResonance(), given) is given
 
 
 def test_capping_uses_the_stable_gain_of_the_plant_with_optical_gain():

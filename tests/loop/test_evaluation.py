@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 
 from soulctl.control import ogtl as ogtl_model
-from soulctl.control.gains import default_gains
-from soulctl.control.structure import sampled_structure
 from soulctl.loop.auxloop import RtcParameters
 from soulctl.loop.auxloops import OgtlTask
 from soulctl.loop.optimize import (
@@ -37,7 +35,7 @@ OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0, 
 def setup(optics_cache):
     cal = calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 54), optics_cache)
     request = OptimizeRequest(RunRequest(OBS, 0.8, seed=3, oversampling=1, field_of_view_arcsec=0.0), "mgm", 1.0, 0.5, False, measure_s=0.2)
-    design = default_gains(OBS, sampled_structure(request.run.structure, OBS.frame_rate_hz))
+    design = request.run.design_gains()
     return request, cal, design
 
 
