@@ -131,31 +131,34 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _start_scheduler(port: int, cwd) -> subprocess.Popen:
+    """`dask scheduler` on 127.0.0.1:port, returned once it accepts connections (a fixed
+    2 s sleep was not enough on a loaded machine: the sweep then found nobody listening)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=cwd,
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"the Dask scheduler exited with status {proc.returncode}"
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return proc
+        except OSError:
+            time.sleep(0.2)
+    proc.kill()
+    raise AssertionError(f"the Dask scheduler did not listen on 127.0.0.1:{port} within 60 s")
+
+
 def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     """`dask scheduler` and `dask worker` started by hand (as the README shows), then the sweep
     sent to them with --scheduler."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    procs = [
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "distributed.cli.dask_scheduler",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(port),
-                "--dashboard-address",
-                ":0",
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            cwd=tmp_path,
-        )
-    ]
+    procs = [_start_scheduler(port, tmp_path)]
     try:
-        time.sleep(2)
         procs.append(
             subprocess.Popen(
                 [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
@@ -566,14 +569,8 @@ def test_a_long_sweep_asks_on_a_terminal(answer, args, terminal, asked, status, 
 def test_a_scheduler_without_workers_is_refused_within_the_wait(grid, tmp_path, capsys, cache_dir):
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    scheduler = subprocess.Popen(
-        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        cwd=tmp_path,
-    )
+    scheduler = _start_scheduler(port, tmp_path)
     try:
-        time.sleep(2)
         t0 = time.monotonic()
         status, out, err = cli(
             ["sweep", str(grid), "--scheduler", address, "--wait-workers", "2", "--out", str(tmp_path / "none")], capsys, cache_dir
