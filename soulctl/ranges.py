@@ -124,6 +124,9 @@ RMS_NM = Range(0.0, 1e6, "nm")
 FRAME_TIME_S = Range(0.0, 1e7, "s")
 SENSITIVITY = Range(0.05, 20.0)  # the slope sensitivity k, as OGTL clamps it
 FRAME_INDEX = Range(0, 2**63 - 1, integer=True)
+RECORD_RATE_HZ = Range(0.0, 1e5, "Hz", lo_open=True)  # a record's loop rate, any system's (a simulation's: FRAME_RATE_HZ)
+RECORD_MODES = Range(1, 100_000, integer=True)  # the modes a record holds, any system's (a Tip/Tilt loop: 2)
+TELESCOPE_M = Range(0.0, 100.0, "m")  # a record's telescope diameter or central obstruction
 DIVERGED_AT = Range(-1, 2**63 - 1, integer=True)  # -1: the loop did not diverge
 OPTICAL_GAIN = Range(0.0, 2.0, lo_open=True)  # a modal optical gain gamma_i (optimize gains --chi-table)
 TELEMETRY_SCHEMA_VERSION = 2  # 1: files of soulctl before streaming (no frame_counter, status); still read

@@ -21,6 +21,7 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
 from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
+from ..loop.recorded import STRUCTURE_CHOICES
 from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
@@ -89,6 +90,12 @@ VIBRATIONS = typer.Option(
 )
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
+RESONANCE = typer.Option(
+    "auto",
+    "--resonance",
+    metavar="auto|lbt|none",
+    help="The 127 Hz structural resonance in a record's model: auto (its run's; LBT's for LBT's adaptive secondary), lbt or none.",
+)
 OVERSAMPLING = typer.Option(
     None,
     "--oversampling",
@@ -137,6 +144,13 @@ PROBE_FREQUENCY = typer.Option(
     help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).",
 )
 JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+
+
+def check_resonance(choice: str) -> str:
+    """--resonance: one of recorded.STRUCTURE_CHOICES (InputError naming them)."""
+    if choice not in STRUCTURE_CHOICES:
+        raise InputError(f"--resonance must be one of {', '.join(STRUCTURE_CHOICES)}, got {choice!r}")
+    return choice
 
 
 def parse_magnitude(text: str) -> float:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from ..plots.telemetry import IDENTIFY_FIGURES, write_identify_figures, write_ps
 from ..ranges import DELAY_FRAMES
 from ..telemetry.analysis import inspect, spectra
 from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
-from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, array_cache, quantity_table
+from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RESONANCE, array_cache, check_resonance, quantity_table
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -58,12 +59,22 @@ def inspect_cmd(o: InspectOptions) -> int:
         ("modes", _text(d["modes"])),
         ("auxiliary loops", ", ".join(d["auxiliary_loops"]) or "-"),
         ("run description", "yes" if d["run_description"] else "no"),
+        ("sensor / corrector", f"{d['sensor'] or 'not stated'} / {d['corrector'] or 'not stated'}"),
+        ("telescope", _telescope_text(d)),
     ]
     rows += [(name, f"{tuple(f['shape'])} {f['unit']}") for name, f in d["fields"].items()]
+    rows += [(f"note ({n['field']})" if n["field"] else "note", n["note"]) for n in d["notes"]]
     for label, value in rows:
         t.add_row(label, value)
     make_console().print(t)
     return 0
+
+
+def _telescope_text(d: dict) -> str:
+    if d["telescope"] is None and d["telescope_diameter_m"] is None:
+        return "not stated"
+    size = f" ({d['telescope_diameter_m']:g} m)" if d["telescope_diameter_m"] is not None else ""
+    return f"{d['telescope'] or 'unnamed'}{size}"
 
 
 def _text(value) -> str:
@@ -171,6 +182,7 @@ class IdentifyOptions:
         help="Centre of the delay search (default: the record's, else the configuration's).",
     )
     plot: Path | None = typer.Option(None, "--plot", metavar="DIR", help="Write " + ", ".join(IDENTIFY_FIGURES) + ".")
+    resonance: str = RESONANCE
     no_cache: bool = NO_CACHE
     cache_dir: Path | None = CACHE_DIR
     json_output: bool = JSON_OUTPUT
@@ -187,13 +199,14 @@ def identify_cmd(o: IdentifyOptions) -> int:
     """
     if o.delay_frames is not None:
         DELAY_FRAMES.check(o.delay_frames, "--delay-frames")
+    check_resonance(o.resonance)
     telemetry_input(o.path)
     for path, option in ((o.out, "--out"), (o.vibrations_out, "--vibrations-out")):
         if path is not None:
             check_output_path(path, option, [("FILE", o.path)])
     if o.plot is not None:
         check_output_folder(o.plot, "--plot", IDENTIFY_FIGURES)
-    ident = identify(o.path, o.delay_frames, array_cache(o.no_cache, o.cache_dir))
+    ident = identify(o.path, o.delay_frames, array_cache(o.no_cache, o.cache_dir), o.resonance)
     if o.out is not None:
         atomic_write_text(o.out, ident.plant.to_toml())
     if o.vibrations_out is not None:
@@ -212,7 +225,8 @@ def identify_cmd(o: IdentifyOptions) -> int:
 def _identify_table(ident: Identification):
     p = ident.plant
     t = quantity_table(f"plant identified from {ident.record.path} ({ident.record.frames / p.rate_hz:.3g} s window)")
-    t.add_row("loop delay [frames]", f"{p.delay.value:.3f} ± {p.delay.sigma:.3f} (recorded {ident.record.delay_frames:g})")
+    recorded = ident.record.delay_frames
+    t.add_row("loop delay [frames]", f"{p.delay.value:.3f} ± {p.delay.sigma:.3f} ({_recorded(recorded)})")
     if ident.probe is not None:
         pr = ident.probe
         t.add_row(
@@ -230,8 +244,16 @@ def _identify_table(ident: Identification):
     for x in ident.lines:
         t.add_row(
             f"vibration {x.frequency.value:.2f} ± {x.frequency.sigma:.2f} Hz",
-            f"tip {x.tip.value:.2f}, tilt {x.tilt.value:.2f} mas, damping {x.damping:.3f}",
+            f"tip {x.tip.value:.2f}, tilt {x.tilt.value:.2f} mas, damping {x.damping:.2g}",
         )
+    if not ident.lines and "vibration_lines" not in ident.not_estimated:
+        t.add_row("vibration lines", "none above the detection threshold")
+    for figure, why in ident.not_estimated.items():
+        t.add_row(f"{figure.replace('_', ' ')}", f"not estimated: {why}")
     for note in p.notes:
         t.add_row("note", note)
     return t
+
+
+def _recorded(delay: float) -> str:
+    return f"recorded {delay:g}" if math.isfinite(delay) else "the record states none: searched 0-6 frames"

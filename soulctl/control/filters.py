@@ -139,3 +139,58 @@ class Filter:
             B[iy] = b[0]
         C[n - 1 if integrator else 0] = 1.0
         return A, B, C
+
+
+def unit_coefficients(num, den) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Time filters as recorded, one row per mode, H = (b0 + b1 z^-1 + ...) / (a0 + a1 z^-1 +
+    ...), as (b / g, a / a0, g): the unit-gain filters and the loop gains g = b_k / a0, b_k the
+    first non-zero numerator coefficient (AOT's "the first numerator is the loop gain").  A row
+    whose numerator is all zero (a mode not controlled) has g = 0 and numerator [1, 0, ...];
+    InputError for a denominator whose first coefficient is 0 (not a causal filter)."""
+    b, a = np.atleast_2d(np.asarray(num, dtype=float)), np.atleast_2d(np.asarray(den, dtype=float))
+    if b.shape[0] != a.shape[0] or not (np.all(np.isfinite(b)) and np.all(np.isfinite(a))):
+        raise InputError(f"time filters need finite numerators and denominators, one row per mode (got {b.shape[0]} and {a.shape[0]} rows)")
+    a0 = a[:, 0]
+    if np.any(a0 == 0):
+        raise InputError(f"time filter of mode {int(np.flatnonzero(a0 == 0)[0]) + 1}: a denominator starting with 0 is not a causal filter")
+    nonzero = b != 0
+    first = np.where(nonzero.any(axis=1), nonzero.argmax(axis=1), 0)
+    bk = b[np.arange(len(b)), first]
+    gains = bk / a0
+    unit = np.where(nonzero.any(axis=1)[:, None], b / np.where(bk == 0, 1.0, bk)[:, None], np.eye(1, b.shape[1]))
+    return unit, a / a0[:, None], gains
+
+
+def filter_of_coefficients(b, a) -> tuple[Filter, int]:
+    """(H', n) of a unit time filter in powers of z^-1 (``unit_coefficients``): H = z^-n H',
+    the n leading zero numerator terms a pure delay of the controller, which a Filter of zeros
+    and poles cannot hold; the models add it to the loop delay."""
+    b, a = np.trim_zeros(np.asarray(b, dtype=float), "b"), np.trim_zeros(np.asarray(a, dtype=float), "b")
+    n = int(np.argmax(b != 0)) if np.any(b != 0) else 0
+    b = b[n:] if b.size else np.array([1.0])
+    zeros = _roots(b) if b.size > 1 else ()
+    poles = _roots(a) if a.size > 1 else (0.0,)
+    return Filter(zeros, poles, float(b[0] / a[0])), n
+
+
+def _roots(c: np.ndarray) -> tuple[complex, ...]:
+    """The roots of a polynomial in z^-1 (those of z^n c(z^-1)): real ones as floats, and those
+    within 1e-9 of z = 1 exactly 1.0, the integrator the RTC and the transfer functions single out."""
+    out: list[complex] = []
+    for r in np.roots(c):
+        if abs(r.imag) <= 1e-12 * max(1.0, abs(r)):
+            out.append(1.0 if abs(r.real - 1.0) < 1e-9 else float(r.real))
+        else:
+            out.append(complex(r))
+    return tuple(out)
+
+
+def coefficient_rows(filters) -> tuple[np.ndarray, np.ndarray]:
+    """(num, den): each filter's ``coefficients`` (powers of z^-1) as the rows of two arrays,
+    zero-padded to the longest: the time filters a record stores, one row per mode."""
+    pairs = [h.coefficients() for h in filters]
+    width = max(max(len(b), len(a)) for b, a in pairs)
+    num, den = np.zeros((len(pairs), width)), np.zeros((len(pairs), width))
+    for i, (b, a) in enumerate(pairs):
+        num[i, : len(b)], den[i, : len(a)] = b, a
+    return num, den

@@ -23,7 +23,6 @@ from ..loop.run import calibration_setup
 from ..optics.atmosphere import r0_from_seeing
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import controlled_basis
-from ..telemetry.analysis import nm_per_mas_tip_tilt
 from . import seeing
 from .lines import LineEstimate, fit_lines
 from .plant import OpticalGainGroup, PlantModel, chi_per_mode
@@ -46,6 +45,7 @@ class Identification:
     model_variance_nm2: np.ndarray | None  # von Karman at the identified r0, L0
     line_psd: tuple[np.ndarray, np.ndarray]  # (f, mean PSD of the pseudo-open-loop Tip/Tilt, mas^2/Hz)
     seconds: dict = field(default_factory=dict)
+    not_estimated: dict = field(default_factory=dict)  # figure -> why the record cannot give it
 
     def _lines_window(self) -> dict:
         skip = _skipped(self.plant.delay.value)
@@ -82,6 +82,7 @@ class Identification:
                 {"frequency_hz": x.frequency.to_dict(), "damping": x.damping, "tip_mas": x.tip.to_dict(), "tilt_mas": x.tilt.to_dict()}
                 for x in self.lines
             ],
+            "not_estimated": self.not_estimated,
             "notes": list(p.notes),
             "seconds": self.seconds,
         }  # fmt: skip
@@ -92,11 +93,11 @@ def _finite(x):
 
 
 def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[OpticalGainGroup, ...], str]:
-    """Per group chi: the rejection fit's, or with a probe the probe's scale on the fit's shape."""
+    """Per group chi: the rejection fit's, or with a probe the probe's scale on the fit's shape;
+    Tip/Tilt takes the nearest group's where the fit left it out."""
     scale, rel = 1.0, 0.0
     used = probe is not None and math.isfinite(probe.chi.value) and probe.chi.value > 0
     if probe is not None and used:
-        # the probed mode's group; Tip/Tilt takes the first group's chi (it is not fitted)
         inside = [i for i, (lo, hi) in enumerate(rej.groups) if lo <= probe.mode <= hi] or [0]
         ref = rej.chi[inside[0]]
         scale = probe.chi.value / ref.value
@@ -105,8 +106,9 @@ def _optical_gains(rej: RejectionFit, probe: ProbeFit | None) -> tuple[tuple[Opt
         OpticalGainGroup(lo, hi, c.value * scale, c.value * scale * math.hypot(c.sigma / c.value, rel))
         for (lo, hi), c in zip(rej.groups, rej.chi)
     )
-    tt = groups[0]
-    groups = (OpticalGainGroup(1, 2, tt.chi, tt.sigma),) + groups  # Tip/Tilt: the nearest group's (not fitted)
+    if groups[0].first_mode > 1:  # Tip/Tilt: the nearest group's (not fitted)
+        tt = groups[0]
+        groups = (OpticalGainGroup(1, 2, tt.chi, tt.sigma),) + groups
     return groups, PROBE_METHOD if used else REJECTION_METHOD
 
 
@@ -140,13 +142,13 @@ def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> tuple[list[LineE
     gains (m divided by each frame's k; OGTL's k need not have settled)."""
     m, c = record.tip_tilt
     pol = pseudo_open_loop(m / chi_tt, c, d, record.structure_ba)
-    return fit_lines(pol[_skipped(d) :] / nm_per_mas_tip_tilt(), record.rate_hz)
+    return fit_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
 
 
-def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
+def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache, diameter_m: float):
     L0s: tuple[float, ...]
     if record.description is None:
-        table, L0s = seeing.noll_variances(record.n_modes), (seeing.UNKNOWN_L0_M,)
+        table, L0s = seeing.noll_variances(record.n_modes, diameter_m), (seeing.UNKNOWN_L0_M,)
     else:
         setup = calibration_setup(record.description.request())  # its basis and pupil, not its sensing
         L0s = seeing.L0_GRID
@@ -163,10 +165,14 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache):
     return t, best * r0 ** (-5 / 3) * seeing.NM_PER_RAD**2
 
 
-def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None)) -> Identification:
-    """The plant of the record at ``path`` (see the module)."""
+MIN_SEEING_MODES = 8  # the seeing fit's modes (3 .. half the record's) need a few radial orders
+
+
+def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None), structure: str = "auto") -> Identification:
+    """The plant of the record at ``path`` (see the module); what the record cannot give is
+    None with the reason in ``not_estimated``."""
     clock = {"start": time.perf_counter()}
-    record = read_record(path, delay_frames)
+    record = read_record(path, delay_frames, structure)
     clock["read"] = time.perf_counter()
     rej = fit_rejection(record)
     probe = fit_probe(record, rej.delay.value)
@@ -174,21 +180,41 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     clock["delay_and_gains"] = time.perf_counter()
     chi = chi_per_mode(groups, record.n_modes)
     noise = rej.noise_nm2.copy()
-    lines, f_lines, p_lines = _vibrations(record, rej.delay.value, float(chi[0]))
+    missing: dict[str, str] = {}
+    lines: list[LineEstimate] = []
+    f_lines, p_lines = np.zeros(0), np.zeros(0)
+    if record.n_modes >= 2:
+        lines, f_lines, p_lines = _vibrations(record, rej.delay.value, float(chi[0]))
+    else:
+        missing["vibration_lines"] = missing["tip_tilt_noise_mas"] = "the record holds one mode, not the Tip/Tilt pair"
     clock["vibrations"] = time.perf_counter()
     variance = pol_variance(record, rej.delay.value, chi) - np.nan_to_num(noise) / chi**2
-    turbulence, model_variance = _turbulence(record, variance, cache)
+    turbulence, model_variance = None, None
+    if record.n_modes >= MIN_SEEING_MODES:
+        turbulence, model_variance = _turbulence(record, variance, cache, record.loop.diameter_m)
+    else:
+        missing["turbulence"] = f"seeing and L0 need modes beyond Tip/Tilt (at least {MIN_SEEING_MODES}; the record holds {record.n_modes})"
     clock["turbulence"] = time.perf_counter()
-    noise[:2] = tip_tilt_noise(record, rej.delay.value, float(chi[0]))
-    tt_noise = math.sqrt(noise[0]) / chi[0] / nm_per_mas_tip_tilt()  # referred to the wavefront: what filter design takes
-    notes: tuple[str, ...] = (
-        "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit",
-        "wind speed not estimated",
-    ) + _weak_groups(rej)
+    tt_noise = None
+    if record.n_modes >= 2:
+        if rej.groups[0][0] > 1:
+            noise[:2] = tip_tilt_noise(record, rej.delay.value, float(chi[0]))
+        tt_noise = math.sqrt(noise[0]) / chi[0] / record.loop.nm_per_mas  # referred to the wavefront: what filter design takes
+    notes = _notes(record, rej) + _weak_groups(rej)
     spectrum = VibrationSpectrum(tuple(x.line() for x in lines), f"identified from {record.path}") if lines else None
     in_use = record.filters[0].with_gain(float(np.mean(record.gains[:2])) * record.sensitivity)  # g k
     plant = PlantModel(
         record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes, in_use
     )
     seconds = {k: clock[k] - clock["start"] for k in ("read", "delay_and_gains", "vibrations", "turbulence")}
-    return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds)
+    return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds, missing)
+
+
+def _notes(record: LoopRecord, rej: RejectionFit) -> tuple[str, ...]:
+    """What the identification assumed: the record's loop and how Tip/Tilt's chi was found."""
+    tt = (
+        "Tip/Tilt chi is the nearest group's: vibrations and the 127 Hz structure keep Tip/Tilt out of the rejection fit"
+        if rej.groups[0][0] > 1
+        else f"delay and chi from modes 1-{record.n_modes} above {rej.f_low_hz:.0f} Hz (the record holds no other modes)"
+    )
+    return (tt, "wind speed not estimated", *record.loop.notes)

@@ -22,10 +22,10 @@ import scipy.fft
 from scipy.signal import get_window
 
 from ..control.filters import Filter
-from ..control.gains import unit_loops
 from ..control.transfer import Plant
 from ..errors import InputError
 from ..loop.offline import recorded_run
+from ..loop.recorded import RecordedLoop, recorded_loop
 from ..ranges import DELAY_FRAMES
 from ..run_config import RunConfig
 from ..telemetry.formats import check_decimation, open_telemetry
@@ -37,6 +37,15 @@ K_SPREAD = 0.1  # k within 10 % of its final value
 SEGMENT_S = 0.25  # Welch segment of the loop spectra (~4 Hz resolution)
 ROW_BLOCK = 8192  # frames read at a time (all modes: 16 MB of float32 at 500 modes)
 NEEDED = ("measured_modes", "command_modes", "gains", "rate_hz")
+DELAY_SPAN = 1.5  # frames searched on either side of the record's delay
+UNKNOWN_DELAY_FRAMES = (0.0, 6.0)  # searched when the record states none (AO loops: 1-5 frames)
+
+
+def delay_search(delay_frames: float) -> tuple[float, float]:
+    """The delays the rejection fit searches: the record's +- DELAY_SPAN, else UNKNOWN_DELAY_FRAMES."""
+    if not math.isfinite(delay_frames):
+        return UNKNOWN_DELAY_FRAMES
+    return max(0.0, delay_frames - DELAY_SPAN), delay_frames + DELAY_SPAN
 
 
 @dataclass(frozen=True)
@@ -55,9 +64,8 @@ class LoopRecord:
     rate_hz: float
     delay_frames: float  # the record's (or the configuration's): the starting point, not the answer
     description: RunConfig | None
-    filters: list[Filter]  # unit-gain controller of each mode
+    loop: RecordedLoop  # each mode's unit-gain controller, the structural resonance, the pupil's Tip/Tilt scale
     gains: np.ndarray  # in force during the window
-    structure_ba: tuple | None  # the Tip/Tilt structural resonance (b, a) at this rate
     sensitivity: float  # k at the end of the window (m is divided by each frame's k)
     f_hz: np.ndarray
     p_m: np.ndarray  # (n_modes, F) PSD of m/k, nm^2/Hz
@@ -74,6 +82,15 @@ class LoopRecord:
     def n_modes(self) -> int:
         return self.p_m.shape[0]
 
+    @property
+    def filters(self) -> tuple[Filter, ...]:
+        return self.loop.filters
+
+    @property
+    def structure_ba(self) -> tuple | None:
+        """The Tip/Tilt structural resonance (b, a) at this rate, None without one."""
+        return self.loop.structure_ba
+
 
 def _description(tm: TelemetryReader, path) -> RunConfig | None:
     try:
@@ -84,22 +101,13 @@ def _description(tm: TelemetryReader, path) -> RunConfig | None:
         return None  # a foreign record: integrators at the recorded gains
 
 
-def _filters(description: RunConfig | None, rate: float, n_modes: int) -> tuple[list[Filter], tuple | None]:
-    if description is None:
-        return [Filter.integrator(1.0)] * n_modes, None
-    obs = description.observation
-    if abs(obs.frame_rate_hz - rate) > 1e-6 * rate:
-        raise InputError(f"the record's rate ({rate:g} Hz) is not its configuration's ({obs.frame_rate_hz:g} Hz)")
-    return unit_loops(obs, description.structure, description.controller.forgetting, n_modes)
-
-
-def _probe(tm: TelemetryReader) -> Probe | None:
+def _probe(tm: TelemetryReader, rate: float) -> Probe | None:
     modes, frequencies = tm.dataset("aux/ogtl/mode"), tm.dataset("aux/ogtl/frequency_hz")
     if modes is None or frequencies is None or modes.shape[:1] == (0,):
         return None
     mode = int(np.asarray(modes[-1]).reshape(-1)[0])
     f = float(np.asarray(frequencies[-1]).reshape(-1)[0])
-    if not (1 <= mode <= tm.dim("n_modes") and math.isfinite(f) and 0 < f < 0.5 * tm.attribute("rate_hz")):
+    if not (1 <= mode <= tm.dim("n_modes") and math.isfinite(f) and 0 < f < 0.5 * rate):
         raise InputError(f"telemetry file {tm.path}: /aux/ogtl holds probe mode {mode} at {f:g} Hz, not a probe of this record")
     return Probe(mode, f)
 
@@ -123,34 +131,36 @@ def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, int, np.
     return start, settled, k, np.asarray(tm.read("gains") if gains is None else gains, dtype=float)
 
 
-def read_record(path, delay_frames: float | None = None) -> LoopRecord:
+def read_record(path, delay_frames: float | None = None, structure: str = "auto") -> LoopRecord:
     """The window of the record at ``path`` as spectra (see the module); InputError for a
-    record identification cannot use (decimated, diverged, shorter than ``MIN_WINDOW_S``)."""
+    record identification cannot use (decimated, diverged, shorter than ``MIN_WINDOW_S``);
+    ``structure``: ``recorded.STRUCTURE_CHOICES``."""
     if delay_frames is not None:
         DELAY_FRAMES.check(delay_frames, "delay_frames")
     with open_telemetry(path, NEEDED) as tm:
         check_decimation(tm, path, "the identification's spectra")
         if tm.attribute("diverged_at", -1) >= 0:
             raise InputError(f"telemetry file {path} records a loop that diverged: identification needs a stable loop")
-        rate = float(tm.attribute("rate_hz"))
         description = _description(tm, path)
         n_modes, frames = tm.dim("n_modes"), tm.dim("frames")
+        loop = recorded_loop(tm, description, n_modes, structure)
+        rate = loop.rate_hz
         delay = delay_frames if delay_frames is not None else tm.attribute("delay_frames", None)
         if delay is None:
             delay = description.observation.delay_frames if description else math.nan
-        filters, ba = _filters(description, rate, n_modes)
         first = max(0, frames - round(MAX_WINDOW_S * rate))
         gains_start, start, k, gains = _window(tm, frames, first)
         sensitivity = float(k[-1]) if k is not None else 1.0
         window = frames - start
         if window < MIN_WINDOW_S * rate:
             raise InputError(
-                f"telemetry file {path}: the window at fixed gains and k holds {window} frames ({window / rate:.3g} s): "
-                f"identification needs at least {MIN_WINDOW_S:g} s ({math.ceil(MIN_WINDOW_S * rate)} frames)"
+                f"telemetry file {path}: nothing can be identified from {window} frames ({window / rate:.3g} s) at fixed gains "
+                f"and k: the spectra need at least {MIN_WINDOW_S:g} s ({math.ceil(MIN_WINDOW_S * rate)} frames at {rate:g} Hz); "
+                "record a longer stretch at fixed gains (loop run without --mgm/--ogtl, --duration of 2 s or more)"
             )
         segment = 2 ** int(round(math.log2(SEGMENT_S * rate)))
-        lags = int(math.ceil((delay if math.isfinite(delay) else 2.0) + 2.0)) + 2
-        probe = _probe(tm)
+        lags = int(math.ceil(delay_search(delay)[1] + 0.5)) + 2
+        probe = _probe(tm, rate)
         stats = _Accumulator(n_modes, segment, lags, probe.mode - 1 if probe else None)
         before: list[tuple[np.ndarray, np.ndarray]] = []  # Tip/Tilt while k settled: the lines' longer window
         for lo in range(gains_start, frames, ROW_BLOCK):
@@ -164,10 +174,10 @@ def read_record(path, delay_frames: float | None = None) -> LoopRecord:
             if split < hi - lo:
                 stats.add(m[split:], c[split:])
     f, p_m = stats.spectrum(rate)
-    tt_m, tt_c = stats.series(0, 2)
+    tt_m, tt_c = stats.series(0, min(2, n_modes))
     tt = (np.concatenate([x[0] for x in before] + [tt_m]), np.concatenate([x[1] for x in before] + [tt_c]))
     return LoopRecord(
-        str(path), rate, float(delay), description, filters, gains, ba, sensitivity, f, p_m, stats.moments(),
+        str(path), rate, float(delay), description, loop, gains, sensitivity, f, p_m, stats.moments(),
         tt, probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment, gains_start,
     )  # fmt: skip
 
@@ -187,7 +197,7 @@ class _Accumulator:
         self.sums = np.zeros((5 + lags, n_modes))  # sum m, sum c, sum m^2, sum c^2, sum c(k)c(k-1), sum m(k)c(k-j)
         self.n = 0
         self.last_c = np.zeros((0, n_modes))
-        self.columns = sorted({0, 1} | ({probe_column} if probe_column is not None else set()))
+        self.columns = sorted({0, 1} & set(range(n_modes)) | ({probe_column} if probe_column is not None else set()))
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []
 
     def add(self, m: np.ndarray, c: np.ndarray) -> None:

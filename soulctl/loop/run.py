@@ -10,7 +10,8 @@ import numpy as np
 
 from .. import defaults
 from ..control.coupling import CouplingStability, registration_verdict
-from ..control.gains import LoopGains, check_stability, design_gains
+from ..control.filters import coefficient_rows
+from ..control.gains import LoopGains, check_stability, design_gains, unit_loops
 from ..control.ogtl import OFFSETS_CHI_TOLERANCE
 from ..control.structure import StructuralResonance, sampled_structure
 from ..control.transfer import VIBRATION_HZ
@@ -26,6 +27,7 @@ from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WFS_FIELD_OF_VIEW_ARCSEC, WIND_M_S
 from ..telemetry.recorder import Sink, TelemetryRecorder
+from ..telemetry.schema import LBT_SYSTEM
 from .auxloops import could_not_recover
 from .chi_model import optical_gain_table
 from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
@@ -277,8 +279,10 @@ def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> 
     """The loop's static description to the sink, before the first frame: rate, delay, modes,
     the configuration, the reconstructor and the modal basis."""
     obs = request.observation
-    described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes}
-    sink.describe(described, run_configuration(request, gains), {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M})
+    described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes} | LBT_SYSTEM
+    num, den = coefficient_rows(unit_loops(obs, request.structure, gains.forgetting, cal.basis.n_modes)[0])
+    static = {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M, "controller_num": num, "controller_den": den}
+    sink.describe(described, run_configuration(request, gains), static)
 
 
 def loop_calibration(request: RunRequest, cal: Calibration) -> Calibration:

@@ -10,8 +10,8 @@ from scipy.signal import welch
 
 from ..errors import InputError
 from ..loop.metrics import pseudo_open_loop
-from ..optics.pupil import Pupil
-from .schema import DATASETS, UNITS, TelemetryReader, nested
+from ..optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+from .schema import DATASETS, TelemetryReader, nested
 
 TIP_TILT = (1, 2)  # 1-based modes
 
@@ -32,7 +32,8 @@ def frame_steps(tm: TelemetryReader) -> tuple[int, int, int]:
 
 def inspect(tm: TelemetryReader, kind: str) -> dict:
     """The record's description: format, status, rate, frames, duration, decimation and gaps,
-    fields with their shapes and units, modes, the auxiliary loops and the run description."""
+    fields with their shapes and units, modes, the auxiliary loops, the run description, what
+    the record says of its system (sensor, corrector, telescope) and its reader's notes."""
     rate = tm.attribute("rate_hz", None)
     frames = tm.dims.get("frames", (0,))[0]
     decimation, gaps, lost = frame_steps(tm)
@@ -40,7 +41,7 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
     for f in DATASETS:
         ds = tm.dataset(f.name) if tm.has(f.name) else None
         if ds is not None:
-            fields[f.name] = {"shape": list(ds.shape), "unit": UNITS.get(f.name, "")}
+            fields[f.name] = {"shape": list(ds.shape), "unit": tm.unit(f.name)}
     span = int(tm.read("frame_counter", slice(frames - 1, frames))[0]) + 1 if tm.has("frame_counter") and frames else frames
     conf = tm.configuration()
     return {
@@ -58,6 +59,11 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
         "fields": fields,
         "auxiliary_loops": sorted(tm.group("aux") or ()),
         "run_description": tm.has("run_description"),
+        "sensor": tm.attribute("sensor", None),
+        "corrector": tm.attribute("corrector", None),
+        "telescope": tm.attribute("telescope", None),
+        "telescope_diameter_m": tm.attribute("telescope_diameter_m", None),
+        "notes": [{"field": n.field or None, "note": n.text} for n in tm.notes],
         "star_magnitude_r": nested(conf, "observation", "star", "magnitude_r", number=True),
         "seeing_arcsec": nested(conf, "seeing_arcsec", number=True),
         "seed": nested(conf, "seed", number=True),
@@ -74,9 +80,25 @@ class ModalSpectra:
     tt_cumulative_mas: dict  # record -> cumulative jitter per axis RMS from f to Nyquist (mas)
 
 
-def nm_per_mas_tip_tilt() -> float:
-    """nm RMS of a unit-RMS Tip mode per mas of tilt on the LBT pupil (``stages.Disturbance``)."""
-    return Pupil(160).nm_per_mas_tilt()
+PUPIL_PIXELS = 160  # the Tip/Tilt scale's pupil sampling (within 0.1 % of the continuous pupil's)
+
+
+def nm_per_mas_tip_tilt(diameter_m: float = LBT_DIAMETER_M, obstruction_m: float | None = None) -> float:
+    """nm RMS of the unit-RMS Tip mode per mas of tilt on a pupil of this diameter and central
+    obstruction (LBT's by default, as ``stages.Disturbance``)."""
+    fraction = LBT_OBSTRUCTION if obstruction_m is None else obstruction_m / diameter_m
+    if not (diameter_m > 0 and 0 <= fraction < 1):
+        raise InputError(f"a telescope's obstruction must be smaller than its diameter, got {obstruction_m} and {diameter_m} m")
+    return Pupil(PUPIL_PIXELS, diameter_m, fraction).nm_per_mas_tilt()
+
+
+def nm_per_mas_of(tm: TelemetryReader) -> tuple[float, str | None]:
+    """The Tip/Tilt scale of the record's pupil (``nm_per_mas_tip_tilt``) and, where the record
+    states no telescope, LBT's with a note saying so."""
+    diameter = tm.attribute("telescope_diameter_m", None)
+    if diameter is None or diameter <= 0:
+        return nm_per_mas_tip_tilt(), f"the record states no telescope diameter: Tip/Tilt in mas on LBT's pupil ({LBT_DIAMETER_M:g} m)"
+    return nm_per_mas_tip_tilt(diameter, tm.attribute("telescope_obstruction_m", 0.0)), None
 
 
 def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool) -> ModalSpectra:

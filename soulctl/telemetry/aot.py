@@ -42,9 +42,11 @@ import numpy as np
 from astropy.io import fits
 
 from .. import blas
+from ..control.filters import unit_coefficients
 from ..errors import InputError
 from ..files import atomic_write, input_file
-from .schema import PER_FRAME, REQUIRED, TelemetryReader, check_slope_pairs, nested
+from ..ranges import TELESCOPE_M
+from .schema import LBT_SYSTEM, PER_FRAME, REQUIRED, Note, TelemetryReader, check_slope_pairs, nested
 
 WFS_WAVELENGTH_M = 750e-9  # the pyramid's band centre (optics.pwfs.PyramidConfig.wavelength_m)
 EXTRA_KEY = "SOULNAME"  # the keyword that names soulctl's own extension HDUs
@@ -58,8 +60,12 @@ KEYWORDS = {  # primary-header keyword -> attribute
     "SOULDIVF": "diverged_at",
     "SOULNMOD": "n_modes",
 }
-EXACT = ("commands", "command_modes")  # kept exactly too: AOT's commands are float32 metres, its modal slot float32
-AOT_FIELDS = ("slopes", "commands", "command_modes", "reconstructor", "modes_to_commands", "gains", "frame_counter", "frame_time_s")
+# kept exactly too: AOT's commands are float32 metres, its modal slot float32, its filters the gains times the unit filters
+EXACT = ("commands", "command_modes", "controller_num", "controller_den")
+AOT_FIELDS = (
+    "slopes", "commands", "command_modes", "reconstructor", "modes_to_commands", "gains", "controller_num", "controller_den",
+    "frame_counter", "frame_time_s",
+)  # fmt: skip
 
 
 def _aotpy():
@@ -80,24 +86,38 @@ def _loop_objects(arrays: dict, attributes: dict, configuration: dict):
     rate, delay = attributes.get("rate_hz"), attributes.get("delay_frames")
     seconds = arrays.get("frame_time_s", None if rate is None else frames / rate)
     system = aot.AOSystem(ao_mode="SCAO", name="soulctl simulated loop", date_beginning=datetime.datetime.now(datetime.UTC))
-    system.main_telescope = aot.MainTelescope(uid="LBT", enclosing_diameter=8.22, inscribed_diameter=8.22, obstruction_diameter=0.9)
+    pupil = LBT_SYSTEM | {k: attributes[k] for k in ("telescope", "telescope_diameter_m", "telescope_obstruction_m") if k in attributes}
+    system.main_telescope = aot.MainTelescope(
+        uid=pupil["telescope"],
+        enclosing_diameter=pupil["telescope_diameter_m"],
+        inscribed_diameter=pupil["telescope_diameter_m"],
+        obstruction_diameter=pupil["telescope_obstruction_m"],
+    )
     timestamps = None if seconds is None else np.asarray(seconds, dtype=float).tolist()
     time = aot.Time(uid="LOOP TIME", timestamps=timestamps, frame_numbers=frames.astype(int).tolist())
     star = aot.NaturalGuideStar("NGS")
     n_slopes = _n_slopes(arrays)
     modulation = float(nested(configuration, "observation", "wfs", "modulation_lambda_over_d", number=True) or 0.0)
     slopes = arrays.get("slopes")
-    wfs = aot.Pyramid(
-        uid="PWFS",
-        source=star,
-        dimensions=2,
-        n_sides=4,
-        n_valid_subapertures=n_slopes // 2,
-        modulation=modulation * WFS_WAVELENGTH_M,
-        wavelength=WFS_WAVELENGTH_M,
-        measurements=None if slopes is None else _image("WFS SLOPES", np.reshape(slopes, (len(slopes), 2, -1)), "slope x k", time),
-    )
-    mirror = aot.DeformableMirror(uid="ASM", telescope=system.main_telescope, n_valid_actuators=_n_actuators(arrays))
+    measurements = None if slopes is None else _image("WFS SLOPES", np.reshape(slopes, (len(slopes), 2, -1)), "slope x k", time)
+    if attributes.get("sensor", "pyramid") == "pyramid":
+        wfs = aot.Pyramid(
+            uid="PWFS",
+            source=star,
+            dimensions=2,
+            n_sides=4,
+            n_valid_subapertures=n_slopes // 2,
+            modulation=modulation * WFS_WAVELENGTH_M,
+            wavelength=WFS_WAVELENGTH_M,
+            measurements=measurements,
+        )
+    else:  # a Shack-Hartmann (a quad cell: one sub-aperture)
+        wfs = aot.ShackHartmann(uid="WFS", source=star, n_valid_subapertures=max(1, n_slopes // 2), measurements=measurements)
+    if attributes.get("corrector") == "tip-tilt-mirror":
+        mirror = aot.TipTiltMirror(uid="TTM", telescope=system.main_telescope)
+    else:
+        uid = "ASM" if attributes.get("corrector", "lbt-adaptive-secondary") == "lbt-adaptive-secondary" else "DM"
+        mirror = aot.DeformableMirror(uid=uid, telescope=system.main_telescope, n_valid_actuators=_n_actuators(arrays))
     loop = aot.ControlLoop(uid="HO LOOP", input_sensor=wfs, commanded_corrector=mirror, time=time, closed=True)
     loop.framerate = None if rate is None else float(rate)
     loop.delay = None if delay is None else float(delay)
@@ -120,8 +140,11 @@ def _loop_arrays(loop, arrays: dict, time) -> None:
         loop.modes_to_commands = _image("MODES TO COMMANDS", arrays["modes_to_commands"])
     if "gains" in arrays:
         g = np.asarray(arrays["gains"], dtype=float)
-        loop.time_filter_num = _image("TIME FILTER NUM", g[:, None], dtype=np.float64)
-        loop.time_filter_den = _image("TIME FILTER DEN", np.tile([1.0, -1.0], (len(g), 1)), dtype=np.float64)
+        num, den = (arrays[k] if "controller_num" in arrays else None for k in ("controller_num", "controller_den"))
+        if num is None or den is None:  # a record without its filters: integrators
+            num, den = np.ones((len(g), 1)), np.tile([1.0, -1.0], (len(g), 1))
+        loop.time_filter_num = _image("TIME FILTER NUM", g[:, None] * np.asarray(num), dtype=np.float64)
+        loop.time_filter_den = _image("TIME FILTER DEN", den, dtype=np.float64)
 
 
 def _frames(arrays: dict) -> int:
@@ -188,19 +211,28 @@ def read_aot(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
     loops = [loop for loop in system.loops if isinstance(loop, aot.ControlLoop)]
     if not loops:
         raise InputError(f"telemetry file {path}: the AOT file has no control loop")
+    notes: list[Note] = []
     try:
-        arrays, attributes = _model_of(loops[0], extras, header)
+        arrays, attributes = _model_of(loops[0], extras, header, notes)
+        attributes |= _system_of(system, loops[0])
+    except InputError as e:
+        raise InputError(f"telemetry file {path}: {e}") from None
     except (ValueError, TypeError, IndexError, AttributeError, UnicodeDecodeError) as e:
         raise InputError(f"telemetry file {path}: cannot read the AOT loop's records ({' '.join(str(e).split())[:160]})") from None
-    return TelemetryReader.from_arrays(path, arrays, attributes, required)
+    foreign = {} if "soulctl_version" in attributes else {"slopes_unit": _unit_of(loops[0].input_sensor)}
+    return TelemetryReader.from_arrays(path, arrays, attributes, required, tuple(notes), **foreign)
 
 
-def _model_of(loop, extras: dict, header: dict) -> tuple[dict, dict]:
+def _unit_of(wfs) -> str:
+    """The unit another system's file gives its measurements."""
+    measurements = getattr(wfs, "measurements", None)
+    return str(getattr(measurements, "unit", None) or "not stated")
+
+
+def _model_of(loop, extras: dict, header: dict, notes: list[Note]) -> tuple[dict, dict]:
     """The model's arrays and attributes of an AOT control loop and soulctl's extra HDUs."""
     arrays: dict = {}
     attributes = {a: header[k] for k, a in KEYWORDS.items() if k in header}
-    if loop.framerate is not None:
-        attributes["rate_hz"] = float(loop.framerate)
     if loop.delay is not None:
         attributes["delay_frames"] = float(loop.delay)
     wfs = loop.input_sensor
@@ -213,11 +245,12 @@ def _model_of(loop, extras: dict, header: dict) -> tuple[dict, dict]:
     r = _data(loop.measurements_to_modes)
     if r is not None:
         arrays["reconstructor"] = r.reshape(r.shape[0], -1) * _to_nm(loop.measurements_to_modes)
-    num = _data(loop.time_filter_num)
-    if num is not None and num.ndim >= 1 and num.size:
-        arrays["gains"] = (num if num.ndim == 1 else num.reshape(num.shape[0], -1)[:, 0]).astype(float)
     _time_arrays(arrays, loop.time)
     _derived(arrays)
+    rate = _rate(loop, arrays, notes)
+    if rate is not None:
+        attributes["rate_hz"] = rate
+    _controller(loop, arrays, notes)
     for name, data in extras.items():
         if name in TEXT_FIELDS:
             attributes[name] = bytes(data.astype(np.uint8)).decode("utf-8")
@@ -226,6 +259,81 @@ def _model_of(loop, extras: dict, header: dict) -> tuple[dict, dict]:
     if "gains" in arrays and "n_modes" not in attributes:
         attributes["n_modes"] = len(arrays["gains"])
     return arrays, attributes
+
+
+def _rate(loop, arrays: dict, notes: list[Note]) -> float | None:
+    """ControlLoop.framerate, else the rate of the time stamps (frames per second between rows)."""
+    if loop.framerate is not None:
+        return float(loop.framerate)
+    t = arrays.get("frame_time_s")
+    if t is None or len(t) < 3:
+        notes.append(Note("rate_hz", "the AOT loop states no framerate and holds no time stamps to measure it"))
+        return None
+    steps = np.diff(arrays["frame_counter"]) if "frame_counter" in arrays else np.ones(len(t) - 1)
+    dt = np.diff(np.asarray(t, dtype=float))
+    if not (np.all(np.isfinite(dt)) and np.median(dt) > 0):
+        notes.append(Note("rate_hz", "the AOT loop states no framerate and its time stamps do not increase"))
+        return None
+    rate = float(np.median(steps) / np.median(dt))
+    notes.append(Note("rate_hz", f"rate {rate:.6g} Hz from the time stamps (the AOT loop states no framerate)"))
+    return rate
+
+
+def _n_modes(arrays: dict) -> int | None:
+    for name in ("command_modes", "measured_modes", "reconstructor"):
+        if name in arrays:
+            return int(np.shape(arrays[name])[1 if name != "reconstructor" else 0])
+    return None
+
+
+def _controller(loop, arrays: dict, notes: list[Note]) -> None:
+    """The time filters (AOT: one per mode, or one for all, H = sum b_i z^-i / sum a_j z^-j,
+    "the first numerator is the loop gain") as the unit filters and the gains
+    (``filters.unit_coefficients``); without a denominator, integrators."""
+    num, den = _data(loop.time_filter_num), _data(loop.time_filter_den)
+    if num is None or not num.size:
+        notes.append(Note("controller_num", "the AOT loop states no time filter: neither the gains nor the controller are known"))
+        return
+    n_modes = _n_modes(arrays)
+    num = np.asarray(num, dtype=float)
+    if num.ndim == 1:  # one coefficient per mode, or one filter for all
+        num = num[:, None] if n_modes is not None and len(num) == n_modes and n_modes > 1 else num[None, :]
+    num = num.reshape(num.shape[0], -1)
+    if den is None or not den.size:
+        den = np.array([[1.0, -1.0]])
+        notes.append(Note("controller_den", "the AOT loop states no time-filter denominator: integrators (1 - z^-1) taken"))
+    den = np.asarray(den, dtype=float)
+    den = den.reshape(den.shape[0], -1) if den.ndim > 1 else den[None, :]
+    rows = n_modes or max(num.shape[0], den.shape[0])
+    if num.shape[0] not in (1, rows) or den.shape[0] not in (1, rows):
+        raise InputError(f"the time filters have {num.shape[0]} numerators and {den.shape[0]} denominators for {rows} modes")
+    unit, unit_den, gains = unit_coefficients(np.repeat(num, rows // num.shape[0], axis=0), np.repeat(den, rows // den.shape[0], axis=0))
+    arrays["gains"], arrays["controller_num"], arrays["controller_den"] = gains, unit, unit_den
+
+
+def _system_of(system, loop) -> dict:
+    """What the AOT file says of the loop: its sensor (a Shack-Hartmann of one sub-aperture is
+    a quad cell), its corrector (a deformable mirror of a telescope named LBT is the adaptive
+    secondary) and its telescope's pupil."""
+    aot = _aotpy()
+    wfs, corrector, telescope = loop.input_sensor, loop.commanded_corrector, system.main_telescope
+    out: dict = {"sensor": "unknown", "corrector": "unknown"}
+    if isinstance(wfs, aot.Pyramid):
+        out["sensor"] = "pyramid"
+    elif isinstance(wfs, aot.ShackHartmann):
+        out["sensor"] = "quad-cell" if wfs.n_valid_subapertures == 1 else "shack-hartmann"
+    name = str(getattr(telescope, "uid", "") or "")
+    if isinstance(corrector, aot.TipTiltMirror):
+        out["corrector"] = "tip-tilt-mirror"
+    elif isinstance(corrector, aot.DeformableMirror):
+        out["corrector"] = "lbt-adaptive-secondary" if "LBT" in name.upper() else "deformable-mirror"
+    if name:
+        out["telescope"] = name
+    for key, field in (("telescope_diameter_m", "enclosing_diameter"), ("telescope_obstruction_m", "obstruction_diameter")):
+        value = getattr(telescope, field, None)
+        if value is not None and TELESCOPE_M.contains(value):
+            out[key] = float(value)
+    return out
 
 
 def _data(image) -> np.ndarray | None:

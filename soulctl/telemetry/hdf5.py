@@ -21,13 +21,17 @@ Layout (rows are recorded frames; every dataset's "unit" attribute names its uni
     /gains             (n_modes,)         float64   per-mode gains (Delta of each mode) at the end
     /reconstructor     (n_modes, n_slopes) float32  R: the modes (nm) of the slopes
     /modes_to_commands (n_actuators, n_modes) float32  M: the actuator commands of each mode
+    /controller_num    (n_modes, num_terms) float64  each mode's unit-gain time filter, numerator and
+    /controller_den    (n_modes, den_terms) float64  denominator in powers of z^-1 (c = g num/den m)
     /gain_history/frames (changes,)       int64     first frame of each gain vector
     /gain_history/gains  (changes, n_modes) float64 the gain vectors in force from those frames
     /aux/<task>/<field> (updates, ...)    float64   auxiliary loops' records (e.g. /aux/ogtl/
                                                     sensitivity, /aux/mgm/gains, /aux/metrics/
                                                     strehl_estimate), /aux/<task>/frame the
                                                     first frame after each update
-    attributes: rate_hz, delay_frames, n_modes, soulctl_version, schema_version (2; files
+    attributes: rate_hz, delay_frames, n_modes, sensor, corrector, telescope,
+                telescope_diameter_m, telescope_obstruction_m (what the loop is: LBT's
+                pyramid and adaptive secondary), soulctl_version, schema_version (2; files
                 without it are version 1 and read alike), status (complete | partial |
                 writing), partial_reason, telemetry_every (one frame in N recorded),
                 diverged_at (-1 if not), configuration (JSON: observation, atmosphere,

@@ -36,21 +36,23 @@ from ..control.structure import StructuralResonance
 from ..errors import InputError
 from ..files import input_file
 from ..observation import Observation
+from ..optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION
 from ..ranges import (
     DELAY_FRAMES,
     DIVERGED_AT,
     FORGETTING,
     FRAME_INDEX,
-    FRAME_RATE_HZ,
     FRAME_TIME_S,
     LOOP_GAIN,
     MODAL_NM,
-    MODES,
     OVERSAMPLING,
+    RECORD_MODES,
+    RECORD_RATE_HZ,
     RMS_NM,
     SCHEMA_VERSION,
     SENSITIVITY,
     TELEMETRY_EVERY,
+    TELESCOPE_M,
     WFS_FIELD_OF_VIEW_ARCSEC,
     Range,
     number_text,
@@ -59,6 +61,18 @@ from ..ranges import (
 # Ranges of recorded values (not options a user types; candidates for soulctl.ranges).
 
 REAL, INTEGER, TEXT = "real numbers", "integers", "text"
+# What a record says of its loop (attributes sensor and corrector): the optical-gain model and
+# the structural resonance follow from them (``telemetry.loop_model``).
+SENSORS = ("pyramid", "shack-hartmann", "quad-cell", "unknown")
+CORRECTORS = ("lbt-adaptive-secondary", "deformable-mirror", "tip-tilt-mirror", "unknown")
+# LBT's pyramid on its adaptive secondary: what soulctl simulates and LBT's folders record
+LBT_SYSTEM = {
+    "sensor": "pyramid",
+    "corrector": "lbt-adaptive-secondary",
+    "telescope": "LBT",
+    "telescope_diameter_m": LBT_DIAMETER_M,
+    "telescope_obstruction_m": LBT_DIAMETER_M * LBT_OBSTRUCTION,
+}
 
 
 @dataclass(frozen=True)
@@ -114,6 +128,8 @@ DATASETS = (
     _dataset("gains", REAL, ("n_modes",), "float64", LOOP_GAIN, "per-mode gains at the end"),
     _dataset("reconstructor", REAL, ("n_modes", "n_slopes"), "float32", None, "R: the modes (nm) of the slopes"),
     _dataset("modes_to_commands", REAL, ("n_actuators", "n_modes"), "float32", None, "M: the actuator commands of each mode"),
+    _dataset("controller_num", REAL, ("n_modes", "num_terms"), "float64", None, "the time filter of each mode, numerator (z^-1 powers)"),
+    _dataset("controller_den", REAL, ("n_modes", "den_terms"), "float64", None, "the time filter of each mode, denominator (z^-1 powers)"),
     _dataset("gain_history/frames", INTEGER, ("changes",), "int64", FRAME_INDEX, "first frame of each gain vector"),
     _dataset("gain_history/gains", REAL, ("changes", "n_modes"), "float64", LOOP_GAIN, "the gain vectors in force from those frames"),
 )
@@ -129,9 +145,14 @@ AUX_RECORD = _dataset(
 )
 AUX_FRAME = _dataset("aux/<task>/frame", INTEGER, ("updates",), "int64", FRAME_INDEX, "the first frame after each update")
 ATTRIBUTES = (
-    _attribute("rate_hz", REAL, "float64", FRAME_RATE_HZ),
+    _attribute("rate_hz", REAL, "float64", RECORD_RATE_HZ),
     _attribute("delay_frames", REAL, "float64", DELAY_FRAMES),
-    _attribute("n_modes", INTEGER, "int64", MODES, "= n_modes"),
+    _attribute("n_modes", INTEGER, "int64", RECORD_MODES, "= n_modes"),
+    _attribute("sensor", TEXT, "str", None, "the wavefront sensor: " + ", ".join(SENSORS)),
+    _attribute("corrector", TEXT, "str", None, "what the loop commands: " + ", ".join(CORRECTORS)),
+    _attribute("telescope", TEXT, "str", None, "the telescope's name"),
+    _attribute("telescope_diameter_m", REAL, "float64", TELESCOPE_M, "its pupil's diameter (the mas of Tip/Tilt)"),
+    _attribute("telescope_obstruction_m", REAL, "float64", TELESCOPE_M, "its central obstruction's diameter"),
     _attribute("soulctl_version", TEXT, "str"),
     _attribute("schema_version", INTEGER, "int64", SCHEMA_VERSION, "the layout's version (absent: 1)"),
     _attribute("status", TEXT, "str", None, "complete, partial (see partial_reason) or writing (the writer never closed it)"),
@@ -158,6 +179,8 @@ UNITS = {
     "gains": "1",
     "reconstructor": "nm per slope unit",
     "modes_to_commands": "nm per nm",
+    "controller_num": "1",
+    "controller_den": "1",
     "gain_history/frames": "frame",
     "gain_history/gains": "1",
 }
@@ -172,6 +195,8 @@ DIMENSION_LABELS = {
     "n_slopes": "slopes",
     "n_actuators": "actuators",
     "changes": "entries",
+    "num_terms": "numerator terms",
+    "den_terms": "denominator terms",
     "updates": "updates",
 }
 RELATIONS = (
@@ -192,6 +217,15 @@ CONFIGURATION_SCHEMA = {
 }
 REQUIRED = ("measured_modes", "command_modes", "gains", "rate_hz", "delay_frames")  # offline MGM's needs
 FLOAT32 = tuple(f.name for f in DATASETS if f.stored == "float32")
+
+
+@dataclass(frozen=True)
+class Note:
+    """What a format's reader assumed, derived or could not find (``field``: the model's field
+    it concerns, "" for the record as a whole), as `telemetry inspect` prints it."""
+
+    field: str
+    text: str
 
 
 def _one_line(e: BaseException) -> str:
@@ -291,8 +325,9 @@ class TelemetryReader:
     """An open telemetry file whose layout matches the schema (see the module); use as a
     context manager.  ``required``: the fields the reader cannot do without."""
 
-    def __init__(self, path, required: tuple[str, ...] = REQUIRED, file: h5py.File | None = None):
+    def __init__(self, path, required: tuple[str, ...] = REQUIRED, file: h5py.File | None = None, notes: tuple[Note, ...] = ()):
         self.path = path
+        self.notes = tuple(notes)  # what the format's reader assumed or could not find (``Note``)
         self.dims: dict[str, tuple[int, str]] = {}  # dimension -> (size, the field that set it)
         self.file = file if file is not None else self._open(path)
         try:
@@ -317,12 +352,29 @@ class TelemetryReader:
             raise InputError(f"cannot read telemetry file {path}: {_one_line(e)}") from None
 
     @classmethod
-    def from_arrays(cls, path, arrays: dict, attributes: dict, required: tuple[str, ...] = REQUIRED) -> TelemetryReader:
+    def from_arrays(
+        cls,
+        path,
+        arrays: dict,
+        attributes: dict,
+        required: tuple[str, ...] = REQUIRED,
+        notes: tuple[Note, ...] = (),
+        slopes_unit: str = UNITS["slopes"],
+    ) -> TelemetryReader:
         """The model of a record read from another format (AOT FITS, an LBT folder): the same
-        fields, held in an in-memory HDF5 file and checked alike."""
+        fields, held in an in-memory HDF5 file and checked alike; ``notes``: what its reader
+        assumed or found missing; ``slopes_unit``: the unit of the record's slopes (every other
+        field's is the schema's)."""
         f = h5py.File(io.BytesIO(), "w")
         store(f, arrays, attributes)
-        return cls(path, required, file=f)
+        if "slopes" in arrays:
+            f["slopes"].attrs["unit"] = slopes_unit
+        return cls(path, required, file=f, notes=notes)
+
+    def lacks(self, names) -> InputError:
+        """The error for fields the record lacks, with what its reader found of them."""
+        why = [n.text for n in self.notes if n.field in names]
+        return InputError(f"telemetry file {self.path} lacks {', '.join(names)}" + (f" ({'; '.join(why)})" if why else ""))
 
     def __enter__(self) -> TelemetryReader:
         return self
@@ -391,6 +443,12 @@ class TelemetryReader:
     def has(self, name: str) -> bool:
         return self.node(name) is not None if TELEMETRY_SCHEMA.get(name, AUX_RECORD).where == "dataset" else name in self.file.attrs
 
+    def unit(self, name: str) -> str:
+        """The unit of dataset ``name``: its "unit" attribute, else the schema's."""
+        ds = self.dataset(name)
+        unit = ds.attrs.get("unit") if ds is not None else None
+        return unit if isinstance(unit, str) else UNITS.get(name, "")
+
     def dim(self, name: str) -> int:
         return self.dims[name][0]
 
@@ -427,7 +485,7 @@ class TelemetryReader:
             )
         missing = [n for n in required if not self.has(n)]
         if missing:
-            raise InputError(f"telemetry file {self.path} lacks {', '.join(missing)}")
+            raise self.lacks(missing)
         # the required fields first: a disagreement names the field that is off
         for field in sorted(DATASETS, key=lambda f: f.name not in required):
             self._check_dataset(field, field.name, field.shape)
@@ -461,7 +519,7 @@ class TelemetryReader:
         field = TELEMETRY_SCHEMA[name]
         if name not in self.file.attrs:
             if default is InputError:
-                raise InputError(f"telemetry file {self.path} lacks {name}")
+                raise self.lacks([name])
             return default
         with self._reading(f"attribute {name}"):
             raw = _attribute_value(self.file.attrs[name])
@@ -508,7 +566,7 @@ class TelemetryReader:
         field = TELEMETRY_SCHEMA.get(name) or (AUX_FRAME if name.endswith("/frame") else AUX_RECORD)
         ds = self.dataset(name)
         if ds is None:
-            raise InputError(f"telemetry file {self.path} lacks {name}")
+            raise self.lacks([name])
         with self._reading(f"field {name}"):
             data = ds[rows] if columns is None else ds[rows, columns]
         data = np.asarray(data)
