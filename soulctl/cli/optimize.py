@@ -18,7 +18,7 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
-from ..loop.offline import PlantInputs, offline_mgm
+from ..loop.offline import REASONS, PlantInputs, offline_mgm
 from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
@@ -38,6 +38,7 @@ from .common import (
     PROBE_AMPLITUDE,
     PROBE_FREQUENCY,
     PROBE_MODE,
+    RESONANCE,
     RUN_CONFIG,
     SEED,
     SEEING,
@@ -47,6 +48,7 @@ from .common import (
     array_cache,
     aux_rows,
     aux_summary,
+    check_resonance,
     frames_progress,
     gain_file_input,
     loop_overrides,
@@ -166,41 +168,54 @@ def _offline(o: GainsOptions, cache) -> int:
     if o.chi_table is not None:
         n_modes = observation.modes if observation is not None else None
         gamma = read_optical_gain_table(o.chi_table, n_modes or _recorded_modes(telemetry))
-    result = offline_mgm(telemetry, observation, cache, chi_seeing_arcsec=o.seeing, plant=PlantInputs(o.delay_frames, gamma))
+    plant = PlantInputs(o.delay_frames, gamma, o.resonance)
+    result = offline_mgm(telemetry, observation, cache, chi_seeing_arcsec=o.seeing, plant=plant)
     if out is not None:
         atomic_write_text(out, gains_toml(result.gains, f"MGM gains from the telemetry file {telemetry.name}"))
     if json_output:
         print_json({**result.to_dict(), "groups": group_summary(result.gains)})
         return 0
     console = make_console()
-    obs = result.observation
-    t = quantity_table(
-        f"MGM on {telemetry.name}: {obs.modes} modes, {obs.frame_rate_hz:g} Hz, window of {result.frames} frames "
-        f"({result.frames / obs.frame_rate_hz:.2f} s, Welch segment {result.segment})"
-    )
-    for g_prev, g in zip(group_summary(result.previous_gains), group_summary(result.gains)):
-        t.add_row(f"gains {g['group']}: recorded → MGM", f"{_group_text(g_prev)} → {_group_text(g)}")
-    t.add_row("gains Tip / Tilt", f"{result.gains[0]:.3f} / {result.gains[1]:.3f}")
-    t.add_row(
-        "chi model",
-        f"gamma_i / gamma_{result.probe_mode} (OGTL recorded, probe mode {result.probe_mode})"
-        if result.ogtl
-        else f"gamma_i x k (k = {result.sensitivity:.3f})",
-    )
-    t.add_row(
-        "gamma_i from",
-        str(o.chi_table)
-        if o.chi_table is not None
-        else f'the optical model (optics gains) at {result.chi_seeing_arcsec:g}" seeing: {result.chi_seeing_from}',
-    )
-    if o.delay_frames is not None:
-        t.add_row("loop delay", f"{o.delay_frames:g} frames (--delay-frames)")
-    if result.capped:
-        t.add_row("capped at the nominal stability limit", f"{len(result.capped)} mode(s), first mode {result.capped[0]}")
-    console.print(t)
+    console.print(_offline_table(result, telemetry.name, o))
     if out is not None:
         console.print(f"gains written to {out}")
     return 0
+
+
+PER_MODE_ROWS = 4  # records of at most this many modes get a row per mode
+
+
+def _offline_table(result, name: str, o: GainsOptions):
+    """Recorded, optimum and applied gains (per mode for a few modes, else per group), why the
+    applied differ from the optimum, and the plant MGM modelled."""
+    r = result
+    t = quantity_table(
+        f"MGM on {name}: {r.n_modes} modes, {r.rate_hz:g} Hz, delay {r.delay_frames:.3g} frames, window of {r.frames} frames "
+        f"({r.frames / r.rate_hz:.2f} s, Welch segment {r.segment})"
+    )
+    t.add_row("gains", "recorded → optimum → MGM")
+    if r.n_modes <= PER_MODE_ROWS:
+        for i in range(r.n_modes):
+            t.add_row(f"  mode {i + 1}", f"{r.previous_gains[i]:.3f} → {r.optimum[i]:.3f} → {r.gains[i]:.3f} ({r.reasons[i]})")
+    else:
+        summaries = zip(group_summary(r.previous_gains), group_summary(r.optimum), group_summary(r.gains))
+        for g_prev, g_opt, g in summaries:
+            t.add_row(f"  {g['group']}", f"{_group_text(g_prev)} → {_group_text(g_opt)} → {_group_text(g)}")
+        t.add_row("gains Tip / Tilt", f"{r.gains[0]:.3f} / {r.gains[1]:.3f}")
+        counts = {reason: r.reasons.count(reason) for reason in REASONS if reason in r.reasons}
+        t.add_row("why MGM's gains are not the optimum", "; ".join(f"{reason}: {n} mode(s)" for reason, n in counts.items()))
+    for reason in dict.fromkeys(r.reasons):
+        t.add_row(f"  {reason}", REASONS[reason])
+    chi_model = (
+        f"gamma_i / gamma_{r.probe_mode} (OGTL recorded, probe mode {r.probe_mode})" if r.ogtl else f"gamma_i x k (k = {r.sensitivity:.3f})"
+    )
+    t.add_row("chi model", chi_model)
+    t.add_row("gamma_i from", str(o.chi_table) if o.chi_table is not None else r.chi_from)
+    if o.delay_frames is not None:
+        t.add_row("loop delay", f"{o.delay_frames:g} frames (--delay-frames)")
+    for note in r.notes:
+        t.add_row("note", note)
+    return t
 
 
 def _check_phases(duration: float | None, period: float | None, measure: float | None, sequence: float | None) -> None:
@@ -256,8 +271,12 @@ class GainsOptions:
         help="Offline: the loop delay in frames (default: the record's, else the configuration's).",
     )
     chi_table: Path | None = typer.Option(
-        None, "--chi-table", metavar="FILE.csv", help="Offline: optical gains per mode ('optics gains --out' CSV) instead of the model's."
+        None,
+        "--chi-table",
+        metavar="FILE.csv",
+        help="Offline: optical gains per mode ('optics gains --out' CSV) instead of the model's (a pyramid's; 1 for another sensor).",
     )
+    resonance: str = RESONANCE
     seeing: float | None = SEEING
     wind: float | None = WIND
     L0: float | None = OUTER_SCALE
@@ -372,10 +391,11 @@ def _checked_overrides(o: GainsOptions, methods: list[str]) -> dict:
     inputs.append(("--chi-table", o.chi_table))
     if o.delay_frames is not None:
         DELAY_FRAMES.check(o.delay_frames, "--delay-frames")
-    if o.telemetry is None and (o.delay_frames is not None or o.chi_table is not None):
-        raise InputError(
-            f"{'--delay-frames' if o.delay_frames is not None else '--chi-table'} applies to offline MGM: use it with --telemetry"
-        )
+    check_resonance(o.resonance)
+    offline_only = [name for name, given in (("--delay-frames", o.delay_frames), ("--chi-table", o.chi_table)) if given is not None]
+    offline_only += ["--resonance"] if o.resonance != "auto" else []
+    if o.telemetry is None and offline_only:
+        raise InputError(f"{offline_only[0]} applies to offline MGM: use it with --telemetry")
     if o.out is not None:
         check_output_path(o.out, "--out", inputs)
     if o.plot is not None:

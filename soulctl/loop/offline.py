@@ -47,10 +47,9 @@ import numpy as np
 from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
-from ..control.gains import DEFAULT_FORGETTING, nominal_loop
+from ..control.gains import DEFAULT_FORGETTING, unit_loops
 from ..control.ogtl import HELD, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_structure
-from ..control.transfer import max_stable_gain
 from ..errors import InputError
 from ..observation import Observation
 from ..optics.cache import ArrayCache
@@ -62,17 +61,27 @@ from ..telemetry.hdf5 import run_description_of
 from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
 from .chi_model import mgm_chi, optical_gain_table
 from .metrics import pseudo_open_loop
-from .optimize import mgm_machine, welch_settings
+from .optimize import welch_settings
+from .recorded import RecordedLoop, checked_rate, recorded_loop
 from .run import calibration_for
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
 BLOCK_BYTES = 32 * 2**20  # float64 bytes of one block of modes of /measured_modes (and as many of /command_modes)
 
 
+REASONS = {  # why MGM's gain of a mode is not its optimum (OfflineMgmResult.reasons)
+    "step": "Eq. gainUpdate: a step of rho from the recorded gain towards nu x the optimum",
+    "bounded": "the step bounded at a factor 2 of the recorded gain (MgmSettings.max_change)",
+    "not significant": "the fall of J within its noise: the recorded gain kept",
+    "capped": "capped at the nominal stability limit (chi = 1, as loop run checks)",
+}
+
+
 @dataclass
 class OfflineMgmResult:
     path: str
-    observation: Observation
+    rate_hz: float
+    delay_frames: float
     previous_gains: np.ndarray  # in force during the window (from /gain_history, else /gains)
     optimum: np.ndarray  # g_hat_i (step 4)
     gains: np.ndarray  # what MGM would apply (step 5)
@@ -82,44 +91,82 @@ class OfflineMgmResult:
     first_frame: int
     frames: int  # frames of the window
     segment: int  # Welch segment (frames)
-    capped: tuple[int, ...] = ()  # modes (1-based) whose MGM gain was capped at the nominal limit
+    reasons: tuple[str, ...] = ()  # per mode, why the gain is not the optimum (REASONS)
     probe_mode: int | None = None  # the mode OGTL probed (chi_i = gamma_i / gamma_probe), None without OGTL
+    chi_from: str = ""  # where gamma_i came from: the pyramid's model (at a seeing), --chi-table, or the sensor's 1
     chi_seeing_arcsec: float | None = None  # the seeing of the optical-gain table, None with gamma given
     chi_seeing_from: str = ""  # where that seeing came from
+    notes: tuple[str, ...] = ()  # what the record's loop is and what was assumed (recorded.RecordedLoop)
+
+    @property
+    def n_modes(self) -> int:
+        return len(self.gains)
+
+    @property
+    def capped(self) -> tuple[int, ...]:
+        """Modes (1-based) whose MGM gain was capped at the nominal limit."""
+        return tuple(i + 1 for i, r in enumerate(self.reasons) if r == "capped")
 
     def to_dict(self) -> dict:
+        window = {"first_frame": self.first_frame, "frames": self.frames, "seconds": self.frames / self.rate_hz}
         return {
             "telemetry": self.path,
-            "window": {
-                "first_frame": self.first_frame,
-                "frames": self.frames,
-                "seconds": self.frames / self.observation.frame_rate_hz,
-                "welch_segment": self.segment,
-            },
+            "rate_hz": self.rate_hz,
+            "delay_frames": self.delay_frames,
+            "window": window | {"welch_segment": self.segment},
             "ogtl": self.ogtl,
             "probe_mode": self.probe_mode,
             "sensitivity": self.sensitivity,
             "chi": self.chi.tolist(),
+            "chi_from": self.chi_from,
             "chi_seeing_arcsec": self.chi_seeing_arcsec,
             "chi_seeing_from": self.chi_seeing_from,
             "previous_gains": self.previous_gains.tolist(),
             "optimum": self.optimum.tolist(),
             "gains": self.gains.tolist(),
+            "reasons": list(self.reasons),
+            "reason_legend": REASONS,
             "capped_modes": list(self.capped),
+            "notes": list(self.notes),
         }
 
 
+def filter_limits(filters, delay_frames: float, rate_hz: float, structures, margin: float) -> np.ndarray:
+    """Per mode, (1 - margin) of the maximum stable gain of its filter at chi = 1 (the check of
+    `loop run`), the least over ``structures`` ((b, a) or None) on Tip/Tilt, at most LOOP_GAIN.hi."""
+    ones = np.ones(len(filters))
+    limits = np.min([mgm.gain_limits(filters, ones, delay_frames, rate_hz, margin, s) for s in structures], axis=0)
+    return np.minimum(limits, LOOP_GAIN.hi)
+
+
 def nominal_limits(observation: Observation, structure: StructuralResonance | None, margin: float) -> np.ndarray:
-    """Per mode, the largest gain offline MGM returns: (1 - margin) of the nominal maximum
-    stable gain (chi = 1, as `loop run` checks it) with ``structure``, `loop run`'s default
-    resonance and none, and at most LOOP_GAIN.hi."""
+    """``filter_limits`` of the observation's filters with ``structure``, `loop run`'s default
+    resonance and none (each as the rate samples it)."""
     rate = observation.frame_rate_hz
-    resonances = {sampled_structure(s, rate) for s in (structure, StructuralResonance(), None)}
-    g_tt = min(max_stable_gain(nominal_loop(observation, 1.0, True, s)) for s in resonances)
-    g_ho = max_stable_gain(nominal_loop(observation, 1.0, False, None))
-    limits = np.full(observation.modes, min(LOOP_GAIN.hi, (1.0 - margin) * g_ho))
-    limits[:2] = min(LOOP_GAIN.hi, (1.0 - margin) * g_tt)
-    return limits
+    unit, _ = unit_loops(observation, None, DEFAULT_FORGETTING, observation.modes)
+    return filter_limits(unit, observation.delay_frames, rate, resonances(rate, structure, StructuralResonance()), margin)
+
+
+def resonances(rate_hz: float, *structures) -> list:
+    """The distinct (b, a) of the structures the rate samples, and None (no resonance)."""
+    sampled = {sampled_structure(s, rate_hz) for s in (*structures, None)}
+    return [None if s is None else tuple(tuple(map(float, x)) for x in s.coefficients(rate_hz)) for s in sampled]
+
+
+def reasons_of(previous, optimum, stepped, moves, capped, settings: mgm.MgmSettings) -> tuple[str, ...]:
+    """Per mode, why the gain MGM applies is not its optimum (the keys of REASONS)."""
+    free = (1.0 - settings.rho) * np.asarray(previous) + settings.rho * settings.nu * np.asarray(optimum)
+    out = []
+    for i in range(len(free)):
+        if capped[i]:
+            out.append("capped")
+        elif not moves[i]:
+            out.append("not significant")
+        elif not np.isclose(stepped[i], free[i], rtol=1e-12, atol=0.0):
+            out.append("bounded")
+        else:
+            out.append("step")
+    return tuple(out)
 
 
 def window_start(tm: TelemetryReader, frames: int, first: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
@@ -239,35 +286,71 @@ def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> 
 @dataclass(frozen=True)
 class PlantInputs:
     """What offline MGM takes from options where the record lacks it or is to be overridden:
-    the loop delay (frames) and the optical gains gamma_i (``optics gains --out`` CSV)."""
+    the loop delay (frames), the optical gains gamma_i (``optics gains --out`` CSV) and the
+    structural resonance (``recorded.STRUCTURE_CHOICES``)."""
 
     delay_frames: float | None = None
     optical_gains: np.ndarray | None = None
+    resonance: str = "auto"
 
 
-def _check_recording(tm, observation: Observation, path, delay_given: bool) -> None:
-    """A stable loop's record whose modes, frame rate and delay (unless ``delay_given``) are
-    the configuration's (InputError naming the field)."""
+def own_record(tm: TelemetryReader) -> bool:
+    """A soulctl record: it stores its run (a run description or a configuration's observation)."""
+    return tm.has("run_description") or "observation" in tm.configuration()
+
+
+def _check_recording(tm: TelemetryReader, n_modes: int, config: RunConfig | None, path) -> None:
+    """A stable loop's record whose modes and frame rate are the configuration's (InputError
+    naming the field)."""
     diverged = tm.attribute("diverged_at", -1)
     if diverged >= 0:
         raise InputError(f"telemetry file {path} records a loop that diverged (frame {diverged}): MGM needs a stable loop's telemetry")
-    n_modes = observation.modes
-    if tm.dim("n_modes") != n_modes:
+    if config is None:
+        return
+    expected = config.observation.modes
+    if n_modes != expected:
         raise InputError(
-            f"telemetry file {path}: field measured_modes has shape ({tm.dim('frames')}, {tm.dim('n_modes')}), expected "
-            f"(frames, {n_modes}) for the configuration's {n_modes} modes"
+            f"telemetry file {path}: field measured_modes has shape ({tm.dim('frames')}, {n_modes}), expected "
+            f"(frames, {expected}) for the configuration's {expected} modes"
         )
-    rate = tm.attribute("rate_hz")
-    if abs(rate - observation.frame_rate_hz) > 1e-6 * rate:
+    checked_rate(tm.attribute("rate_hz"), config.observation.frame_rate_hz, path)
+
+
+def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | None, path) -> float:
+    """The delay given, else the record's (which must be the configuration's), else the
+    configuration's, else InputError saying how to give one."""
+    if given is not None:
+        return given
+    recorded = tm.attribute("delay_frames", None)
+    if config is None:
+        if recorded is None:
+            raise InputError(f"{tm.lacks(['delay_frames'])}: give --delay-frames (`telemetry identify` estimates it from the record)")
+        return recorded
+    expected = config.observation.delay_frames
+    if recorded is not None and abs(recorded - expected) > 1e-6:
         raise InputError(
-            f"telemetry file {path}: attribute rate_hz is {rate:g} Hz but the configuration runs at {observation.frame_rate_hz:g} Hz"
+            f"telemetry file {path}: attribute delay_frames is {recorded:g} frames but the configuration's delay is "
+            f"{expected:g} frames at {config.observation.frame_rate_hz:g} Hz"
         )
-    delay = tm.attribute("delay_frames", observation.delay_frames)  # a record without it (LBT's) takes the configuration's
-    if not delay_given and abs(delay - observation.delay_frames) > 1e-6:
+    return expected if recorded is None else recorded
+
+
+def _optical_gains(tm, loop: RecordedLoop, config: RunConfig | None, plant: PlantInputs, cache, seeing_given) -> tuple:
+    """(gamma_i, where from, the table's seeing or None, where that came from): given; the
+    pyramid's model for a pyramid (from the configuration's calibration); 1 for another sensor."""
+    if plant.optical_gains is not None:
+        return plant.optical_gains, "given (--chi-table)", None, "--chi-table"
+    if loop.sensor != "pyramid":
+        what = f"a {loop.sensor}" if loop.sensor != "unknown" else "not stated"
+        return np.ones(len(loop.filters)), f"1: the record's sensor is {what}, not a pyramid (--chi-table gives others)", None, ""
+    if config is None:
         raise InputError(
-            f"telemetry file {path}: attribute delay_frames is {delay:g} frames but the configuration's delay is "
-            f"{observation.delay_frames:g} frames at {rate:g} Hz"
+            f"telemetry file {tm.path}: the record's sensor is a pyramid, whose optical gains need the pyramid's model: "
+            "give --config or --mag (the observation), or --chi-table"
         )
+    seeing, seeing_from = plant_seeing(tm, config, seeing_given)
+    gamma = optical_gain_table(calibration_for(config.request(), cache), cache, seeing)
+    return gamma, f"the pyramid's model (optics gains) at {seeing:g}\" seeing: {seeing_from}", seeing, seeing_from
 
 
 def plant_seeing(tm: TelemetryReader, description: RunConfig, given: float | None) -> tuple[float, str]:
@@ -292,17 +375,18 @@ def offline_mgm(
     plant: PlantInputs = PlantInputs(),
 ) -> OfflineMgmResult:
     """MGM's gains for the window of the telemetry file ``path`` (see the module).
-    ``observation``: the configuration to check the file against (default: the file's own);
+    ``observation``: the configuration to check the file against (default: the file's own;
+    another system's record needs none but for a pyramid's optical gains);
     ``chi_seeing_arcsec``: the optical-gain table's seeing (default: ``plant_seeing``);
-    ``plant``: a delay or optical gains given instead of the record's and the model's."""
+    ``plant``: a delay, optical gains or resonance given instead of the record's and the model's."""
     with open_telemetry(path, tuple(n for n in REQUIRED if n != "delay_frames")) as tm:
         check_decimation(tm, path, "MGM's spectra")
-        description = recorded_run(tm, observation, path)
-        observation = description.observation
-        _check_recording(tm, observation, path, plant.delay_frames is not None)
-        n_modes, rate = observation.modes, tm.attribute("rate_hz")
-        delay = plant.delay_frames if plant.delay_frames is not None else tm.attribute("delay_frames", observation.delay_frames)
-        forgetting, structure = description.controller.forgetting, description.structure
+        description = recorded_run(tm, observation, path) if own_record(tm) else None
+        config = description or (RunConfig(observation=observation) if observation is not None else None)
+        n_modes = tm.dim("n_modes")
+        _check_recording(tm, n_modes, config, path)
+        loop = recorded_loop(tm, description, n_modes, plant.resonance)
+        delay, rate = _loop_delay(tm, config, plant.delay_frames, path), loop.rate_hz
         recorded = tm.read("gains")  # the gains at the end, checked even when the history gives the window's
         frames = tm.dim("frames")
         first = max(0, frames - round(MAX_WINDOW_S * rate))
@@ -318,13 +402,9 @@ def offline_mgm(
         blocks = mode_blocks(n_modes, window)
         data = _window_data(tm, rows, blocks, len(blocks) == 1, path)  # checked before the calibration
         probe_mode = recorded_probe_mode(tm, n_modes, path)
-        ogtl = probe_mode is not None
-        seeing, seeing_from = plant_seeing(tm, description, chi_seeing_arcsec)
-        gamma = plant.optical_gains  # the identified plant's; else the model's, from the run's calibration
-        if gamma is None:
-            gamma = optical_gain_table(calibration_for(description.request(), cache), cache, seeing)
-        chi = mgm_chi(gamma, ogtl, probe_mode) if probe_mode is not None else gamma * sensitivity
-        machine = mgm_machine(observation, structure, chi, settings, forgetting, delay)
+        gamma, chi_from, seeing, seeing_from = _optical_gains(tm, loop, config, plant, cache, chi_seeing_arcsec)
+        chi = mgm_chi(gamma, True, probe_mode) if probe_mode is not None else gamma * sensitivity
+        machine = mgm.ModalGainMachine(loop.filters, chi, loop.model_delay(delay), rate, settings, loop.structure_ba)
         psd = []
         for i, cols in enumerate(blocks):
             measured, commands = data[i] if data else _window_data(tm, rows, [cols], True, path)[0]
@@ -333,12 +413,12 @@ def offline_mgm(
     psd_all = np.concatenate(psd)
     optimum, _ = machine.optimum_of_psd(psd_all)
     moves = machine.significant(psd_all, previous, optimum, [mgm.segments_of(window - n - 1, settings)])
-    gains = mgm.update_gains(previous, optimum, settings, moves)
-    limits = nominal_limits(observation, structure, settings.margin)
-    capped = tuple(int(i) + 1 for i in np.flatnonzero(gains > limits))
-    gains = np.minimum(gains, limits)
-    table = (None, "--chi-table") if plant.optical_gains is not None else (seeing, seeing_from)
+    stepped = mgm.update_gains(previous, optimum, settings, moves)
+    others = (description.structure, StructuralResonance()) if description is not None else (loop.structure,)
+    limits = filter_limits(loop.filters, loop.model_delay(delay), rate, resonances(rate, *others), settings.margin)
+    reasons = reasons_of(previous, optimum, stepped, moves, stepped > limits, settings)
     window_info = (start, window, settings.segment)
     return OfflineMgmResult(
-        str(path), observation, previous, optimum, gains, chi, ogtl, sensitivity, *window_info, capped, probe_mode, *table
-    )
+        str(path), rate, delay, previous, optimum, np.minimum(stepped, limits), chi, probe_mode is not None, sensitivity, *window_info,
+        reasons, probe_mode, chi_from, seeing, seeing_from, loop.notes,
+    )  # fmt: skip

@@ -215,7 +215,7 @@ def test_offline_mgm_on_a_recorded_loop(recorded, tmp_path, capsys, cache_dir):
     assert np.all(optimum >= 0) and np.all(np.isfinite(optimum)) and not np.allclose(optimum, previous)
     assert np.allclose(parse_gains(str(out_file), 0.99).per_mode(54), gains, atol=1e-5)
     status, out, _ = cli(["optimize", "gains", "--telemetry", str(recorded)], capsys, cache_dir)
-    assert status == 0 and "recorded → MGM" in out
+    assert status == 0 and "recorded → optimum → MGM" in out
 
 
 def test_offline_chi_is_the_table_at_the_records_seeing(recorded, tmp_path, capsys, cache_dir):
