@@ -145,3 +145,8 @@ def json_safe(value):
 def print_json(value) -> None:
     """One JSON object on stdout (``json_safe``; a value JSON cannot hold is a bug, not output)."""
     print(json.dumps(json_safe(value), allow_nan=False))
+
+
+def warn(text: str) -> None:
+    """One line on stderr: what a figure printed cannot tell (its validity), never an error."""
+    print("soulctl: warning: " + " ".join(str(text).split()), file=sys.stderr)

@@ -21,7 +21,7 @@ from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RESONANCE, array_cache, ch
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
-from .output import print_json
+from .output import print_json, warn
 
 app = typer.Typer(no_args_is_help=True, help="Loop telemetry: inspect, spectra, conversion between formats, plant identification.")
 
@@ -96,37 +96,57 @@ class PsdOptions:
     path: Path = SOURCE
     modes: str = typer.Option("1,2", "--modes", metavar="M1,M2", help="Modes (1-based); with 1 and 2, the cumulative Tip/Tilt jitter.")
     pseudo_open_loop: bool = typer.Option(False, "--pseudo-open-loop", help="Also the pseudo-open-loop modes (R s + delayed M^-1 c).")
+    delay_frames: float | None = typer.Option(
+        None,
+        "--delay-frames",
+        parser=number(DELAY_FRAMES),
+        metavar="D",
+        help="The loop delay of the pseudo-open loop (default: the record's; `telemetry identify` estimates it).",
+    )
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write the PSDs and the cumulative jitter.")
     json_output: bool = JSON_OUTPUT
+
+
+JITTER_ROWS = (("all", "all"), ("above_3hz", "above 3 Hz"))
 
 
 @app.command("psd")
 @command(PsdOptions)
 def psd_cmd(o: PsdOptions) -> int:
     """Welch PSDs of measured (R s), command (M^-1 c) and pseudo-open-loop modes, and the
-    cumulative Tip/Tilt jitter in mas from each frequency to Nyquist, as in the paper's figures.
+    cumulative Tip/Tilt jitter in mas from each frequency to Nyquist, as in the paper's figures:
+    as measured, and with each record's white noise floor (the PSD's median over the top
+    quarter of the band) removed.
 
     Example: soulctl telemetry psd run.h5 --modes 1,2,30 --pseudo-open-loop --plot psd.png
     """
     modes = _modes(o.modes)
+    if o.delay_frames is not None:
+        DELAY_FRAMES.check(o.delay_frames, "--delay-frames")
     telemetry_input(o.path)
     if o.plot is not None:
         check_output_path(o.plot, "--plot", [("FILE", o.path)])
-    with open_telemetry(o.path, required=("rate_hz",) + (("delay_frames",) if o.pseudo_open_loop else ())) as tm:
-        s = spectra(tm, modes, o.pseudo_open_loop)
+    with open_telemetry(o.path, required=("rate_hz",)) as tm:
+        s = spectra(tm, modes, o.pseudo_open_loop, o.delay_frames)
+    for text in s.warnings:
+        warn(text)
     if o.plot is not None:
         write_psd_figure(o.plot, s, str(o.path))
-    total = {name: float(c[0]) for name, c in s.tt_cumulative_mas.items()}
-    above_3hz = {name: float(np.interp(3.0, s.f_hz, c)) for name, c in s.tt_cumulative_mas.items()}
+    jitter = s.tip_tilt_jitter()
     if o.json_output:
         print_json(
             {
                 "f_hz": s.f_hz,
                 "modes": list(s.modes),
                 "psd_nm2_per_hz": {name: p for name, p in s.psd.items()},
+                "noise_floor_nm2_per_hz": s.floor,
+                "nm_per_mas": s.nm_per_mas,
                 "tt_cumulative_mas": s.tt_cumulative_mas,
-                "tt_jitter_mas": total,
-                "tt_jitter_above_3hz_mas": above_3hz,
+                "tt_jitter_mas": {name: j["all"] for name, j in jitter.items()},
+                "tt_jitter_above_3hz_mas": {name: j["above_3hz"] for name, j in jitter.items()},
+                "tt_jitter": jitter,
+                "warnings": list(s.warnings),
+                "notes": list(s.notes),
             }
         )
         return 0
@@ -134,10 +154,19 @@ def psd_cmd(o: PsdOptions) -> int:
     for name, p in s.psd.items():
         rms = np.sqrt(np.sum(p, axis=1) * s.f_hz[1])
         t.add_row(f"{name} RMS [nm]", ", ".join(f"{v:.3g}" for v in rms))
-    for name in total:
-        t.add_row(f"{name} Tip/Tilt jitter per axis [mas]: all / above 3 Hz", f"{total[name]:.3g} / {above_3hz[name]:.3g}")
+    for name, j in jitter.items():
+        values = " / ".join(_mas(j[key]) for key, _ in JITTER_ROWS)
+        t.add_row(f"{name} Tip/Tilt jitter per axis [mas]: all / above 3 Hz", values)
+        t.add_row("  less the white noise floor", " / ".join(_mas(j[f"{key}_floor_removed"]) for key, _ in JITTER_ROWS))
+        t.add_row("  the white noise floor", " / ".join(_mas(j[f"{key}_noise_floor"]) for key, _ in JITTER_ROWS))
+    for note in s.notes:
+        t.add_row("note", note)
     make_console().print(t)
     return 0
+
+
+def _mas(value) -> str:
+    return "n/a" if value is None else f"{value:.3g}"
 
 
 @dataclass(frozen=True)

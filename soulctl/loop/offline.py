@@ -324,7 +324,9 @@ def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | No
     recorded = tm.attribute("delay_frames", None)
     if config is None:
         if recorded is None:
-            raise InputError(f"{tm.lacks(['delay_frames'])}: give --delay-frames (`telemetry identify` estimates it from the record)")
+            raise InputError(
+                f"{tm.lacks(['delay_frames'])}, which MGM's pseudo-open loop needs: give --delay-frames (telemetry identify estimates it)"
+            )
         return recorded
     expected = config.observation.delay_frames
     if recorded is not None and abs(recorded - expected) > 1e-6:

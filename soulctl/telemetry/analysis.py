@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.signal import welch
 
+from ..control.mgm import noise_floor
 from ..errors import InputError
 from ..loop.metrics import pseudo_open_loop
 from ..optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
@@ -72,12 +74,45 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
 
 @dataclass(frozen=True)
 class ModalSpectra:
-    """Welch PSDs (nm^2/Hz) of the chosen modes' records and the cumulative Tip/Tilt jitter."""
+    """Welch PSDs (nm^2/Hz) of the chosen modes' records, each record's white noise floor per
+    mode, the cumulative Tip/Tilt jitter and what the record does not resolve (``warnings``)."""
 
     f_hz: np.ndarray
     modes: tuple[int, ...]  # 1-based
     psd: dict  # record -> (n_modes, n_freq)
     tt_cumulative_mas: dict  # record -> cumulative jitter per axis RMS from f to Nyquist (mas)
+    floor: dict = field(default_factory=dict)  # record -> (n_modes,) white noise floor, nm^2/Hz (``control.mgm.noise_floor``)
+    nm_per_mas: float = 1.0  # the record's pupil's Tip/Tilt scale
+    warnings: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+
+    def tip_tilt_jitter(self) -> dict:
+        """Per record, the Tip/Tilt jitter per axis (mas) over the whole band and above
+        JITTER_EDGE_HZ, as measured and with the white noise floor removed, and the floor's
+        share; None above the edge when the resolution does not resolve it."""
+        out = {}
+        df = self.f_hz[1] - self.f_hz[0]
+        edge = self.f_hz >= JITTER_EDGE_HZ if df <= JITTER_EDGE_HZ else None
+        for name, p in self.psd.items():
+            if name not in self.tt_cumulative_mas:
+                continue
+            tt = p[[self.modes.index(1), self.modes.index(2)]].mean(axis=0)
+            floor = float(self.floor[name][[self.modes.index(1), self.modes.index(2)]].mean())
+            row: dict[str, float | None] = {}
+            for label, band in (("all", np.ones(tt.shape, dtype=bool)), ("above_3hz", edge)):
+                if band is None:
+                    row |= {label: None, f"{label}_floor_removed": None, f"{label}_noise_floor": None}
+                    continue
+                variance, noise = float(tt[band].sum() * df), floor * float(band.sum()) * df
+                row[label] = math.sqrt(variance) / self.nm_per_mas
+                row[f"{label}_floor_removed"] = math.sqrt(max(variance - noise, 0.0)) / self.nm_per_mas
+                row[f"{label}_noise_floor"] = math.sqrt(noise) / self.nm_per_mas
+            out[name] = row
+        return out
+
+
+JITTER_EDGE_HZ = 3.0  # the paper's jitter "above 3 Hz"
+RESOLUTION_HZ = 1.0  # the spectra's resolution where the record allows
 
 
 PUPIL_PIXELS = 160  # the Tip/Tilt scale's pupil sampling (within 0.1 % of the continuous pupil's)
@@ -101,9 +136,10 @@ def nm_per_mas_of(tm: TelemetryReader) -> tuple[float, str | None]:
     return nm_per_mas_tip_tilt(diameter, tm.attribute("telescope_obstruction_m", 0.0)), None
 
 
-def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool) -> ModalSpectra:
+def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, delay_frames: float | None = None) -> ModalSpectra:
     """PSDs of measured (R s), command (M^-1 c) and, with ``pseudo_open``, pseudo-open-loop
-    modes; the rows must be consecutive frames (no decimation, no gap)."""
+    modes (the delay given, else the record's); the rows must be consecutive frames (no
+    decimation, no gap)."""
     rate = tm.attribute("rate_hz")
     decimation, gaps, _ = frame_steps(tm)
     if decimation or gaps:
@@ -117,22 +153,41 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool) -> M
         missing = [n for n in ("measured_modes", "command_modes") if n not in records]
         if missing:
             raise InputError(f"telemetry file {tm.path} lacks {missing[0]}: the pseudo-open loop needs measured and command modes")
-        records["pseudo_open_loop"] = pseudo_open_loop(records["measured_modes"], records["command_modes"], tm.attribute("delay_frames"))
+        if delay_frames is None and not tm.has("delay_frames"):
+            raise InputError(
+                f"{tm.lacks(['delay_frames'])}, which the pseudo-open loop needs: give --delay-frames (telemetry identify estimates it)"
+            )
+        delay = tm.attribute("delay_frames") if delay_frames is None else delay_frames
+        records["pseudo_open_loop"] = pseudo_open_loop(records["measured_modes"], records["command_modes"], delay)
     if not records:
         raise InputError(f"telemetry file {tm.path} lacks measured_modes and command_modes: nothing to analyse")
     frames = next(iter(records.values())).shape[0]
     if frames < 16:
         raise InputError(f"telemetry file {tm.path} holds {frames} frames: PSDs need at least 16")
     # ~1 Hz resolution where the record allows, else segments of half the record (3 averages)
-    nperseg = min(2 ** int(np.ceil(np.log2(rate))), 2 ** int(np.log2(frames / 2)))
-    psd, cumulative = {}, {}
+    nperseg = min(2 ** int(np.ceil(np.log2(rate / RESOLUTION_HZ))), 2 ** int(np.log2(frames / 2)))
+    scale, note = nm_per_mas_of(tm)
+    psd, cumulative, floor = {}, {}, {}
     for name, x in records.items():
         f, p = welch(x, fs=rate, nperseg=nperseg, axis=0, detrend="constant")
-        psd[name] = p.T
+        psd[name], floor[name] = p.T, noise_floor(p.T, f, rate)
         if all(m in modes for m in TIP_TILT):
             tt = p[:, [modes.index(1), modes.index(2)]].mean(axis=1)  # per axis
-            cumulative[name] = np.sqrt(np.cumsum(tt[::-1])[::-1] * (f[1] - f[0])) / nm_per_mas_tip_tilt()
-    return ModalSpectra(f, modes, psd, cumulative)
+            cumulative[name] = np.sqrt(np.cumsum(tt[::-1])[::-1] * (f[1] - f[0])) / scale
+    return ModalSpectra(f, modes, psd, cumulative, floor, scale, _resolution_warnings(frames, rate, f[1] - f[0]), (note,) if note else ())
+
+
+def _resolution_warnings(frames: int, rate: float, df: float) -> tuple[str, ...]:
+    """What a record too short for the spectra's resolution cannot tell, in one line each."""
+    out = []
+    if df > RESOLUTION_HZ * 1.01:
+        out.append(
+            f"a record of {frames / rate:.3g} s gives a {df:.3g} Hz resolution "
+            f"({RESOLUTION_HZ:g} Hz needs {2 / RESOLUTION_HZ:g} s): lines closer than {df:.3g} Hz are not resolved"
+        )
+    if df > JITTER_EDGE_HZ:
+        out.append(f"the jitter band's {JITTER_EDGE_HZ:g} Hz edge is below the {df:.3g} Hz resolution: the figures above it are left out")
+    return tuple(out)
 
 
 def _columns(tm: TelemetryReader, name: str, modes: tuple[int, ...]) -> np.ndarray:

@@ -371,10 +371,14 @@ class TelemetryReader:
             f["slopes"].attrs["unit"] = slopes_unit
         return cls(path, required, file=f, notes=notes)
 
-    def lacks(self, names) -> InputError:
-        """The error for fields the record lacks, with what its reader found of them."""
+    def lacks(self, names, use: str = "") -> InputError:
+        """The error for fields the record lacks, with what its reader found of them and what
+        ``use`` needs them for."""
         why = [n.text for n in self.notes if n.field in names]
-        return InputError(f"telemetry file {self.path} lacks {', '.join(names)}" + (f" ({'; '.join(why)})" if why else ""))
+        text = f"telemetry file {self.path} lacks {', '.join(names)}" + (f" ({'; '.join(why)})" if why else "")
+        if names == ["delay_frames"] and use:
+            text += f", which {use} needs: give --delay-frames (telemetry identify estimates it)"
+        return InputError(text)
 
     def __enter__(self) -> TelemetryReader:
         return self
