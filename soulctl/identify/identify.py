@@ -165,7 +165,7 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache, dia
     return t, best * r0 ** (-5 / 3) * seeing.NM_PER_RAD**2
 
 
-MIN_SEEING_MODES = 8  # the seeing fit's modes (3 .. half the record's) need a few radial orders
+MIN_SEEING_MODES = 20  # the seeing fit (modes 3 to half the record's) needs a few radial orders: 3-10 at least
 
 
 def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None), structure: str = "auto") -> Identification:
