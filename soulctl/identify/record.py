@@ -174,7 +174,7 @@ def read_record(path, delay_frames: float | None = None, structure: str = "auto"
             if split < hi - lo:
                 stats.add(m[split:], c[split:])
     f, p_m = stats.spectrum(rate)
-    tt_m, tt_c = stats.series(0, min(2, n_modes))
+    tt_m, tt_c = (x.reshape(len(x), -1) for x in stats.series(0, min(2, n_modes)))  # (frames, 2), or 1 for a one-mode record
     tt = (np.concatenate([x[0] for x in before] + [tt_m]), np.concatenate([x[1] for x in before] + [tt_c]))
     return LoopRecord(
         str(path), rate, float(delay), description, loop, gains, sensitivity, f, p_m, stats.moments(),

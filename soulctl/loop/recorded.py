@@ -77,7 +77,7 @@ def recorded_loop(tm: TelemetryReader, description: RunConfig | None, n_modes: i
     """The loop of the record ``tm`` (see the module); ``description`` its soulctl run (None for
     another system's record); ``structure`` one of STRUCTURE_CHOICES."""
     if structure not in STRUCTURE_CHOICES:
-        raise InputError(f"--structure must be one of {', '.join(STRUCTURE_CHOICES)}, got {structure!r}")
+        raise InputError(f"--resonance must be one of {', '.join(STRUCTURE_CHOICES)}, got {structure!r}")
     rate = float(tm.attribute("rate_hz"))
     notes: list[str] = []
     if description is not None:
@@ -91,7 +91,7 @@ def recorded_loop(tm: TelemetryReader, description: RunConfig | None, n_modes: i
         resonance = StructuralResonance() if lbt else None
     if structure != "auto":
         resonance = StructuralResonance() if structure == "lbt" else None
-        notes.append(f"structural resonance: {'LBT 127 Hz model' if resonance else 'none'} (--structure {structure})")
+        notes.append(f"structural resonance: {'LBT 127 Hz model' if resonance else 'none'} (--resonance {structure})")
     sampled = sampled_structure(resonance, rate)
     sensor = tm.attribute("sensor", None) or ("pyramid" if description is not None else "unknown")
     diameter = tm.attribute("telescope_diameter_m", None) or LBT_DIAMETER_M
