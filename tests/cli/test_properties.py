@@ -23,8 +23,10 @@ import time
 
 import pytest
 from cheap import CHEAP_PYRAMID
+from foreign_records import tip_tilt_loop, write_aot
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from lbt_layout import write_real_folder
 
 from soulctl.cli.app import main
 
@@ -75,6 +77,7 @@ NUMBERS = st.one_of(
     st.text(max_size=6),
 )
 LISTS = st.lists(NUMBERS, min_size=1, max_size=4).map(",".join)
+CHOICES = st.one_of(st.sampled_from(["auto", "lbt", "none"]), st.text(max_size=6), st.sampled_from(SPECIAL))  # --resonance
 # --misregistration: anything, or an accepted DX,DY,ROT,MAG (the verdict's JSON, inf margins included)
 REGISTRATIONS = st.one_of(
     st.tuples(st.floats(-2, 2), st.floats(-2, 2), st.floats(-10, 10), st.floats(0.8, 1.2)).map(lambda t: ",".join(map(repr, t))),
@@ -183,8 +186,19 @@ CASES = [
         for o, s in [("--telemetry-every", NUMBERS), ("--telemetry-fields", LISTS)]
     ],
     ("telemetry psd", ["{record}"], "--modes", LISTS, 30),
-    *[("optimize gains", ["--method", "mgm", "--telemetry", "{record}"], o, NUMBERS, 60) for o in ["--delay-frames"]],
+    ("telemetry psd", ["{record}", "--pseudo-open-loop"], "--delay-frames", NUMBERS, 30),
+    *[
+        ("optimize gains", ["--method", "mgm", "--telemetry", "{record}"], o, s, 60)
+        for o, s in [("--delay-frames", NUMBERS), ("--resonance", CHOICES)]
+    ],
     ("telemetry identify", ["{record}"], "--delay-frames", NUMBERS, 60),
+    ("telemetry identify", ["{record}"], "--resonance", CHOICES, 60),
+    # the readers of other systems' records: an LBT folder in its supervisor's layout, an AOT quad-cell loop
+    ("telemetry psd", ["{lbt}"], "--modes", LISTS, 30),
+    ("telemetry identify", ["{lbt}"], "--delay-frames", NUMBERS, 60),
+    ("telemetry psd", ["{aot}", "--pseudo-open-loop"], "--delay-frames", NUMBERS, 30),
+    ("telemetry identify", ["{aot}"], "--delay-frames", NUMBERS, 60),
+    ("optimize gains", ["--method", "mgm", "--telemetry", "{aot}"], "--delay-frames", NUMBERS, 60),
     *[("rtc check", ["{gains}", "--mag", "16.5"], o, NUMBERS, 30) for o in ["--modulus-margin", "--gain-margin", "--phase-margin"]],
     ("rtc check", ["{gains}"], "--mag", NUMBERS, 30),
     ("rtc check", ["{gains}", "--mag", "16.5"], "--misregistration", REGISTRATIONS, 120),
@@ -263,6 +277,11 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
         assert main(["loop", "run", *FAST_LOOP[:4], "--duration", "1", "--telemetry", str(record), "--cache-dir", cache, "--json"]) == 0
     gains = grid.parent / "gains.toml"  # R16.5's 90 modes
     gains.write_text("gains = [" + ", ".join(["0.3"] * 90) + "]\n")
+    lbt, aot = grid.parent / "Data_20190302_190223", grid.parent / "quad.fits"
+    if "{lbt}" in base:
+        write_real_folder(grid.parent, frames=1500)
+    if "{aot}" in base:
+        write_aot(aot, *tip_tilt_loop(5000, 0.6), 0.6)
 
     @PROFILE
     @given(value=values)
@@ -272,6 +291,8 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
             "out": str(grid.parent / f"out{next(outs)}"),
             "record": str(record),
             "gains": str(gains),
+            "lbt": str(lbt),
+            "aot": str(aot),
         }  # a new folder per sweep
         args = [
             *command.split(),
