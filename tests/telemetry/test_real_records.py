@@ -4,6 +4,8 @@ known independently of soulctl."""
 
 import importlib.util
 import json
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -87,3 +89,20 @@ def test_arte_snapshot(records, tmp_path, capsys):
     assert status == 2 and "must be at least" in err and err.count("\n") == 1
     for target in (tmp_path / "arte.h5", tmp_path / "Data_20240404_024500"):
         assert run(["telemetry", "convert", path, target], capsys)[0] == 0
+
+
+README = REAL.parents[2] / "README.md"
+
+
+@pytest.mark.skipif(shutil.which("soulctl") is None, reason="needs the installed soulctl command")
+def test_the_readme_example_runs_as_written(tmp_path):
+    """The lines of README's "soulctl on another AO system's records", run as written in a
+    folder where tests/ is the repository's: each exits 0."""
+    text = README.read_text()
+    block = text[text.index("<!-- real-record-example") :].split("```sh\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "tests").symlink_to(REAL.parents[1])
+    for line in block.strip().splitlines():
+        command = line.split("  #")[0].strip()
+        r = subprocess.run(command, shell=True, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, (command, r.stderr)
+    assert (tmp_path / "records" / "keck_strap_n0088.fits").is_file()
