@@ -89,6 +89,13 @@ VIBRATIONS = typer.Option(
     help="Vibration lines (TOML, as tables/lbt_vibrations.toml), or a profile: lbt (default), lbt-onsky.",
 )
 NO_VIBRATIONS = typer.Option(False, "--no-vibrations", help="No telescope vibrations.")
+RECORD_DELAY = typer.Option(
+    None,
+    "--delay-frames",
+    parser=number(ranges.DELAY_FRAMES),
+    metavar="D",
+    help="The loop delay in frames where the record has none, or to replace its own (`telemetry identify` estimates it).",
+)
 NO_RESONANCE = typer.Option(False, "--no-resonance", help="Without the 127 Hz structural resonance.")
 RESONANCE = typer.Option(
     "auto",

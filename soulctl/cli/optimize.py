@@ -38,6 +38,7 @@ from .common import (
     PROBE_AMPLITUDE,
     PROBE_FREQUENCY,
     PROBE_MODE,
+    RECORD_DELAY,
     RESONANCE,
     RUN_CONFIG,
     SEED,
@@ -263,13 +264,7 @@ class GainsOptions:
         metavar="FILE|DIR",
         help="Offline: MGM on recorded telemetry (soulctl .h5, AOT .fits, an LBT Data_<TN> folder); no loop is run.",
     )
-    delay_frames: float | None = typer.Option(
-        None,
-        "--delay-frames",
-        parser=number(DELAY_FRAMES),
-        metavar="D",
-        help="Offline: the loop delay in frames (default: the record's, else the configuration's).",
-    )
+    delay_frames: float | None = RECORD_DELAY  # offline: else the record's, else the configuration's
     chi_table: Path | None = typer.Option(
         None,
         "--chi-table",

@@ -17,7 +17,7 @@ from ..plots.telemetry import IDENTIFY_FIGURES, write_identify_figures, write_ps
 from ..ranges import DELAY_FRAMES
 from ..telemetry.analysis import inspect, spectra
 from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
-from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RESONANCE, array_cache, check_resonance, quantity_table
+from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RECORD_DELAY, RESONANCE, array_cache, check_resonance, quantity_table
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -96,13 +96,7 @@ class PsdOptions:
     path: Path = SOURCE
     modes: str = typer.Option("1,2", "--modes", metavar="M1,M2", help="Modes (1-based); with 1 and 2, the cumulative Tip/Tilt jitter.")
     pseudo_open_loop: bool = typer.Option(False, "--pseudo-open-loop", help="Also the pseudo-open-loop modes (R s + delayed M^-1 c).")
-    delay_frames: float | None = typer.Option(
-        None,
-        "--delay-frames",
-        parser=number(DELAY_FRAMES),
-        metavar="D",
-        help="The loop delay of the pseudo-open loop (default: the record's; `telemetry identify` estimates it).",
-    )
+    delay_frames: float | None = RECORD_DELAY
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write the PSDs and the cumulative jitter.")
     json_output: bool = JSON_OUTPUT
 

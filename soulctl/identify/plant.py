@@ -10,8 +10,9 @@
     [turbulence]     seeing_arcsec, seeing_sigma, r0_m, L0_m, L0_sigma, wind_m_s (or absent)
     [vibrations]     source, [[vibrations.line]] frequency_hz, damping, tip_mas, tilt_mas, note
                      (the format of --vibrations files; per-line uncertainties in the note)
-    [controller]     tip_tilt_zeros, tip_tilt_poles, tip_tilt_gain: the Tip/Tilt filter the record
-                     ran, its gain times the slope sensitivity k (the loop's gain is that x chi)
+    [controller]     tip_tilt_zeros, tip_tilt_poles (numbers, or [re, im] for complex roots),
+                     tip_tilt_gain: the Tip/Tilt filter the record ran, its gain times the slope
+                     sensitivity k (the loop's gain is that x chi)
 
 Every section but delay may be absent when the record did not allow the estimate; the reader
 names what a command needs and is missing.
@@ -123,8 +124,8 @@ class PlantModel:
                 lines += [f"tip_mas = {_num(v.tip_mas)}", f"tilt_mas = {_num(v.tilt_mas)}", f"note = {_text(v.note)}", ""]
         if self.tip_tilt_filter is not None:
             h = self.tip_tilt_filter
-            lines += ["[controller]", "tip_tilt_zeros = [" + ", ".join(_num(z.real) for z in h.zeros) + "]"]
-            lines += ["tip_tilt_poles = [" + ", ".join(_num(p.real) for p in h.poles) + "]", f"tip_tilt_gain = {_num(h.gain)}", ""]
+            lines += ["[controller]", "tip_tilt_zeros = [" + ", ".join(_root(z) for z in h.zeros) + "]"]
+            lines += ["tip_tilt_poles = [" + ", ".join(_root(p) for p in h.poles) + "]", f"tip_tilt_gain = {_num(h.gain)}", ""]
         if self.notes:
             lines += ["notes = [" + ", ".join(_text(n) for n in self.notes) + "]"]
         return "\n".join(_front(lines)) + "\n"
@@ -149,6 +150,12 @@ def _front(lines: list[str]) -> list[str]:
 
 def _text(s: str) -> str:
     return '"' + str(s).replace("\\", "\\\\").replace('"', '\\"').replace("\n", " ") + '"'
+
+
+def _root(r) -> str:
+    """A zero or pole: a number when real, [re, im] when complex (a recorded filter's)."""
+    r = complex(r)
+    return _num(r.real) if r.imag == 0 else f"[{_num(r.real)}, {_num(r.imag)}]"
 
 
 def _num(x) -> str:
@@ -219,9 +226,16 @@ def _controller(c, where: str) -> Filter | None:
     if not isinstance(c, dict) or set(c) != {"tip_tilt_zeros", "tip_tilt_poles", "tip_tilt_gain"}:
         raise InputError(f"{where}: [controller] holds tip_tilt_zeros, tip_tilt_poles and tip_tilt_gain")
     roots = [c["tip_tilt_zeros"], c["tip_tilt_poles"]]
-    if not all(isinstance(r, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in r) for r in roots):
-        raise InputError(f"{where}: controller.tip_tilt_zeros and tip_tilt_poles must be lists of numbers")
-    return Filter.iir(tuple(map(float, roots[0])), tuple(map(float, roots[1])), _number(c, "tip_tilt_gain", where))
+    if not all(isinstance(r, list) and all(_is_root(x) for x in r) for r in roots):
+        raise InputError(f"{where}: controller.tip_tilt_zeros and tip_tilt_poles must be lists of numbers or [re, im] pairs")
+    zeros, poles = (tuple(complex(*x) if isinstance(x, list) else float(x) for x in r) for r in roots)
+    return Filter.iir(zeros, poles, _number(c, "tip_tilt_gain", where))
+
+
+def _is_root(x) -> bool:
+    """A finite real number, or a [re, im] pair of them."""
+    parts = x if isinstance(x, list) and len(x) == 2 else [x]
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in parts)
 
 
 def _tables(section, key: str, where: str) -> list:

@@ -13,6 +13,7 @@ from scipy.signal import lfilter
 
 from soulctl.cli.app import main
 from soulctl.identify.identify import identify
+from soulctl.identify.plant import read_plant
 from soulctl.loop.offline import PlantInputs, offline_mgm
 from soulctl.loop.recorded import checked_rate
 from soulctl.telemetry.formats import open_telemetry
@@ -83,14 +84,15 @@ def _brute_force_optimum(pol: np.ndarray, num, den, delay: float, chi: float, ga
     return float(gains[int(np.argmin(variances))])
 
 
-def test_mgm_optimises_the_recorded_controller(tmp_path):
+def test_mgm_optimises_the_recorded_controller(tmp_path, capsys):
     """A loop whose controller is not an integrator (Keck's STRAP filter): MGM's optimum is the
     brute-force scan's within 5 %; read as an integrator (no denominator) it is not."""
     num, den = KECK_LIKE
     m, c = tip_tilt_loop(40000, 0.1, num, den, seed=5, noise=1.0)
     path = write_aot(tmp_path / "keck_like.fits", m, c, 0.1, num, den, delay=2.5)
-    result = offline_mgm(path)
-    assert result.notes == () and result.chi.tolist() == [1.0, 1.0]
+    status, out, err = run(["optimize", "gains", "--telemetry", path, "--json"], capsys)
+    result = json.loads(out)
+    assert status == 0 and result["notes"] == [] and result["chi"] == [1.0, 1.0], err
     n, e = 2, 0.5
     pol = m.copy()  # m + the mirror's commands, z^-2.5 of c
     pol[n:] += (1 - e) * c[:-n]
@@ -98,13 +100,13 @@ def test_mgm_optimises_the_recorded_controller(tmp_path):
     scan = np.linspace(0.02, 1.25, 124)  # up to 0.96 of the loop's maximum stable gain, 1.302
     for axis in range(2):
         truth = _brute_force_optimum(pol[:, axis], num, den, 2.5, 1.0, scan)
-        assert result.optimum[axis] == pytest.approx(truth, rel=0.05), (axis, result.optimum, truth)
+        assert result["optimum"][axis] == pytest.approx(truth, rel=0.05), (axis, result["optimum"], truth)
     system = aotpy.AOSystem.read_from_file(str(path))
     system.loops[0].time_filter_den = None  # the same record stating its numerator alone
     bare = tmp_path / "bare.fits"
     system.write_to_file(str(bare))
     assumed = offline_mgm(bare, plant=PlantInputs(delay_frames=2.5))
-    assert abs(assumed.optimum[0] / result.optimum[0] - 1) > 0.1
+    assert abs(assumed.optimum[0] / result["optimum"][0] - 1) > 0.1
     with open_telemetry(bare, required=()) as tm:
         assert any("integrators (1 - z^-1) taken" in note.text for note in tm.notes)
 
@@ -172,3 +174,16 @@ def test_psd_of_a_short_record_warns_on_stderr(tmp_path, capsys):
     d = json.loads(out)
     assert status == 0 and err.count("soulctl: warning: ") == 2 and "resolution" in err
     assert d["tt_jitter_above_3hz_mas"]["measured_modes"] is None and len(d["warnings"]) == 2
+
+
+def test_the_plant_file_keeps_a_recorded_controllers_complex_poles(tmp_path, capsys):
+    """identify --out writes the record's Tip/Tilt filter; its complex poles were written as
+    their real parts (a third-order real filter instead of Keck's), now as [re, im] pairs."""
+    num, den = KECK_LIKE
+    m, c = tip_tilt_loop(20000, 0.1, num, den, seed=6)
+    path = write_aot(tmp_path / "keck_like.fits", m, c, 0.1, num, den)
+    assert run(["telemetry", "identify", path, "--out", tmp_path / "plant.toml"], capsys)[0] == 0
+    h = read_plant(tmp_path / "plant.toml").tip_tilt_filter
+    b, a = h.coefficients()
+    np.testing.assert_allclose(a, den, atol=1e-9)
+    assert b == pytest.approx([0.1])

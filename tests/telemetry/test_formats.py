@@ -384,3 +384,24 @@ def test_a_chi_table_with_a_delay_for_a_record_without_one(recorded, tmp_path, c
     table.write_text("mode,optical_gain\n" + "".join(f"{m},0.5\n" for m in range(1, OBS.modes + 1)))
     status, _, err = _offline(path, recorded, capsys, "--delay-frames", "1.6", "--chi-table", table)
     assert status == 0, err
+
+
+def test_a_measured_rate_is_the_configurations_within_its_tolerance(recorded, tmp_path, capsys):
+    """A record whose rate was measured from time stamps (407 Hz x 1.0001) is the configuration's
+    407 Hz: offline MGM runs on it and says which rate it used (on today's main: exit 2, the rates
+    compared within 1e-6); 1 % off is another loop's record."""
+    import shutil
+
+    import h5py
+
+    for factor, status_expected in ((1.0001, 0), (1.01, 2)):
+        path = tmp_path / f"rate_{factor}.h5"
+        shutil.copy(recorded["h5"], path)
+        with h5py.File(path, "r+") as f:
+            f.attrs["rate_hz"] = 407.0 * factor
+        status, out, err = _offline(path, recorded, capsys)
+        assert status == status_expected, err
+        if status == 0:
+            assert any("407.041 Hz used" in note for note in json.loads(out)["notes"])
+        else:
+            assert "is not its configuration's (407 Hz)" in err and "within 0.001" in err
