@@ -1,7 +1,7 @@
 """What a record says of its loop, for the analyses that model it (`telemetry identify`,
 offline MGM, `telemetry psd`): each mode's controller, the structural resonance, the sensor
 and the pupil that turns Tip/Tilt nm into mas.  One rule each (docs/telemetry-formats.md,
-"Records of other systems"):
+"What the analyses take from a record"):
 
 * **Controller.** A soulctl record's: its run description's filters.  Another system's: the
   time filters it records (AOT ``time_filter_num/den``, the IIR keywords of an LBT

@@ -129,8 +129,11 @@ def nm_per_mas_tip_tilt(diameter_m: float = LBT_DIAMETER_M, obstruction_m: float
 
 def nm_per_mas_of(tm: TelemetryReader) -> tuple[float, str | None]:
     """The Tip/Tilt scale of the record's pupil (``nm_per_mas_tip_tilt``) and, where the record
-    states no telescope, LBT's with a note saying so."""
+    states no telescope, LBT's: a soulctl record's (written before records stated it), or
+    another system's with a note saying so."""
     diameter = tm.attribute("telescope_diameter_m", None)
+    if diameter is None and (tm.has("soulctl_version") or tm.has("configuration")):
+        return nm_per_mas_tip_tilt(), None
     if diameter is None or diameter <= 0:
         return nm_per_mas_tip_tilt(), f"the record states no telescope diameter: Tip/Tilt in mas on LBT's pupil ({LBT_DIAMETER_M:g} m)"
     return nm_per_mas_tip_tilt(diameter, tm.attribute("telescope_obstruction_m", 0.0)), None
