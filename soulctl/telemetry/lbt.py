@@ -550,21 +550,32 @@ def _controller(layout: Layout, arrays: dict, notes: list[Note]) -> None:
         notes.append(Note("gains", "g_gain times the IIR numerators' first coefficients (the loop gains of those filters)"))
 
 
+EXTRA_TEXTS = ("configuration", "run_description", "status", "partial_reason", "soulctl_version", "sensor", "corrector", "telescope")
+EXTRA_INTEGERS = ("schema_version", "telemetry_every", "diverged_at", "n_modes")
+EXTRA_REALS = ("telescope_diameter_m", "telescope_obstruction_m")
+
+
 def _extras(path: Path, arrays: dict, attributes: dict) -> None:
-    """soulctl's own records of a folder it wrote (InputError naming the file if damaged)."""
+    """soulctl's own records of a folder it wrote (InputError naming the file if damaged); a
+    record of another system keeps what it says of its system (LBT's otherwise)."""
     if not path.exists():
         return
     try:
         with fits.open(path, memmap=False) as hdus:
             tagged = [(h.header[EXTRA_KEY], h.data) for h in hdus if EXTRA_KEY in h.header]
+        if any(name == "sensor" for name, _ in tagged):  # written since records state their system: only what it states
+            for key in LBT_SYSTEM:
+                attributes.pop(key, None)
         for name, data in tagged:
             if data is None:
                 raise ValueError(f"HDU {name} holds no data")
             data = np.asarray(data)
-            if name in ("configuration", "run_description", "status", "partial_reason", "soulctl_version"):
+            if name in EXTRA_TEXTS:
                 attributes[name] = bytes(data.astype(np.uint8)).decode("utf-8")
-            elif name in ("schema_version", "telemetry_every", "diverged_at", "n_modes"):
+            elif name in EXTRA_INTEGERS:
                 attributes[name] = int(data.ravel()[0])
+            elif name in EXTRA_REALS:
+                attributes[name] = float(data.ravel()[0])
             else:
                 arrays[name] = data
     except (OSError, ValueError, TypeError, IndexError, UnicodeDecodeError) as e:
@@ -664,12 +675,14 @@ def _write_extras(path: Path, arrays: dict, attributes: dict, configuration: dic
     for name, data in arrays.items():
         if name not in LBT_HELD or name in ("command_modes", "commands", "gains", "reconstructor"):  # exact copies (LBT's are float32)
             hdus.append(tagged_hdu(name, np.asarray(data)))
-    texts = {"configuration": json.dumps(configuration)} | {
-        k: str(attributes[k]) for k in ("run_description", "status", "partial_reason", "soulctl_version") if k in attributes
-    }
+    system = {k: attributes[k] for k in LBT_SYSTEM if k in attributes} or {"sensor": "unknown"}  # "sensor": says it states its system
+    texts = {"configuration": json.dumps(configuration)} | {k: str(v) for k, v in (attributes | system).items() if k in EXTRA_TEXTS[1:]}
     for name, text in texts.items():
         hdus.append(tagged_hdu(name, np.frombuffer(text.encode("utf-8"), dtype=np.uint8)))
-    for name in ("schema_version", "telemetry_every", "diverged_at", "n_modes"):
+    for name in EXTRA_INTEGERS:
         if name in attributes:
             hdus.append(tagged_hdu(name, np.array([int(attributes[name])], dtype=np.int64)))
+    for name in EXTRA_REALS:
+        if name in attributes:
+            hdus.append(tagged_hdu(name, np.array([float(attributes[name])], dtype=np.float64)))
     hdus.writeto(path)

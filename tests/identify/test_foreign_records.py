@@ -61,6 +61,13 @@ def test_identify_a_tip_tilt_record_in_every_format(tip_tilt, tmp_path, capsys):
         assert d["turbulence"] is None and "Tip/Tilt" in d["not_estimated"]["turbulence"]
         assert d["delay_frames"]["value"] == pytest.approx(2.5, abs=0.15), target
         assert [x["frequency_hz"]["value"] for x in d["vibration_lines"]] == pytest.approx([20.0], abs=0.1)
+        with open_telemetry(target, required=()) as tm:  # the record's system, whatever its format: not LBT's
+            assert (tm.attribute("sensor"), tm.attribute("corrector"), tm.attribute("telescope_diameter_m")) == (
+                "quad-cell",
+                "tip-tilt-mirror",
+                10.0,
+            )
+        assert not any("resonance" in note for note in d["notes"])
     m, c = modal_loop(20000, [0.5], [1.0], [1.0, -1.0], seed=2)
     one = write_aot(tmp_path / "one.fits", m, c, 0.5, [1.0], [1.0, -1.0])
     status, out, err = run(["telemetry", "identify", one, "--json"], capsys)
