@@ -234,13 +234,13 @@ def _wfs_keywords(folder: Path, notes: list[Note]) -> Keywords | None:
 def _rate(wfs: Keywords | None, folder: Path, tn: str, counter: np.ndarray, notes: list[Note]) -> float | None:
     """The camera's FRAMERATE keyword (aoocam2k__define.pro:14, aoccd39__define.pro:13), else
     the rate of SystemTimestamp_<TN>.fits (seconds, aotimestamps__define.pro:22), else None."""
-    key = None
+    rate, why = None, "no wfs.fits"
     if wfs is not None:  # the camera's; the other's where a header holds only that (elab_lib would read 0 Hz)
-        key = next((f"{c}.FRAMERATE" for c in (wfs.camera, SOUL, FLAO) if wfs.raw(f"{c}.FRAMERATE") is not None), f"{wfs.camera}.FRAMERATE")
-    rate = wfs.number(key) if wfs is not None and key is not None else None
-    if rate is not None:
-        return RECORD_RATE_HZ.check(rate, f"telemetry folder {folder}: wfs.fits keyword {key}")
-    why = wfs.missing(key) if wfs is not None and key is not None else "no wfs.fits"
+        keys = [f"{c}.FRAMERATE" for c in (wfs.camera, SOUL, FLAO)]
+        key = next((k for k in keys if wfs.raw(k) is not None), keys[0])
+        rate, why = wfs.number(key), wfs.missing(key)
+        if rate is not None:
+            return RECORD_RATE_HZ.check(rate, f"telemetry folder {folder}: wfs.fits keyword {key}")
     stamps = folder / f"SystemTimestamp_{tn}.fits"
     if stamps.exists() and counter.size > 2:
         t, _ = _read_fits(stamps)

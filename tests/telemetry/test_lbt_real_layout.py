@@ -185,3 +185,14 @@ def test_the_header_only_wfs_file_of_the_writer(tmp_path):
     write_header_only(tmp_path / "wfs.fits", wfs_cards())
     with fits.open(tmp_path / "wfs.fits") as h:
         assert h[0].data is None and h[0].header["HIERARCH tel.TEL.ISTRACKING"] == "1"
+
+
+def test_an_unknown_rate_from_the_system_time_stamps(tmp_path, capsys):
+    """SystemTimestamp_<TN>.fits (seconds, aotimestamps__define.pro) gives the rate where the
+    camera's keyword is '-9999': 990.07 Hz from the time stamps, said so."""
+    folder, _ = write_real_folder(tmp_path, frames=300, cards=wfs_cards(rate_text="-9999"))
+    fits.PrimaryHDU(1.7e9 + np.arange(300) / 990.07).writeto(folder / "SystemTimestamp_20190302_190223.fits")
+    status, out, err = run(["telemetry", "inspect", folder, "--json"], capsys)
+    d = json.loads(out)
+    assert status == 0 and d["rate_hz"] == pytest.approx(990.07, rel=1e-6), err
+    assert any("from SystemTimestamp_20190302_190223.fits" in n["note"] and "'-9999'" in n["note"] for n in d["notes"])
