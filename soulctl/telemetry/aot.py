@@ -269,12 +269,12 @@ def _rate(loop, arrays: dict, notes: list[Note]) -> float | None:
     if t is None or len(t) < 3:
         notes.append(Note("rate_hz", "the AOT loop states no framerate and holds no time stamps to measure it"))
         return None
-    steps = np.diff(arrays["frame_counter"]) if "frame_counter" in arrays else np.ones(len(t) - 1)
-    dt = np.diff(np.asarray(t, dtype=float))
-    if not (np.all(np.isfinite(dt)) and np.median(dt) > 0):
+    frames = arrays["frame_counter"][-1] - arrays["frame_counter"][0] if "frame_counter" in arrays else len(t) - 1
+    t = np.asarray(t, dtype=float)
+    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0) and frames > 0):
         notes.append(Note("rate_hz", "the AOT loop states no framerate and its time stamps do not increase"))
         return None
-    rate = float(np.median(steps) / np.median(dt))
+    rate = float(frames / (t[-1] - t[0]))  # over the record (a median of steps is quantised by the stamps' resolution)
     notes.append(Note("rate_hz", f"rate {rate:.6g} Hz from the time stamps (the AOT loop states no framerate)"))
     return rate
 
