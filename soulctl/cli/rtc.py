@@ -16,6 +16,7 @@ from ..control.structure import sampled_structure
 from ..errors import InputError
 from ..files import input_file
 from ..identify.plant import read_plant
+from ..loop.recorded import checked_rate
 from ..loop.run import calibration_for, loop_calibration
 from ..optics.cache import ArrayCache
 from ..optics.calibration import moved_mirror_response
@@ -145,8 +146,8 @@ def _plant(o: CheckOptions, obs) -> tuple[np.ndarray, float]:
     """(chi_i, delay in frames) of the check: the identified plant's (--plant), chi from
     --chi-table when given; without either chi = 1 and the configuration's delay."""
     plant = read_plant(o.plant) if o.plant is not None else None
-    if plant is not None and abs(plant.rate_hz - obs.frame_rate_hz) > 1e-6 * obs.frame_rate_hz:
-        raise InputError(f"--plant {o.plant} is at {plant.rate_hz:g} Hz; the configuration runs at {obs.frame_rate_hz:g} Hz")
+    if plant is not None:  # a plant identified from a record whose rate was measured: within the records' tolerance
+        checked_rate(plant.rate_hz, obs.frame_rate_hz, f"--plant {o.plant}", "the plant")
     chi = np.ones(obs.modes) if plant is None else plant.chi(obs.modes)
     if o.chi_table is not None:
         chi = read_optical_gain_table(o.chi_table, obs.modes)

@@ -60,17 +60,19 @@ class RecordedLoop:
         return delay_frames + self.controller_delay
 
 
-def checked_rate(record_hz: float, configured_hz: float, path) -> tuple[float, str | None]:
-    """The record's rate when it is the configuration's within RATE_TOLERANCE (a note when
-    they differ at all), else InputError naming both."""
+def checked_rate(record_hz: float, configured_hz: float, path, what: str = "the record") -> tuple[float, str | None]:
+    """The rate of a record (or of what was identified from one: ``what``) when it is the
+    configuration's within RATE_TOLERANCE (a note when they differ at all), else InputError
+    naming both."""
     if abs(record_hz - configured_hz) > RATE_TOLERANCE * configured_hz:
+        where = f"telemetry file {path}" if what == "the record" else str(path)
         raise InputError(
-            f"telemetry file {path}: the record's rate ({record_hz:.6g} Hz) is not its configuration's ({configured_hz:.6g} Hz): "
+            f"{where}: {what}'s rate ({record_hz:.6g} Hz) is not its configuration's ({configured_hz:.6g} Hz): "
             f"they must agree within {RATE_TOLERANCE:g} (relative)"
         )
     if record_hz == configured_hz:
         return record_hz, None
-    return record_hz, f"the record's rate {record_hz:.6g} Hz used (the configuration's is {configured_hz:.6g} Hz)"
+    return record_hz, f"{what}'s rate {record_hz:.6g} Hz used (the configuration's is {configured_hz:.6g} Hz)"
 
 
 def recorded_loop(tm: TelemetryReader, description: RunConfig | None, n_modes: int, structure: str = "auto") -> RecordedLoop:

@@ -194,3 +194,21 @@ def test_the_plant_file_keeps_a_recorded_controllers_complex_poles(tmp_path, cap
     b, a = h.coefficients()
     np.testing.assert_allclose(a, den, atol=1e-9)
     assert b == pytest.approx([0.1])
+
+
+def test_rtc_check_takes_a_plant_whose_rate_was_measured(tmp_path, capsys):
+    """A plant identified from a record whose rate came from time stamps (x 1.0001) checks a
+    configuration at the nominal rate (exit 2 on today's main: rates compared within 1e-6);
+    1 % off is refused naming both."""
+    from soulctl.observation import observation_for_magnitude
+
+    obs = observation_for_magnitude(16.5)
+    gains = tmp_path / "gains.toml"
+    gains.write_text("gains = [" + ", ".join(["0.1"] * obs.modes) + "]\n")
+    for factor, expected in ((1.0001, 0), (1.01, 2)):
+        plant = tmp_path / f"plant_{factor}.toml"
+        plant.write_text(f'source = "test"\nrate_hz = {obs.frame_rate_hz * factor!r}\n\n[delay]\nframes = {obs.delay_frames!r}\n')
+        status, out, err = run(["rtc", "check", gains, "--mag", "16.5", "--plant", plant, "--json"], capsys)
+        assert status == expected, err
+        if expected == 2:
+            assert "the plant's rate" in err and "within 0.001" in err and err.count("\n") == 1
