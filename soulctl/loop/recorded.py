@@ -89,8 +89,10 @@ def recorded_loop(tm: TelemetryReader, description: RunConfig | None, n_modes: i
         resonance = description.structure
     else:
         filters, delay = _recorded_filters(tm, n_modes, notes)
-        lbt = tm.attribute("corrector", None) == "lbt-adaptive-secondary"
-        resonance = StructuralResonance() if lbt else None
+        corrector = tm.attribute("corrector", None) or "unknown"
+        resonance = StructuralResonance() if corrector == "lbt-adaptive-secondary" else None
+        if structure == "auto":
+            notes.append(f"structural resonance: {'LBT 127 Hz model' if resonance else 'none'} (the record's corrector: {corrector})")
     if structure != "auto":
         resonance = StructuralResonance() if structure == "lbt" else None
         notes.append(f"structural resonance: {'LBT 127 Hz model' if resonance else 'none'} (--resonance {structure})")
