@@ -35,7 +35,7 @@ from ..observation import Observation
 from ..ranges import LOOP_GAIN, number_text
 from .filters import Filter
 from .mgm import gain_limits
-from .structure import StructuralResonance, sampled_structure
+from .structure import StructuralResonance, sampled_coefficients, sampled_structure
 from .transfer import Loop, Plant, max_stable_gain
 
 MID_GROUP_END = 120  # modes 3-120 (1-based) are the middle group
@@ -216,8 +216,7 @@ def unit_loops(observation: Observation, structure, forgetting: float, n_modes: 
     when the frame rate samples it (else None): the optimisers' plant without chi."""
     rate = observation.frame_rate_hz
     unit = mode_filters(observation, LoopGains(1.0, 1.0, 1.0, forgetting), n_modes)
-    sampled = sampled_structure(structure, rate)
-    ba = None if sampled is None else tuple(tuple(map(float, x)) for x in sampled.coefficients(rate))
+    ba = sampled_coefficients(structure, rate)
     return unit, ba
 
 

@@ -61,3 +61,10 @@ def sampled_structure(structure: StructuralResonance | None, rate_hz: float) -> 
     """The structural resonance if the loop samples it (f0 below Nyquist), else None: a loop at
     250 Hz does not see a 127 Hz mode (its detector and hold filter it; not modelled)."""
     return structure if structure is not None and structure.frequency_hz < rate_hz / 2 else None
+
+
+def sampled_coefficients(structure: StructuralResonance | None, rate_hz: float) -> tuple | None:
+    """The (b, a) of G(z), as tuples, of the resonance the rate samples (``sampled_structure``);
+    None without one: what the loop models (``transfer.Plant``, ``mgm``) take."""
+    sampled = sampled_structure(structure, rate_hz)
+    return None if sampled is None else tuple(tuple(map(float, x)) for x in sampled.coefficients(rate_hz))

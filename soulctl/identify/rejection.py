@@ -20,7 +20,7 @@ and g chi must give |S| a shape: a loop of very low gain has |S| ~ 1 everywhere 
 identifies neither d nor chi (the estimate's uncertainty says so).  Tip/Tilt is left out of
 the fit where the record holds other modes: vibration lines and the 127 Hz structure violate
 the noise-only model at low frequencies.  A record of Tip/Tilt alone is fitted above
-``TIP_TILT_BAND`` of the rate, the structure in the model.
+``ALONE_BANDS`` of the rate, the structure in the model (``_fit_alone``).
 """
 
 from __future__ import annotations
@@ -138,9 +138,7 @@ def _curvature_sigma(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 def fit_rejection(record: LoopRecord, f_low_hz: float | None = None) -> RejectionFit:
     """The delay, one chi per group and the noise of every fitted mode (see the module).  A
-    record of Tip/Tilt alone (or of one mode) is fitted as one group above TIP_TILT_BAND of the
-    rate, the structural resonance in the model: above the vibration lines, where the noise
-    rules there too."""
+    record of Tip/Tilt alone (or of one mode) is fitted as one group (``_fit_alone``)."""
     groups = mode_groups(record.n_modes)
     if not groups:
         return _fit_alone(record, f_low_hz)

@@ -49,7 +49,7 @@ from ..control import mgm
 from ..control.delay import fractional_taps
 from ..control.gains import DEFAULT_FORGETTING, unit_loops
 from ..control.ogtl import HELD, PROBE_MODE, STATUS
-from ..control.structure import StructuralResonance, sampled_structure
+from ..control.structure import StructuralResonance, sampled_coefficients
 from ..errors import InputError
 from ..observation import Observation
 from ..optics.cache import ArrayCache
@@ -149,8 +149,7 @@ def nominal_limits(observation: Observation, structure: StructuralResonance | No
 
 def resonances(rate_hz: float, *structures) -> list:
     """The distinct (b, a) of the structures the rate samples, and None (no resonance)."""
-    sampled = {sampled_structure(s, rate_hz) for s in (*structures, None)}
-    return [None if s is None else tuple(tuple(map(float, x)) for x in s.coefficients(rate_hz)) for s in sampled]
+    return list({sampled_coefficients(s, rate_hz) for s in (*structures, None)})
 
 
 def reasons_of(previous, optimum, stepped, moves, capped, settings: mgm.MgmSettings) -> tuple[str, ...]:
@@ -324,9 +323,7 @@ def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | No
     recorded = tm.attribute("delay_frames", None)
     if config is None:
         if recorded is None:
-            raise InputError(
-                f"{tm.lacks(['delay_frames'])}, which MGM's pseudo-open loop needs: give --delay-frames (telemetry identify estimates it)"
-            )
+            raise tm.lacks(["delay_frames"], "MGM's pseudo-open loop")
         return recorded
     expected = config.observation.delay_frames
     if recorded is not None and abs(recorded - expected) > 1e-6:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 from ..control.filters import Filter, filter_of_coefficients
 from ..control.gains import unit_loops
-from ..control.structure import StructuralResonance, sampled_structure
+from ..control.structure import StructuralResonance, sampled_coefficients, sampled_structure
 from ..errors import InputError
 from ..optics.pupil import LBT_DIAMETER_M
 from ..run_config import RunConfig
@@ -51,9 +51,7 @@ class RecordedLoop:
     @property
     def structure_ba(self) -> tuple | None:
         """(b, a) of the resonance at the record's rate, None without one."""
-        if self.structure is None:
-            return None
-        return tuple(tuple(map(float, x)) for x in self.structure.coefficients(self.rate_hz))
+        return sampled_coefficients(self.structure, self.rate_hz)
 
     def model_delay(self, delay_frames: float) -> float:
         """The delay of the open loop's model: the loop's and the controller's pure delay."""

@@ -157,9 +157,7 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, dela
         if missing:
             raise InputError(f"telemetry file {tm.path} lacks {missing[0]}: the pseudo-open loop needs measured and command modes")
         if delay_frames is None and not tm.has("delay_frames"):
-            raise InputError(
-                f"{tm.lacks(['delay_frames'])}, which the pseudo-open loop needs: give --delay-frames (telemetry identify estimates it)"
-            )
+            raise tm.lacks(["delay_frames"], "the pseudo-open loop")
         delay = tm.attribute("delay_frames") if delay_frames is None else delay_frames
         records["pseudo_open_loop"] = pseudo_open_loop(records["measured_modes"], records["command_modes"], delay)
     if not records:

@@ -380,8 +380,9 @@ class IirHeader:
         return cls(modes, num, den, int(plain or 0), keys.elab_number("FF_MINVA"), keys.elab_number("FF_EXP"))
 
     def controller(self, n_modes: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(num, den) per mode in powers of z^-1, unit gain, or None when the header's filters
-        do not map onto its modes (one filter for all, or one per mode)."""
+        """(num, den) per mode in powers of z^-1 as the header states them (the reader takes
+        their scale into the gains, ``unit_coefficients``), or None when the header's filters do
+        not map onto its modes (one filter for all, or one per mode)."""
         if self.num.shape[1] not in (1, len(self.modes)) or max(self.modes) >= n_modes or min(self.modes) < 0:
             return None
         width = max(self.num.shape[0], 2)
@@ -456,14 +457,14 @@ def _layout(rec: np.ndarray | None, rec_keys: Keywords | None, modes: np.ndarray
             )
         )
     if not len(rows) or not len(columns):
-        raise InputError("the reconstructor is all zeros: it holds no mode")
+        raise InputError(f"{rec_keys.where if rec_keys is not None else 'the reconstructor'} is all zeros: it holds no mode")
     n_modes, n_slopes = int(rows.max()) + 1, int(columns.max()) + 1
     n_slopes += n_slopes % 2
     holes = n_modes - len(rows)
     if holes:
         notes.append(Note("reconstructor", f"{holes} of modes 1-{n_modes} have no reconstructor row (kept, as elab_lib keeps them)"))
-    for name, data, n in (("command_modes", modes, n_modes), ("slopes", slopes, n_slopes), ("reconstructor", rec, None)):
-        if data is not None and n is not None and data.shape[1] > n:
+    for name, data, n in (("command_modes", modes, n_modes), ("slopes", slopes, n_slopes)):
+        if data is not None and data.shape[1] > n:
             notes.append(Note(name, f"columns {n + 1}-{data.shape[1]} are padding (beyond the reconstructor's): left out"))
     return Layout(n_modes, n_slopes, iir)
 
@@ -513,13 +514,15 @@ def read_lbt(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
         arrays["reconstructor"] = deinterleaved(r.astype(np.float64)) * RECONSTRUCTOR_NM_PER_M
         if "slopes" in arrays and r.shape[1] == arrays["slopes"].shape[1]:
             arrays["measured_modes"] = arrays["slopes"] @ arrays["reconstructor"].T
-    _controller(layout, arrays, notes)
-    _extras(folder / f"soulctl_{tn}.fits", arrays, attributes)
+    extras = folder / f"soulctl_{tn}.fits"
+    _extras(extras, arrays, attributes)
+    if "controller_num" not in arrays:  # a folder soulctl wrote holds its exact filters
+        _controller(layout, arrays, notes)
     for name in ("gains", "command_modes", "measured_modes"):
         if name in arrays:
             attributes.setdefault("n_modes", np.shape(arrays[name])[-1])
             break
-    unit = {} if (folder / f"soulctl_{tn}.fits").exists() else {"slopes_unit": "LBT slope units (normalised)"}
+    unit = {} if extras.exists() else {"slopes_unit": "LBT slope units (normalised)"}
     return TelemetryReader.from_arrays(path, arrays, attributes, required, tuple(notes), **unit)
 
 
