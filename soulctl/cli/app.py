@@ -23,35 +23,79 @@ import sys
 import warnings
 
 import typer
+from typer.core import TyperGroup
 
 from .. import __version__
 from ..errors import InputError
 from ..files import staged_outputs
-from . import configure
-from . import filter as filter_cli
-from . import loop as loop_cli
-from . import optics as optics_cli
-from . import optimize as optimize_cli
-from . import rtc as rtc_cli
-from . import telemetry as telemetry_cli
+from .help import polish
 from .output import ascii_fallback
-from .sweep import sweep
+
+# The commands, each in its module and imported only when it runs or shows its own help, so
+# that the CLI starts at once (`soulctl --version`, `--help`) and a command pays only for the
+# physics it uses: name -> (module, attribute: a typer.Typer group or a command function,
+# the one-line summary `soulctl --help` lists; tests/cli/test_startup.py holds it to the
+# command's own help).
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "configure": ("configure", "configure", "Set up an observation for a guide star of R magnitude from the SOUL look-up table."),
+    "filter": ("filter", "app", "Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design)."),
+    "optics": ("optics", "app", "Optical models: turbulence, calibration, optical gains."),
+    "loop": ("loop", "app", "The simulated closed loop."),
+    "optimize": ("optimize", "app", "Gain optimisation: trial-and-error, MGM, OGTL."),
+    "telemetry": ("telemetry", "app", "Loop telemetry: inspect, spectra, conversion between formats, plant identification."),
+    "rtc": ("rtc", "app", "Real-time computer parameter sets: the checks before an upload."),
+    "sweep": ("sweep", "sweep", "Run a grid of simulated closed loops as Dask tasks, one row per case."),
+}
+
+
+def load_command(name: str):
+    """The click command of ``name``, its module imported now."""
+    import importlib
+
+    module, attribute, _ = COMMANDS[name]
+    target = getattr(importlib.import_module(f"{__package__}.{module}"), attribute)
+    holder = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    if isinstance(target, typer.Typer):  # a group, kept a group even with one command
+        holder.add_typer(target, name=name)
+        command = typer.main.get_command(holder).commands[name]  # type: ignore[attr-defined]
+    else:
+        holder.command(name=name)(target)  # a command function: a one-command app is that command
+        command = typer.main.get_command(holder)
+    polish(command)
+    return command
+
+
+class _LazyGroup(TyperGroup):
+    """soulctl's top level: its commands listed from ``COMMANDS`` and imported when used."""
+
+    _listing = False
+
+    def list_commands(self, ctx) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx, cmd_name: str):
+        if cmd_name not in COMMANDS:
+            return None
+        if self._listing:  # the top-level help lists names and summaries only
+            return typer.core.TyperCommand(name=cmd_name, help=COMMANDS[cmd_name][2])
+        return load_command(cmd_name)
+
+    def format_help(self, ctx, formatter) -> None:
+        self._listing = True
+        try:
+            super().format_help(ctx, formatter)
+        finally:
+            self._listing = False
+
 
 app = typer.Typer(
     name="soulctl",
+    cls=_LazyGroup,
     help="Configure, simulate, analyse and tune the control of a pyramid-WFS SCAO system such as SOUL at the LBT.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-app.command(name="configure")(configure.configure)
-app.add_typer(filter_cli.app, name="filter")
-app.add_typer(optics_cli.app, name="optics")
-app.add_typer(loop_cli.app, name="loop")
-app.add_typer(optimize_cli.app, name="optimize")
-app.add_typer(telemetry_cli.app, name="telemetry")
-app.add_typer(rtc_cli.app, name="rtc")
-app.command(name="sweep")(sweep)
 
 
 def _version(value: bool) -> None:
@@ -78,7 +122,9 @@ def _status_of_cli_exception(e: Exception) -> int | None:
     recent typer releases vendor), or None if ``e`` is not one of them."""
     name = type(e).__name__
     if name == "NoArgsIsHelpError":  # `soulctl` alone: the help, and success
-        typer.echo(e.ctx.get_help())  # type: ignore[attr-defined]  # click's NoArgsIsHelpError has its context
+        # The error holds the help as text; a rich formatter has printed it already and holds "".
+        if e.format_message():  # type: ignore[attr-defined]
+            typer.echo(e.format_message())  # type: ignore[attr-defined]
         return 0
     if name == "Exit" and hasattr(e, "exit_code"):  # --help, --version
         return e.exit_code
@@ -129,7 +175,9 @@ def _run(argv: list[str] | None, signals: _Signals) -> int:
         # user's business and would break the one-line refusal: stderr is soulctl's own.
         warnings.simplefilter("ignore")
         try:
-            result = app(args=argv, prog_name="soulctl", standalone_mode=False)
+            root = typer.main.get_command(app)
+            polish(root)
+            result = root.main(args=argv, prog_name="soulctl", standalone_mode=False)
             status = result if isinstance(result, int) else 0
         except BrokenPipeError:
             _silence_stdout()

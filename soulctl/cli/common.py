@@ -4,7 +4,6 @@ bar, and the two-column quantity/value table."""
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -15,7 +14,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from .. import defaults, ranges, tables
+from .. import defaults, ranges
 from ..control.gains import DEFAULT_FORGETTING, SUFFIXES, LoopGains, read_gain_file
 from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
@@ -26,7 +25,7 @@ from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
 from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
-from .numbers import number
+from .numbers import number, parse_magnitude
 from .output import console as make_console
 
 RUN_CONFIG = typer.Option(
@@ -72,8 +71,10 @@ OUTER_SCALE = typer.Option(
     show_default=str(defaults.L0_M),
     help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).",
 )
-TT_CONTROL = typer.Option(None, "--tt-control", help="iir or int (default: the roots table's IIR where it has one).")
-BAND = typer.Option(None, "--band", show_default=defaults.BAND, help=f"Science band of the Strehl ratio: {', '.join(BANDS)}.")
+TT_CONTROL = typer.Option(
+    None, "--tt-control", metavar="|".join(TT_CONTROLS), help="Tip/Tilt controller (default: the roots table's IIR where it has one)."
+)
+BAND = typer.Option(None, "--band", metavar="|".join(BANDS), show_default=defaults.BAND, help="Science band of the Strehl ratio.")
 SEED = typer.Option(
     None,
     "--seed",
@@ -158,18 +159,6 @@ def check_resonance(choice: str) -> str:
     if choice not in STRUCTURE_CHOICES:
         raise InputError(f"--resonance must be one of {', '.join(STRUCTURE_CHOICES)}, got {choice!r}")
     return choice
-
-
-def parse_magnitude(text: str) -> float:
-    """The --mag value as a finite number inside the look-up table's range."""
-    lo, hi = tables.magnitude_range(tables.magnitude_table())
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
-    return value + 0.0  # -0 -> 0; the range is checked against the table's rows
 
 
 def parse_gains(text: str | None, forgetting: float) -> LoopGains | None:

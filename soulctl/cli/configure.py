@@ -11,7 +11,7 @@ from rich.table import Table
 from .. import tables
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
-from .common import parse_magnitude
+from .numbers import parse_magnitude
 from .output import console as make_console
 from .output import print_json
 
@@ -51,7 +51,9 @@ def render(obs: Observation, console: Console, roots_source: str = "roots") -> N
 
 def configure(
     mag: str = typer.Option(..., "--mag", metavar="R", help="Guide star R magnitude (0 to 18.5)."),
-    out: Path | None = typer.Option(None, "--out", help="Write the configuration as TOML (for --config of later commands)."),
+    out: Path | None = typer.Option(
+        None, "--out", metavar="FILE", help="Write the configuration as TOML (for --config of later commands)."
+    ),
     roots: Path | None = typer.Option(
         None,
         "--roots",
@@ -60,8 +62,9 @@ def configure(
     ),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Set up an observation for a guide star of R magnitude from the SOUL look-up table:
-    binning, sub-apertures, controlled modes, frame rate, modulation, Tip/Tilt filter, loop delay
+    """Set up an observation for a guide star of R magnitude from the SOUL look-up table.
+
+    The table gives the binning, sub-apertures, controlled modes, frame rate, modulation, Tip/Tilt filter, loop delay
     and expected photons per sub-aperture per frame.
 
     Example: soulctl configure --mag 13 --out obs.toml

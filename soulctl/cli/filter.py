@@ -473,10 +473,12 @@ class DesignOptions:
 
 @command(DesignOptions)
 def design_command(o: DesignOptions) -> int:
-    """Design Tip/Tilt IIR filters (4 zeros, 4 poles with one at z = 1, and the gain) that
-    minimise the residual Tip/Tilt variance — temporal error on turbulence and vibrations plus
-    noise propagation — under the modulus-margin constraint |1 + H P| > ε, side by side with
-    the best integrator under the same constraint and cost.
+    """Design Tip/Tilt IIR filters for given frame rates, beside the best integrator.
+
+    The filters (4 zeros, 4 poles with one at z = 1, and the gain) minimise the residual
+    Tip/Tilt variance — temporal error on turbulence and vibrations plus noise propagation —
+    under the modulus-margin constraint |1 + H P| > ε, side by side with the best integrator
+    under the same constraint and cost.
 
     Example: soulctl filter design --rate 1700 --out roots.csv --plot design.png
     """

@@ -233,7 +233,9 @@ class RunOptions:
 @app.command("run")
 @command(RunOptions)
 def run_cmd(o: RunOptions) -> int:
-    """Close a simulated SOUL loop: LBT turbulence and vibrations, the adaptive secondary with
+    """Close a simulated SOUL loop and print its Strehl ratio, jitter and residual.
+
+    The loop has LBT turbulence and vibrations, the adaptive secondary with
     its 127 Hz structural resonance, the modulated pyramid with detector noise, the C++ slopes
     and RTC, the loop delay.  Prints the Strehl ratio, Tip/Tilt jitter (residual and
     pseudo-open loop), residual wavefront error and the 13 Hz rejection.  --mgm and --ogtl run

@@ -11,6 +11,8 @@ from collections.abc import Callable
 
 import typer
 
+from .. import tables
+from ..errors import InputError
 from ..ranges import Range
 
 _EXACT_FLOAT_INTEGERS = 2**53  # above, a float no longer holds every integer
@@ -50,3 +52,15 @@ def number(accepted: Range) -> Callable[[str], float | int]:
         return value
 
     return parse
+
+
+def parse_magnitude(text: str) -> float:
+    """The --mag value as a finite number inside the look-up table's range."""
+    lo, hi = tables.magnitude_range(tables.magnitude_table())
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"--mag must be a number, got '{text}': accepted range {lo:g} <= R <= {hi:g}")
+    return value + 0.0  # -0 -> 0; the range is checked against the table's rows

@@ -129,7 +129,9 @@ def atmosphere(
     ),
     json_output: bool = _JSON,
 ) -> None:
-    """Turbulence figures of the default LBT profile: r0 at 500 nm, the WFS and science bands,
+    """Turbulence figures of the default LBT profile.
+
+    They are r0 at 500 nm, the WFS and science bands,
     tau0, the layers, and the one-axis Tip/Tilt (von Karman) on the 8.222 m pupil.
 
     Example: soulctl optics atmosphere --seeing 0.8 --wind 10
@@ -218,8 +220,10 @@ def calibrate_cmd(
     cache_dir: Path | None = CACHE_DIR,
     json_output: bool = _JSON,
 ) -> None:
-    """Calibrate the PWFS on the ASM's modes: push-pull interaction matrix around the
-    unaberrated reference, pseudo-inverse reconstructor, reference slopes.  The result is
+    """Calibrate the PWFS on the ASM's modes.
+
+    It measures a push-pull interaction matrix around the unaberrated reference, and gives
+    the pseudo-inverse reconstructor and the reference slopes.  The result is
     cached under a key of the configuration, so later runs reuse it (--no-cache recomputes).
 
     Example: soulctl optics calibrate --mag 13
@@ -293,7 +297,9 @@ class OpticalGainsOptions:
 @app.command("gains")
 @command(OpticalGainsOptions)
 def gains_cmd(o: OpticalGainsOptions) -> int:
-    """Modal optical gains of the PWFS at a correction level: each mode's sensitivity around
+    """Modal optical gains of the PWFS at a correction level.
+
+    Each mode's sensitivity around
     residual phases (turbulence of --seeing minus the corrected part of the controlled modes)
     relative to its diffraction-limited sensitivity.  MGM reads this table (chi_i).
 

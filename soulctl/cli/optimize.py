@@ -255,7 +255,12 @@ def _gain_file_text(result: OptimizeResult) -> str:
 class GainsOptions:
     """The options of `optimize gains` (an option table: see ``option_table``)."""
 
-    method: str = typer.Option("mgm", "--method", help="mgm, trial (trial-and-error, the three groups) or both (same seed, side by side).")
+    method: str = typer.Option(
+        "mgm",
+        "--method",
+        metavar="|".join(METHOD_CHOICES),
+        help="MGM, trial-and-error (the three groups) or both (same seed, side by side).",
+    )
     config: Path | None = RUN_CONFIG
     mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}).")
     telemetry: Path | None = typer.Option(
@@ -336,11 +341,12 @@ class GainsOptions:
 @app.command("gains")
 @command(GainsOptions)
 def gains_cmd(o: GainsOptions) -> int:
-    """Optimise the modal gains in the simulated closed loop: measure at the initial gains, run
-    the optimiser live as an auxiliary loop (trial-and-error: the three groups scanned in
-    sequence; MGM: every mode every --period from the pseudo-open-loop PSDs), measure at the
-    optimised gains.  With --ogtl the optical gain tracking loop runs throughout; a safety net
-    restores the last good gains and k when the loop degrades.  Prints the gains and the
+    """Optimise the modal gains in the simulated closed loop, or offline on a record.
+
+    The run measures at the initial gains, runs the optimiser live as an auxiliary loop
+    (trial-and-error: the three groups scanned in sequence; MGM: every mode every --period
+    from the pseudo-open-loop PSDs), and measures at the optimised gains.  With --ogtl the optical gain
+    tracking loop runs throughout; a safety net restores the last good gains and k when the loop degrades.  Prints the gains and the
     Strehl ratio and residual before and after, both measured in loops closed afresh on the
     run's own turbulence and noise, with --ogtl each with OGTL from k = 1 as the run, then both
     at the k the initial gains' OGTL settled to (a paired comparison; the run's own phases, at

@@ -74,7 +74,9 @@ class CheckOptions:
 @app.command("check")
 @command(CheckOptions)
 def check_cmd(o: CheckOptions) -> int:
-    """Check per-mode gains or a whole RTC description before an upload: each mode's
+    """Check per-mode gains or a whole RTC description before an upload.
+
+    The check covers each mode's
     stability, gain, phase and modulus margins and maximum stable gain on the plant (delay,
     optical gain chi_i, the 127 Hz structure on Tip/Tilt), the RTC states against the 672-state
     budget, and for an RTC description Lambda, Delta, Xi, Sigma rebuilt from the declared

@@ -125,9 +125,10 @@ class SweepOptions:
 
 @command(SweepOptions)
 def sweep(o: SweepOptions) -> int:
-    """Run a grid of simulated closed loops as Dask tasks and collect one row per case
-    (parameters, Strehl, jitter, residual, run time, seed, version) in DIR/results.csv, appended
-    case by case and put in the grid's order once every case has its row.  A failed or
+    """Run a grid of simulated closed loops as Dask tasks, one row per case.
+
+    The rows (parameters, Strehl, jitter, residual, run time, seed, version) go to
+    DIR/results.csv, appended case by case and put in the grid's order once every case has its row.  A failed or
     diverged case is a row with its reason; --resume completes an interrupted sweep without
     recomputing its finished rows.  Each distinct calibration is computed once and shared.
     The estimated cost is printed first; above an hour of CPU a terminal is asked to confirm

@@ -37,7 +37,9 @@ class InspectOptions:
 @app.command("inspect")
 @command(InspectOptions)
 def inspect_cmd(o: InspectOptions) -> int:
-    """Rate, frames, duration, decimation and gaps, fields with shapes and units, modes,
+    """What a telemetry record holds and whether it is complete.
+
+    Rate, frames, duration, decimation and gaps, fields with shapes and units, modes,
     status (complete or partial, and why) and the run description of a telemetry record.
 
     Example: soulctl telemetry inspect run.h5
@@ -107,7 +109,9 @@ JITTER_ROWS = (("all", "all"), ("above_3hz", "above 3 Hz"))
 @app.command("psd")
 @command(PsdOptions)
 def psd_cmd(o: PsdOptions) -> int:
-    """Welch PSDs of measured (R s), command (M^-1 c) and pseudo-open-loop modes, and the
+    """Modal PSDs and the cumulative Tip/Tilt jitter of a telemetry record.
+
+    Welch PSDs of measured (R s), command (M^-1 c) and pseudo-open-loop modes, and the
     cumulative Tip/Tilt jitter in mas from each frequency to Nyquist, as in the paper's figures:
     as measured, and with each record's white noise floor (the PSD's median over the top
     quarter of the band) removed.
@@ -172,8 +176,9 @@ class ConvertOptions:
 @app.command("convert")
 @command(ConvertOptions)
 def convert_cmd(o: ConvertOptions) -> int:
-    """Convert telemetry between soulctl HDF5, AOT FITS and LBT tracking-number folders (each
-    field both formats hold is kept; docs/telemetry-formats.md has the mapping).
+    """Convert telemetry between soulctl HDF5, AOT FITS and LBT tracking-number folders.
+
+    Each field both formats hold is kept; docs/telemetry-formats.md has the mapping.
 
     Example: soulctl telemetry convert run.h5 run.fits
     """
@@ -214,7 +219,9 @@ class IdentifyOptions:
 @app.command("identify")
 @command(IdentifyOptions)
 def identify_cmd(o: IdentifyOptions) -> int:
-    """Identify the plant from closed-loop telemetry: loop delay, optical gains, measurement
+    """Identify the plant from closed-loop telemetry.
+
+    The plant is the loop delay, optical gains, measurement
     noise per mode, Tip/Tilt vibration lines and seeing/L0, each with its uncertainty
     (docs/physics.md, "Identification").
 

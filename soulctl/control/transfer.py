@@ -16,7 +16,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import InputError
 from .delay import fractional_taps
@@ -136,17 +135,24 @@ class Loop:
         return bool(poles.size == 0 or np.max(np.abs(poles)) < 1.0 - 1e-9)
 
 
+_BISECTIONS = 60  # halvings of a grid step: below a float's resolution at any frame rate
+
+
 def _crossings(fun, f: np.ndarray) -> list[float]:
-    """Frequencies where fun (vectorised, real) changes sign on the grid, refined by Brent."""
+    """Frequencies where fun (vectorised, real) changes sign on the grid, refined by bisection
+    of every bracket at once to the float resolution (a vectorised bisection rather than
+    scipy's brentq bracket by bracket: the same roots, and the CLI starts without scipy.optimize)."""
     v = fun(f)
     idx = np.nonzero(np.signbit(v[:-1]) != np.signbit(v[1:]))[0]
-    out = []
-    for i in idx:
-        if v[i] == 0.0:
-            out.append(float(f[i]))
-        else:
-            out.append(brentq(lambda x: float(fun(np.array([x]))[0]), f[i], f[i + 1], xtol=1e-12, rtol=1e-12))
-    return out
+    lo, hi, v_lo = f[idx].astype(float), f[idx + 1].astype(float), v[idx]
+    exact = v_lo == 0.0
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        v_mid = fun(mid)
+        left = np.signbit(v_mid) == np.signbit(v_lo)  # the sign change is in [mid, hi]
+        lo, v_lo, hi = np.where(left, mid, lo), np.where(left, v_mid, v_lo), np.where(left, hi, mid)
+        lo, hi = np.where(exact, f[idx], lo), np.where(exact, f[idx], hi)
+    return [float(x) for x in 0.5 * (lo + hi)]
 
 
 def critical_gains(loop: Loop, f: np.ndarray | None = None) -> list[tuple[float, float]]:
@@ -253,6 +259,8 @@ def analyze(loop: Loop, vibration_hz: float = VIBRATION_HZ, resonance_hz: float 
         phase_margin = -phase_margin
 
     # Modulus margin: min |1 + L|, refined around the grid minimum.
+    from scipy.optimize import minimize_scalar  # here: the CLI starts without scipy.optimize
+
     d = np.abs(1.0 + loop.open_loop(f))
     i = int(np.argmin(d))
     lo, hi = f[max(i - 1, 0)], f[min(i + 1, f.size - 1)]

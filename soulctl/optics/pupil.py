@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy import ndimage
 
 from ..errors import InputError
 
@@ -90,6 +89,8 @@ class PupilResampler:
     def __init__(self, source: Pupil, target: Pupil):
         if target.n_pixels < source.n_pixels or (source.diameter_m, source.obstruction) != (target.diameter_m, target.obstruction):
             raise InputError(f"resampling goes to a finer grid of the same pupil, got {source} -> {target}")
+        from scipy import ndimage  # here, not at the top: the CLI starts without scipy.ndimage
+
         _, (self._rows, self._cols) = ndimage.distance_transform_edt(~source.mask, return_indices=True)
         self.factor = target.n_pixels / source.n_pixels
 
@@ -103,4 +104,6 @@ class PupilResampler:
         return np.stack(maps).reshape(*filled.shape[:-2], *maps[0].shape)
 
     def _zoom(self, filled: np.ndarray) -> np.ndarray:
+        from scipy import ndimage
+
         return ndimage.zoom(filled, self.factor, order=3, grid_mode=True, mode="nearest").astype(np.float32)
