@@ -42,6 +42,9 @@ CASES = {
 }
 TARGETS_S = {"--version": 0.3, "--help": 0.3, "configure --mag 13 --json": 0.6}
 ENTRY = "import sys; from soulctl.cli.app import main; sys.argv[0] = 'soulctl'; main()"
+# A checkout's sources, not the installed package's: an editable install's import hook would
+# otherwise answer for ``soulctl`` whatever PYTHONPATH says.
+CHECKOUT_ENTRY = "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in type(f).__module__]; " + ENTRY
 
 
 def _installed_core() -> Path:
@@ -61,7 +64,7 @@ def _command(source: Path | None) -> tuple[list[str], dict[str, str], str]:
     core = _installed_core()
     if not (source / "soulctl" / core.name).exists():
         shutil.copy2(core, source / "soulctl" / core.name)
-    return [sys.executable, "-c", ENTRY], dict(env, PYTHONPATH=str(source)), str(source)
+    return [sys.executable, "-c", CHECKOUT_ENTRY], dict(env, PYTHONPATH=str(source)), str(source)
 
 
 def _time(cmd: list[str], env: dict[str, str], cwd: str) -> float:

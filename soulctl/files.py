@@ -145,14 +145,30 @@ def check_output_path(path: str | Path, option: str, inputs: Iterable[tuple[str,
 
 
 def check_output_folder(path: str | Path, option: str, files: Iterable[str] = ()) -> Path:
-    """An existing folder that can be written, and the ``files`` the command will write in it."""
+    """A folder that can be written, and the ``files`` the command will write in it.  A
+    missing folder is created (with its missing parents, under a folder that exists) and
+    belongs to the command's outputs: removed again unless they are committed."""
     p = Path(path)
     if not p.is_dir():
-        raise InputError(f"{option} must be an existing folder, got {path}")
+        _create_folder(p, option, path)
     _probe_folder(p, option, path)
     for name in files:
         check_output_path(p / name, option)
     return p
+
+
+def _create_folder(folder: Path, option: str, path) -> None:
+    missing = [folder, *(parent for parent in folder.parents if not parent.is_dir())]
+    missing = missing[: next((i for i, f in enumerate(missing) if f.parent.is_dir()), len(missing)) + 1]
+    existing = missing[-1].parent
+    if os.path.lexists(missing[-1]) or (str(existing) and not existing.is_dir()):
+        raise InputError(f"{option} must be a folder, got {path} (a file or link is in its place)")
+    _probe_folder(existing, option, path)
+    for f in reversed(missing):
+        f.mkdir()
+        current = _STAGE.get()
+        if current is not None:
+            current.created(f)
 
 
 def _probe_folder(folder: Path, option: str, path) -> None:
@@ -175,6 +191,10 @@ class OutputStage:
 
     def __init__(self) -> None:
         self._staged: dict[Path, str] = {}  # target -> temporary
+        self._folders: list[Path] = []  # folders made for the outputs, parents first
+
+    def created(self, folder: Path) -> None:
+        self._folders.append(folder)
 
     def add(self, target: Path, tmp: str) -> None:
         old = self._staged.pop(target, None)
@@ -187,11 +207,18 @@ class OutputStage:
             target, tmp = next(iter(self._staged.items()))
             _replace(tmp, target)
             del self._staged[target]
+        self._folders.clear()
 
     def discard(self) -> None:
         for tmp in self._staged.values():
             _unlink(tmp)
         self._staged.clear()
+        for folder in reversed(self._folders):  # what the command made, if nothing else is in it
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        self._folders.clear()
 
 
 _STAGE: ContextVar[OutputStage | None] = ContextVar("soulctl_output_stage", default=None)

@@ -163,7 +163,7 @@ class _Signals:
 
 
 INTERRUPT_STATUS = {signal.SIGINT: (130, "Ctrl-C"), signal.SIGTERM: (143, "SIGTERM")}
-DISCARDED = "outputs discarded (a sweep keeps its finished rows for --resume)"
+DISCARDED = "outputs discarded (a telemetry file being streamed is kept, marked partial; a sweep keeps its finished rows for --resume)"
 BROKEN_PIPE = 141  # 128 + SIGPIPE, as shell tools report a reader that went away
 
 

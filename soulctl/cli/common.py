@@ -290,15 +290,19 @@ def run_description(config: Path | None, mag: str | None, overrides: dict) -> Ru
     return base.with_values(overrides) if overrides else base
 
 
+PREPARING = "calibrating the pyramid (the first time; cached after) and building the loop"
+
+
 @contextmanager
-def frames_progress(label: str, show: bool, total: int | None = None) -> Iterator[Callable[..., None] | None]:
-    """A transient progress bar over frames on stderr when ``show``; yields its update
+def frames_progress(label: str, show: bool, total: int | None = None, before: str = PREPARING) -> Iterator[Callable[..., None] | None]:
+    """A transient progress bar over frames on stderr when ``show``, labelled ``before`` until
+    the first frame (the calibration, first-time work, comes before it); yields its update
     ``tick(done, total=None)`` (the callback `run` and `optimize` take), or None."""
     if not show:
         yield None
         return
     progress = Progress(
-        TextColumn(label),
+        TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("frames"),
@@ -308,10 +312,10 @@ def frames_progress(label: str, show: bool, total: int | None = None) -> Iterato
         transient=True,
     )
     with progress:
-        task = progress.add_task(label, total=total)
+        task = progress.add_task(before, total=total)
 
         def tick(done: int, total: int | None = None) -> None:
-            progress.update(task, completed=done, total=total)  # rich keeps the total when None
+            progress.update(task, completed=done, total=total, description=label)  # rich keeps the total when None
 
         yield tick
 

@@ -19,6 +19,7 @@ from ..loop.metrics import BANDS
 from ..loop.run import run
 from ..plots.loop import LOOP_FIGURES, write_loop_figures
 from ..ranges import DURATION_S, NCPA_OFFSET_FRACTION, NCPA_RMS_NM, TELEMETRY_EVERY
+from ..telemetry.figures import mas_text
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common
@@ -86,9 +87,12 @@ def _result_dict(result) -> dict:
     return d
 
 
-def _value(x, spec: str, unit: str = "") -> str:
-    """A metric as the table shows it; 'n/a (run too short)' when it is not available."""
-    return "n/a (run too short)" if x is None else format(x, spec) + unit
+def _value(m, name: str, spec: str, unit: str = "") -> str:
+    """Metric ``name`` as the table shows it; 'n/a (why)' when it is not available."""
+    x = getattr(m, name)
+    if x is None:
+        return f"n/a ({m.not_available.get(name, 'run too short')})"
+    return (mas_text(x) if spec == "mas" else format(x, spec)) + unit
 
 
 def _render(result, console: Console) -> None:
@@ -106,14 +110,15 @@ def _render(result, console: Console) -> None:
         )
     else:
         t.add_row(f"gains modes 3-{obs.modes}", f"{g.mid:.3g}" + (" (gain file)" if g.modes else ""))
-    t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.3g} µm)", _value(m.strehl, ".3f"))
-    t.add_row("Tip/Tilt jitter, residual (per axis)", _value(m.tt_jitter_mas, ".2f", " mas"))
+    t.add_row(f"Strehl ratio ({r.band}, {BANDS[r.band] * 1e6:.4g} µm)", _value(m, "strehl", ".3f"))
+    bins = "" if m.jitter_resolution_hz is None else f", {m.jitter_resolution_hz:.3g} Hz bins"
+    t.add_row(f"Tip/Tilt jitter per axis, residual (true wavefront{bins})", _value(m, "tt_jitter_mas", "mas", " mas"))
     t.add_row(
-        "Tip/Tilt jitter, pseudo-open loop (all / > 3 Hz)",
-        f"{_value(m.tt_jitter_pol_mas, '.2f', ' mas')} / {_value(m.tt_jitter_pol_3hz_mas, '.2f', ' mas')}",
+        "Tip/Tilt jitter per axis, pseudo-open loop (all / > 3 Hz)",
+        f"{_value(m, 'tt_jitter_pol_mas', 'mas', ' mas')} / {_value(m, 'tt_jitter_pol_3hz_mas', 'mas', ' mas')}",
     )
-    t.add_row("residual wavefront error", _value(m.residual_nm, ".0f", " nm RMS"))
-    t.add_row("rejection at 13 Hz (telemetry)", _value(m.rejection_13hz, ".3f"))
+    t.add_row("residual wavefront error", _value(m, "residual_nm", ".0f", " nm RMS"))
+    t.add_row("rejection at 13 Hz (telemetry)", _value(m, "rejection_13hz", ".3f"))
     t.add_row("frames (metrics on)", f"{m.frames} ({m.frames - m.skipped_frames})")
     if result.telemetry.aux:
         fg = result.final_gains

@@ -16,6 +16,8 @@ from ..identify.identify import Identification, identify
 from ..plots.telemetry import IDENTIFY_FIGURES, write_identify_figures, write_psd_figure
 from ..ranges import DELAY_FRAMES
 from ..telemetry.analysis import inspect, spectra
+from ..telemetry.figures import RECORD_LABELS as LABELS
+from ..telemetry.figures import mas_text
 from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RECORD_DELAY, RESONANCE, array_cache, check_resonance, quantity_table
 from .numbers import number
@@ -136,10 +138,12 @@ def psd_cmd(o: PsdOptions) -> int:
             {
                 "f_hz": s.f_hz,
                 "modes": list(s.modes),
+                "window_frames": list(s.window),
                 "psd_nm2_per_hz": {name: p for name, p in s.psd.items()},
                 "noise_floor_nm2_per_hz": s.floor,
                 "nm_per_mas": s.nm_per_mas,
-                "tt_cumulative_mas": s.tt_cumulative_mas,
+                "tt_cumulative_f_hz": {name: j.f_hz for name, j in s.jitter.items()},
+                "tt_cumulative_mas": {name: j.cumulative_mas for name, j in s.jitter.items()},
                 "tt_jitter_mas": {name: j["all"] for name, j in jitter.items()},
                 "tt_jitter_above_3hz_mas": {name: j["above_3hz"] for name, j in jitter.items()},
                 "tt_jitter": jitter,
@@ -148,23 +152,20 @@ def psd_cmd(o: PsdOptions) -> int:
             }
         )
         return 0
-    t = quantity_table(f"spectra of {o.path}: modes {o.modes}, resolution {s.f_hz[1]:.3g} Hz")
+    first, stop = s.window
+    t = quantity_table(f"spectra of {o.path}: modes {o.modes}, frames {first}..{stop - 1}, resolution {s.f_hz[1]:.3g} Hz")
     for name, p in s.psd.items():
         rms = np.sqrt(np.sum(p, axis=1) * s.f_hz[1])
-        t.add_row(f"{name} RMS [nm]", ", ".join(f"{v:.3g}" for v in rms))
+        t.add_row(f"{LABELS.get(name, name)} RMS [nm]", ", ".join(f"{v:.3g}" for v in rms))
     for name, j in jitter.items():
-        values = " / ".join(_mas(j[key]) for key, _ in JITTER_ROWS)
-        t.add_row(f"{name} Tip/Tilt jitter per axis [mas]: all / above 3 Hz", values)
-        t.add_row("  less the white noise floor", " / ".join(_mas(j[f"{key}_floor_removed"]) for key, _ in JITTER_ROWS))
-        t.add_row("  the white noise floor", " / ".join(_mas(j[f"{key}_noise_floor"]) for key, _ in JITTER_ROWS))
+        values = " / ".join(mas_text(j[key]) for key, _ in JITTER_ROWS)
+        t.add_row(f"{LABELS.get(name, name)} Tip/Tilt jitter per axis [mas]: all / above 3 Hz ({j['resolution_hz']:.3g} Hz bins)", values)
+        t.add_row("  less the white noise floor", " / ".join(mas_text(j[f"{key}_floor_removed"]) for key, _ in JITTER_ROWS))
+        t.add_row("  the white noise floor", " / ".join(mas_text(j[f"{key}_noise_floor"]) for key, _ in JITTER_ROWS))
     for note in s.notes:
         t.add_row("note", note)
     make_console().print(t)
     return 0
-
-
-def _mas(value) -> str:
-    return "n/a" if value is None else f"{value:.3g}"
 
 
 @dataclass(frozen=True)

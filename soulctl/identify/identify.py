@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..disturbance.vibrations import VibrationSpectrum
-from ..loop.metrics import pseudo_open_loop
 from ..loop.run import calibration_setup
 from ..optics.atmosphere import r0_from_seeing
 from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import controlled_basis
+from ..telemetry.figures import pseudo_open_loop
 from . import seeing
 from .lines import LineEstimate, fit_lines
 from .plant import OpticalGainGroup, PlantModel, chi_per_mode

@@ -25,8 +25,8 @@ from ..control import mgm, ogtl, trial
 from ..control.delay import fractional_taps
 from ..control.gains import gain_groups
 from ..errors import InputError
+from ..telemetry.figures import pseudo_open_loop
 from .auxloop import AuxLoop, ModalProbe, RtcParameters, TelemetryWindow
-from .metrics import pseudo_open_loop
 
 
 class OgtlTask(AuxLoop):

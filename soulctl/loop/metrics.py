@@ -1,15 +1,13 @@
-"""What a closed loop delivers: long-exposure PSF and Strehl ratio by image formation, Tip/Tilt
-jitter, residual wavefront error, modal variances, rejection and cumulative jitter spectra."""
+"""What a closed loop delivers: long-exposure PSF and Strehl ratio by image formation, and the
+figures `loop run` reports (the Tip/Tilt ones defined once, in ``telemetry.figures``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft
-from scipy.signal import lfilter, welch
 
-from ..control.delay import fractional_taps
 from ..errors import InputError
 from ..optics.pupil import Pupil
 
@@ -63,66 +61,25 @@ class PsfAccumulator:
         return float(self.psf.max()) if self.frames else float("nan")
 
 
-def cumulative_spectrum(x: np.ndarray, rate_hz: float, nperseg: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Frequencies and the cumulative RMS from the highest frequency down: sqrt(∫_f^Nyquist PSD)
-    (the paper's cumulative Tip/Tilt jitter figure); Welch with a Hann window."""
-    n = len(x)
-    nperseg = nperseg or min(n, 2 ** int(np.log2(max(n // 4, 16))))
-    f, p = welch(x, fs=rate_hz, window="hann", nperseg=nperseg, detrend="constant")
-    df = f[1] - f[0]
-    cum = np.sqrt(np.cumsum(p[::-1])[::-1] * df)
-    return f, cum
-
-
-def pseudo_open_loop(measured: np.ndarray, command_modes: np.ndarray, delay_frames: float, structure_ba=None) -> np.ndarray:
-    """Pseudo-open-loop modes from telemetry: m_pol(k) = m(k) + (mirror modes during frame k),
-    the mirror holding the commands delayed by d = n + e frames,
-    (1 - e) c(k - n) + e c(k - n - 1) (the delay line's own rule).  Rows are frames; the first
-    n + 1 rows use commands from before the record (taken as zero).
-
-    ``structure_ba``: the structural resonance G(z) = b/a on Tip/Tilt (``control.structure``),
-    whose wavefront Tip/Tilt adds G u to the mirror's u: the plant is z^-d (1 + G), and so is
-    the term added to Tip/Tilt (started at rest with the record; it rings down in ~3/(zeta w0),
-    25 ms at 127 Hz)."""
-    n, e = fractional_taps(delay_frames)
-    c = np.asarray(command_modes, dtype=float)
-    shifted = np.zeros_like(c)
-    shifted[n:] += (1 - e) * c[: len(c) - n]
-    if e:
-        shifted[n + 1 :] += e * c[: len(c) - n - 1]
-    if structure_ba is not None:
-        b, a = structure_ba
-        shifted[:, :2] += lfilter(b, a, shifted[:, :2], axis=0)
-    return np.asarray(measured, dtype=float) + shifted
-
-
-def rejection_at(residual: np.ndarray, pseudo_open_loop: np.ndarray, rate_hz: float, f_hz: float, nperseg: int | None = None) -> float:
-    """|residual / pseudo-open-loop| at ``f_hz`` from their Welch PSDs (the rejection measured
-    from telemetry): sqrt of the PSD ratio, averaged over the bins within 1 Hz."""
-    n = len(residual)
-    nperseg = nperseg or min(n, 2 ** int(np.log2(max(n // 4, 16))))
-    f, pr = welch(residual, fs=rate_hz, nperseg=nperseg)
-    _, pp = welch(pseudo_open_loop, fs=rate_hz, nperseg=nperseg)
-    band = np.abs(f - f_hz) <= max(1.0, f[1])
-    return float(np.sqrt(pr[band].sum() / pp[band].sum()))
-
-
 @dataclass(frozen=True)
 class LoopMetrics:
-    """What `loop run` reports.  A figure the run is too short to give is None (not available),
-    never NaN or a fake zero: the Strehl ratio and residual need one frame after the skipped
-    ones, the jitters two, the jitter above 3 Hz a spectrum resolving 3 Hz, the 13 Hz rejection
-    one resolving 5 Hz."""
+    """What `loop run` reports, over the window after ``skipped_frames``.  A figure the run
+    cannot give is None (not available), never NaN or a fake zero, and ``not_available`` says
+    why: a loop that has not settled (the run shorter than twice the settling allowance) has
+    none; the jitters need a few frames, the jitter above 3 Hz a spectrum resolving 3 Hz, the
+    13 Hz rejection one resolving 5 Hz and a line to reject (``telemetry.figures``)."""
 
     band: str
     strehl: float | None
-    tt_jitter_mas: float | None  # residual, per axis (RMS of the two axes' RMS)
+    tt_jitter_mas: float | None  # residual (the true wavefront's), per axis
     tt_jitter_pol_mas: float | None  # pseudo-open loop, per axis
     tt_jitter_pol_3hz_mas: float | None  # pseudo-open loop above 3 Hz (the paper quotes 3-425 Hz)
     residual_nm: float | None  # RMS wavefront error, all modes and fitting
     rejection_13hz: float | None
     frames: int
     skipped_frames: int
+    jitter_resolution_hz: float | None = None  # the jitter spectra's bins
+    not_available: dict[str, str] = field(default_factory=dict)  # figure -> why it is None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

@@ -56,11 +56,11 @@ from ..optics.cache import ArrayCache
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..ranges import LOOP_GAIN, PERIOD_S
 from ..run_config import ControllerSpec, RunConfig, stored
+from ..telemetry.figures import pseudo_open_loop
 from ..telemetry.formats import check_decimation, open_telemetry
 from ..telemetry.hdf5 import run_description_of
 from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
 from .chi_model import mgm_chi, optical_gain_table
-from .metrics import pseudo_open_loop
 from .optimize import welch_settings
 from .recorded import RecordedLoop, checked_rate, recorded_loop
 from .run import calibration_for

@@ -26,15 +26,19 @@ from ..optics.ncpa import NcpaSpec, non_common_path
 from ..optics.pwfs import PyramidConfig
 from ..optics.registration import Misregistration
 from ..ranges import DURATION_S, OUTER_SCALE_M, OVERSAMPLING, SEED, SEEING_ARCSEC, WFS_FIELD_OF_VIEW_ARCSEC, WIND_M_S
+from ..telemetry.figures import JITTER_EDGE_HZ, pseudo_open_loop, rejection, tip_tilt_jitter
 from ..telemetry.recorder import Sink, TelemetryRecorder
 from ..telemetry.schema import LBT_SYSTEM
 from .auxloops import could_not_recover
 from .chi_model import optical_gain_table
-from .metrics import LoopMetrics, PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
+from .metrics import LoopMetrics, PsfAccumulator, band_wavelength
 from .simulation import ClosedLoop, LoopDiverged
 
 CLOSING_S = 0.1  # the loop closes at k = 1 before auxiliary loops start ...
 MIN_CLOSING_FRAMES = 50  # ... for at least this many frames
+SETTLING_S = 0.02  # left out of the metrics while the loop settles (at least) ...
+SETTLING_FRAMES = 10  # ... and at least these frames (~3/g at the paper's gains, g >= 0.3)
+CLOSED_LOOP_FIGURES = ("strehl", "tt_jitter_mas", "tt_jitter_pol_mas", "tt_jitter_pol_3hz_mas", "residual_nm", "rejection_13hz")
 
 
 @dataclass(frozen=True)
@@ -93,10 +97,16 @@ class RunRequest:
         return AtmosphereConfig.lbt_default(self.seeing_arcsec, self.L0_m, self.wind_m_s)
 
     @property
+    def settling_frames(self) -> int:
+        """The loop's settling allowance: 0.02 s, at least SETTLING_FRAMES."""
+        return max(SETTLING_FRAMES, round(SETTLING_S * self.observation.frame_rate_hz))
+
+    @property
     def skip(self) -> int:
-        """Frames left out of the metrics while the loop closes: 20 % of the run, at least
-        0.02 s, at most half."""
-        return min(self.frames // 2, max(round(0.02 * self.observation.frame_rate_hz), self.frames // 5))
+        """Frames left out of the metrics while the loop closes: 20 % of the run, at least the
+        settling allowance, at most half (a run shorter than twice the allowance has no
+        closed-loop figures)."""
+        return min(self.frames // 2, max(self.settling_frames, self.frames // 5))
 
 
 def closing_frames(rate_hz: float) -> int:
@@ -166,45 +176,49 @@ def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
 
 
 def _metrics(request: RunRequest, tm: TelemetryRecorder, psf: PsfAccumulator, mas_per_nm: float) -> tuple[LoopMetrics, dict]:
-    """The figures of ``LoopMetrics`` (None where the run is too short for one) and the spectra,
-    from the recorder's series (Tip/Tilt, residual RMS) and residual-mode moments."""
+    """The figures of ``LoopMetrics`` over the run's window (``telemetry.figures``: the same
+    functions `telemetry psd` calls on the run's record, which stores the Tip/Tilt scale of
+    the run's pupil) and the jitter spectra of the plots."""
     obs = request.observation
-    skip = request.skip
-    res_tt = tm.series("residual_tt")[skip:] * mas_per_nm
-    pol = pseudo_open_loop(tm.series("measured_tt"), tm.series("command_tt"), obs.delay_frames)
-    pol_tt = pol[skip:] * mas_per_nm
-    rate = obs.frame_rate_hz
-    n = len(res_tt)
-    # Spectra with ~1 Hz resolution where the run allows.
-    nperseg = min(2 ** int(np.log2(max(n, 2))), 2 ** int(np.ceil(np.log2(rate))))
-    df = rate / nperseg
-    rej = None
-    if n >= 64 and df <= 5.0:
-        rej = float(np.mean([rejection_at(res_tt[:, a], pol_tt[:, a], rate, VIBRATION_HZ, nperseg) for a in (0, 1)]))
-    spectra = {}
-    if n >= 4:
-        f, cr = cumulative_spectrum(res_tt[:, 0] - res_tt[:, 0].mean(), rate, nperseg)
-        _, cr2 = cumulative_spectrum(res_tt[:, 1] - res_tt[:, 1].mean(), rate, nperseg)
-        _, cp = cumulative_spectrum(pol_tt[:, 0] - pol_tt[:, 0].mean(), rate, nperseg)
-        _, cp2 = cumulative_spectrum(pol_tt[:, 1] - pol_tt[:, 1].mean(), rate, nperseg)
-        spectra = {"f_hz": f, "residual_mas": np.sqrt((cr**2 + cr2**2) / 2), "pseudo_open_loop_mas": np.sqrt((cp**2 + cp2**2) / 2)}
-    spectra["modal_variance_nm2"] = tm.residual_moments.variance
-    pol_band = float(np.interp(3.0, spectra["f_hz"], spectra["pseudo_open_loop_mas"])) if "f_hz" in spectra and df <= 3.0 else None
+    skip, rate = request.skip, obs.frame_rate_hz
+    scale = 1.0 / mas_per_nm
+    residual = tm.series("residual_tt")[skip:]
+    pol = pseudo_open_loop(tm.series("measured_tt"), tm.series("command_tt"), obs.delay_frames)[skip:]
+    n = len(residual)
+    missing: dict[str, str] = {}
+    if skip < request.settling_frames:
+        missing = dict.fromkeys(CLOSED_LOOP_FIGURES, f"loop not settled: the run needs at least {2 * request.settling_frames / rate:.2g} s")
+    jitter_res, jitter_pol = tip_tilt_jitter(residual, rate, scale), tip_tilt_jitter(pol, rate, scale)
+    rej, why = rejection(residual, pol, rate, VIBRATION_HZ)
+    pol_band = jitter_pol.above() if jitter_pol is not None else None
+    for name, value, why_not in (
+        ("tt_jitter_mas", jitter_res, "run too short"),
+        ("tt_jitter_pol_mas", jitter_pol, "run too short"),
+        ("tt_jitter_pol_3hz_mas", pol_band, f"run too short to resolve {JITTER_EDGE_HZ:g} Hz"),
+        ("rejection_13hz", rej, why),
+    ):
+        if value is None:
+            missing.setdefault(name, why_not or "run too short")
 
-    def jitter(x):
-        return float(np.sqrt(np.mean(x.var(axis=0)))) if n >= 2 else None
+    def unless_missing(name, value):
+        return None if name in missing else value
 
     m = LoopMetrics(
         band=request.band,
-        strehl=psf.strehl if psf.frames else None,
-        tt_jitter_mas=jitter(res_tt),
-        tt_jitter_pol_mas=jitter(pol_tt),
-        tt_jitter_pol_3hz_mas=pol_band,
-        residual_nm=float(np.sqrt(np.mean(tm.residual_rms_nm[skip:] ** 2))) if n else None,
-        rejection_13hz=rej,
+        strehl=unless_missing("strehl", psf.strehl if psf.frames else None),
+        tt_jitter_mas=unless_missing("tt_jitter_mas", jitter_res.total if jitter_res else None),
+        tt_jitter_pol_mas=unless_missing("tt_jitter_pol_mas", jitter_pol.total if jitter_pol else None),
+        tt_jitter_pol_3hz_mas=unless_missing("tt_jitter_pol_3hz_mas", pol_band),
+        residual_nm=unless_missing("residual_nm", float(np.sqrt(np.mean(tm.residual_rms_nm[skip:] ** 2))) if n else None),
+        rejection_13hz=unless_missing("rejection_13hz", rej),
         frames=tm.frames,
         skipped_frames=skip,
+        jitter_resolution_hz=jitter_pol.resolution_hz if jitter_pol else None,
+        not_available=missing,
     )
+    spectra: dict = {"modal_variance_nm2": tm.residual_moments.variance}
+    if jitter_res is not None and jitter_pol is not None and "tt_jitter_mas" not in missing:
+        spectra |= {"residual": jitter_res, "pseudo_open_loop": jitter_pol}
     return m, spectra
 
 
@@ -271,18 +285,19 @@ def _prepare(loop: ClosedLoop, request: RunRequest, gains: LoopGains, cal: Calib
         gains = LoopGains.from_modes(initial, gains.forgetting)  # what the loop started with
         n_close = min(request.frames, closing_frames(request.observation.frame_rate_hz))
     if sink is not None and hasattr(sink, "describe"):
-        _describe(sink, request, cal, gains)
+        _describe(sink, request, cal, gains, 1.0 / loop.mas_per_nm_tt)
     return n_close, tasks, gains
 
 
-def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains) -> None:
+def _describe(sink, request: RunRequest, cal: Calibration, gains: LoopGains, nm_per_mas: float) -> None:
     """The loop's static description to the sink, before the first frame: rate, delay, modes,
     the configuration, the reconstructor and the modal basis."""
     obs = request.observation
     described = {"rate_hz": obs.frame_rate_hz, "delay_frames": obs.delay_frames, "n_modes": cal.basis.n_modes} | LBT_SYSTEM
     num, den = coefficient_rows(unit_loops(obs, request.structure, gains.forgetting, cal.basis.n_modes)[0])
     static = {"reconstructor": cal.reconstructor, "modes_to_commands": cal.basis.M, "controller_num": num, "controller_den": den}
-    sink.describe(described, run_configuration(request, gains), static)
+    configuration = run_configuration(request, gains) | {"tip_tilt_nm_per_mas": nm_per_mas}
+    sink.describe(described, configuration, static)
 
 
 def loop_calibration(request: RunRequest, cal: Calibration) -> Calibration:

@@ -12,6 +12,7 @@ import numpy as np
 from ..control.transfer import VIBRATION_HZ
 from ..loop.metrics import band_wavelength
 from ..optics.pupil import LBT_DIAMETER_M
+from ..telemetry.figures import RECORD_LABELS, mas_text
 from .transfer import save_figure
 
 if TYPE_CHECKING:  # matplotlib is imported when a figure is made: every command would pay ~0.3 s
@@ -46,20 +47,27 @@ def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: flo
     return fig
 
 
-def jitter_figure(f_hz: np.ndarray, residual_mas: np.ndarray, pol_mas: np.ndarray, title: str) -> Figure:
-    """Cumulative Tip/Tilt jitter from the highest frequency down (paper, Fig. of the on-sky
-    IIR tests): residual and pseudo-open loop, per axis."""
+def draw_jitter(ax, jitters: dict, labels: dict) -> None:
+    """Cumulative Tip/Tilt jitter per axis from each frequency to Nyquist (paper, Fig. of the
+    on-sky IIR tests), one curve per ``telemetry.figures.Jitter``; the legend gives each
+    curve's whole-band figure, as the tables print it."""
+    for i, (name, j) in enumerate(jitters.items()):
+        color = "0.35" if name == "pseudo_open_loop" else f"C{(i + 3) % 10}"
+        ax.semilogx(j.f_hz[1:], j.cumulative_mas[1:], color=color, label=f"{labels.get(name, name)}: {mas_text(j.total)} mas")
+    resolution = next(iter(jitters.values())).resolution_hz
+    ax.set_ylabel("cumulative Tip/Tilt jitter per axis [mas]")
+    ax.set_xlabel(f"frequency [Hz] ({resolution:.3g} Hz bins; legend: from 0 Hz)")
+    ax.legend(fontsize=8)
+
+
+def jitter_figure(jitters: dict, title: str) -> Figure:
+    """``draw_jitter`` of a run's residual and pseudo-open loop, the 13 Hz line marked."""
     fig = new_figure()
     ax = fig.subplots()
-    keep = f_hz > 0
-    ax.semilogx(f_hz[keep], pol_mas[keep], label=f"pseudo-open loop ({pol_mas[1]:.1f} mas)", color="0.35")
-    ax.semilogx(f_hz[keep], residual_mas[keep], label=f"residual ({residual_mas[1]:.1f} mas)", color="C3")
+    draw_jitter(ax, jitters, RECORD_LABELS)
     ax.axvline(VIBRATION_HZ, color="0.6", linestyle=":", linewidth=1)
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("cumulative Tip/Tilt jitter [mas]")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=9)
     return fig
 
 
@@ -89,9 +97,9 @@ def write_loop_figures(directory: Path, result) -> list[Path]:
     figures = [("modal_variance.png", modal_variance_figure(result.spectra["modal_variance_nm2"], f"Modal residual variance, {label}"))]
     if m.strehl is not None:
         figures.append(("psf.png", psf_figure(result.psf, r.band, m.strehl, lod_mas)))
-    if "f_hz" in result.spectra:
-        s = result.spectra
-        figures.append(("jitter.png", jitter_figure(s["f_hz"], s["residual_mas"], s["pseudo_open_loop_mas"], f"Tip/Tilt jitter, {label}")))
+    if "residual" in result.spectra:
+        jitters = {"pseudo_open_loop": result.spectra["pseudo_open_loop"], "residual_modes": result.spectra["residual"]}
+        figures.append(("jitter.png", jitter_figure(jitters, f"Tip/Tilt jitter, {label}")))
     for name, fig in figures:
         path = directory / name
         save_figure(fig, path)

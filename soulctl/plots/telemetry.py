@@ -8,16 +8,17 @@ from pathlib import Path
 import numpy as np
 
 from ..control.mgm import unit_open_loops
-from .loop import new_figure
+from ..telemetry.figures import RECORD_LABELS
+from .loop import draw_jitter, new_figure
 from .transfer import save_figure
 
-LABELS = {"measured_modes": "measured (R s)", "command_modes": "commands (M^-1 c)", "pseudo_open_loop": "pseudo-open loop"}
+LABELS = RECORD_LABELS
 
 
 def write_psd_figure(path: Path, s, title: str) -> None:
     """PSDs of each record and mode (top), cumulative Tip/Tilt jitter per axis (bottom)."""
-    fig = new_figure((6.4, 7.2) if s.tt_cumulative_mas else (6.4, 4.4))
-    axes = fig.subplots(2 if s.tt_cumulative_mas else 1, 1, sharex=True, squeeze=False)[:, 0]
+    fig = new_figure((6.4, 7.2) if s.jitter else (6.4, 4.4))
+    axes = fig.subplots(2 if s.jitter else 1, 1, sharex=True, squeeze=False)[:, 0]
     f = s.f_hz[1:]
     for i, (name, p) in enumerate(s.psd.items()):
         for j, mode in enumerate(s.modes):
@@ -27,12 +28,9 @@ def write_psd_figure(path: Path, s, title: str) -> None:
     axes[0].set_ylabel("PSD [nm²/Hz]")
     axes[0].set_title(title, fontsize=9)
     axes[0].legend(fontsize=7)
-    if s.tt_cumulative_mas:
-        for i, (name, c) in enumerate(s.tt_cumulative_mas.items()):
-            axes[1].semilogx(f, c[1:], color=f"C{i}", label=LABELS.get(name, name))
-        axes[1].set_ylabel("cumulative Tip/Tilt jitter per axis [mas]")
-        axes[1].legend(fontsize=8)
     axes[-1].set_xlabel("frequency [Hz]")
+    if s.jitter:
+        draw_jitter(axes[1], s.jitter, LABELS)
     for ax in axes:
         ax.grid(True, which="both", alpha=0.25)
     save_figure(fig, path)

@@ -11,8 +11,8 @@ from scipy.signal import welch
 
 from ..control.mgm import noise_floor
 from ..errors import InputError
-from ..loop.metrics import pseudo_open_loop
 from ..optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, Pupil
+from .figures import JITTER_EDGE_HZ, RESOLUTION_HZ, pseudo_open_loop, tip_tilt_jitter
 from .schema import DATASETS, TelemetryReader, nested
 
 TIP_TILT = (1, 2)  # 1-based modes
@@ -74,13 +74,15 @@ def inspect(tm: TelemetryReader, kind: str) -> dict:
 
 @dataclass(frozen=True)
 class ModalSpectra:
-    """Welch PSDs (nm^2/Hz) of the chosen modes' records, each record's white noise floor per
-    mode, the cumulative Tip/Tilt jitter and what the record does not resolve (``warnings``)."""
+    """Over the record's window: Welch PSDs (nm^2/Hz) of the chosen modes' records, each
+    record's white noise floor per mode, the Tip/Tilt jitter of each record (``figures``: the
+    definition `loop run` reports) and what the record does not resolve (``warnings``)."""
 
     f_hz: np.ndarray
     modes: tuple[int, ...]  # 1-based
     psd: dict  # record -> (n_modes, n_freq)
-    tt_cumulative_mas: dict  # record -> cumulative jitter per axis RMS from f to Nyquist (mas)
+    jitter: dict  # record -> figures.Jitter (with modes 1 and 2)
+    window: tuple[int, int]  # the rows analysed: [first, stop)
     floor: dict = field(default_factory=dict)  # record -> (n_modes,) white noise floor, nm^2/Hz (``control.mgm.noise_floor``)
     nm_per_mas: float = 1.0  # the record's pupil's Tip/Tilt scale
     warnings: tuple[str, ...] = ()
@@ -88,31 +90,24 @@ class ModalSpectra:
 
     def tip_tilt_jitter(self) -> dict:
         """Per record, the Tip/Tilt jitter per axis (mas) over the whole band and above
-        JITTER_EDGE_HZ, as measured and with the white noise floor removed, and the floor's
-        share; None above the edge when the resolution does not resolve it."""
+        JITTER_EDGE_HZ (``figures.Jitter``), as measured and with the white noise floor
+        removed, and the floor's share; None above the edge when the window does not resolve it."""
         out = {}
-        df = self.f_hz[1] - self.f_hz[0]
-        edge = self.f_hz >= JITTER_EDGE_HZ if df <= JITTER_EDGE_HZ else None
-        for name, p in self.psd.items():
-            if name not in self.tt_cumulative_mas:
-                continue
-            tt = p[[self.modes.index(1), self.modes.index(2)]].mean(axis=0)
+        for name, j in self.jitter.items():
             floor = float(self.floor[name][[self.modes.index(1), self.modes.index(2)]].mean())
-            row: dict[str, float | None] = {}
-            for label, band in (("all", np.ones(tt.shape, dtype=bool)), ("above_3hz", edge)):
-                if band is None:
+            nyquist = j.f_hz[-1] + j.resolution_hz / 2
+            row: dict[str, float | None] = {"resolution_hz": j.resolution_hz}
+            for label, value, start in (("all", j.total, 0.0), ("above_3hz", j.above(), JITTER_EDGE_HZ)):
+                if value is None:
                     row |= {label: None, f"{label}_floor_removed": None, f"{label}_noise_floor": None}
                     continue
-                variance, noise = float(tt[band].sum() * df), floor * float(band.sum()) * df
-                row[label] = math.sqrt(variance) / self.nm_per_mas
-                row[f"{label}_floor_removed"] = math.sqrt(max(variance - noise, 0.0)) / self.nm_per_mas
-                row[f"{label}_noise_floor"] = math.sqrt(noise) / self.nm_per_mas
+                first = float(j.f_hz[int(np.searchsorted(j.f_hz, start))]) if start else 0.0
+                noise = floor * (nyquist - first) / self.nm_per_mas**2
+                row[label] = value
+                row[f"{label}_floor_removed"] = math.sqrt(max(value**2 - noise, 0.0))
+                row[f"{label}_noise_floor"] = math.sqrt(noise)
             out[name] = row
         return out
-
-
-JITTER_EDGE_HZ = 3.0  # the paper's jitter "above 3 Hz"
-RESOLUTION_HZ = 1.0  # the spectra's resolution where the record allows
 
 
 PUPIL_PIXELS = 160  # the Tip/Tilt scale's pupil sampling (within 0.1 % of the continuous pupil's)
@@ -132,6 +127,9 @@ def nm_per_mas_of(tm: TelemetryReader) -> tuple[float, str | None]:
     states no telescope, LBT's: a soulctl record's (written before records stated it), or
     another system's with a note saying so."""
     diameter = tm.attribute("telescope_diameter_m", None)
+    simulated = nested(tm.configuration(), "tip_tilt_nm_per_mas", number=True) if tm.has("configuration") else None
+    if simulated is not None and simulated > 0:  # a soulctl run's: the scale of its own sampled pupil
+        return float(simulated), None
     if diameter is None and (tm.has("soulctl_version") or tm.has("configuration")):
         return nm_per_mas_tip_tilt(), None
     if diameter is None or diameter <= 0:
@@ -140,9 +138,10 @@ def nm_per_mas_of(tm: TelemetryReader) -> tuple[float, str | None]:
 
 
 def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, delay_frames: float | None = None) -> ModalSpectra:
-    """PSDs of measured (R s), command (M^-1 c) and, with ``pseudo_open``, pseudo-open-loop
-    modes (the delay given, else the record's); the rows must be consecutive frames (no
-    decimation, no gap)."""
+    """PSDs of measured (R s), command (M^-1 c), the simulation's true residual (where the
+    record holds it) and, with ``pseudo_open``, pseudo-open-loop modes (the delay given, else
+    the record's), over the record's window (``record_window``); the rows must be consecutive
+    frames (no decimation, no gap)."""
     rate = tm.attribute("rate_hz")
     decimation, gaps, _ = frame_steps(tm)
     if decimation or gaps:
@@ -151,7 +150,9 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, dela
     bad = [m for m in modes if not 1 <= m <= n_modes]
     if bad:
         raise InputError(f"--modes: mode {bad[0]} is not in 1..{n_modes} (the record's modes)")
-    records = {name: _columns(tm, name, modes) for name in ("measured_modes", "command_modes") if tm.has(name)}
+    first, stop = record_window(tm)
+    names = ("measured_modes", "command_modes", "residual_modes")
+    records = {name: _columns(tm, name, modes, stop) for name in names if tm.has(name)}
     if pseudo_open:
         missing = [n for n in ("measured_modes", "command_modes") if n not in records]
         if missing:
@@ -162,20 +163,36 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, dela
         records["pseudo_open_loop"] = pseudo_open_loop(records["measured_modes"], records["command_modes"], delay)
     if not records:
         raise InputError(f"telemetry file {tm.path} lacks measured_modes and command_modes: nothing to analyse")
+    records = {name: x[first:] for name, x in records.items()}
     frames = next(iter(records.values())).shape[0]
     if frames < 16:
-        raise InputError(f"telemetry file {tm.path} holds {frames} frames: PSDs need at least 16")
+        raise InputError(f"telemetry file {tm.path} holds {frames} frames in its window: PSDs need at least 16")
     # ~1 Hz resolution where the record allows, else segments of half the record (3 averages)
     nperseg = min(2 ** int(np.ceil(np.log2(rate / RESOLUTION_HZ))), 2 ** int(np.log2(frames / 2)))
     scale, note = nm_per_mas_of(tm)
-    psd, cumulative, floor = {}, {}, {}
+    psd, jitter, floor = {}, {}, {}
     for name, x in records.items():
         f, p = welch(x, fs=rate, nperseg=nperseg, axis=0, detrend="constant")
         psd[name], floor[name] = p.T, noise_floor(p.T, f, rate)
         if all(m in modes for m in TIP_TILT):
-            tt = p[:, [modes.index(1), modes.index(2)]].mean(axis=1)  # per axis
-            cumulative[name] = np.sqrt(np.cumsum(tt[::-1])[::-1] * (f[1] - f[0])) / scale
-    return ModalSpectra(f, modes, psd, cumulative, floor, scale, _resolution_warnings(frames, rate, f[1] - f[0]), (note,) if note else ())
+            j = tip_tilt_jitter(x[:, [modes.index(1), modes.index(2)]], rate, scale)
+            if j is not None:
+                jitter[name] = j
+    resolution = next(iter(jitter.values())).resolution_hz if jitter else f[1] - f[0]
+    warnings = _resolution_warnings(frames, rate, resolution)
+    return ModalSpectra(f, modes, psd, jitter, (first, first + frames), floor, scale, warnings, (note,) if note else ())
+
+
+def record_window(tm: TelemetryReader) -> tuple[int, int]:
+    """The rows [first, stop) whose figures a record gives: after the frames its run left out
+    while the loop closed (a soulctl run's ``skipped_frames``; none for another system's
+    record), up to the frame its loop diverged at (after it they hold anything)."""
+    frames = tm.dim("frames")
+    diverged = tm.attribute("diverged_at", -1)
+    stop = frames if diverged < 0 else min(diverged, frames)
+    skipped = nested(tm.configuration(), "skipped_frames", number=True)
+    first = int(skipped) if skipped is not None and 0 <= skipped < stop else 0
+    return first, stop
 
 
 def _resolution_warnings(frames: int, rate: float, df: float) -> tuple[str, ...]:
@@ -191,8 +208,6 @@ def _resolution_warnings(frames: int, rate: float, df: float) -> tuple[str, ...]
     return tuple(out)
 
 
-def _columns(tm: TelemetryReader, name: str, modes: tuple[int, ...]) -> np.ndarray:
-    """The modes' columns, up to the frame the loop diverged at (after it they hold anything)."""
-    diverged = tm.attribute("diverged_at", -1)
-    rows = slice(None) if diverged < 0 else slice(0, diverged)
-    return np.column_stack([tm.read(name, rows, slice(m - 1, m)) for m in modes]).astype(float)
+def _columns(tm: TelemetryReader, name: str, modes: tuple[int, ...], stop: int) -> np.ndarray:
+    """The modes' columns of the rows before ``stop``."""
+    return np.column_stack([tm.read(name, slice(0, stop), slice(m - 1, m)) for m in modes]).astype(float)

@@ -136,18 +136,8 @@ def no_new_files(folder: Path, before: set) -> list:
     return sorted(p.name for p in folder.iterdir() if p.name not in before)
 
 
-@pytest.mark.parametrize("failure, status", [(RuntimeError("a late bug"), 1), ("input", 2)])
-def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, monkeypatch):
-    """The telemetry is written, then the figures fail: nothing lands, no temporary stays."""
-    from soulctl.cli import loop as loop_cli
-    from soulctl.errors import InputError
-
-    def fail(*_):
-        raise InputError("the figures could not be made") if failure == "input" else failure
-
-    monkeypatch.setattr(loop_cli, "write_loop_figures", fail)
-    before = set(os.listdir(tmp_path))
-    args = [
+def _short_loop(tmp_path: Path, plot: Path) -> list:
+    return [
         "loop",
         "run",
         "--mag",
@@ -158,10 +148,34 @@ def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, m
         "--telemetry",
         tmp_path / "ok.h5",
         "--plot",
-        tmp_path,
+        plot,
         "--cache-dir",
         tmp_path / "cache",
     ]
+
+
+def test_a_plot_folder_is_created_with_its_parents(tmp_path, capsys):
+    from soulctl.plots.loop import LOOP_FIGURES
+
+    plot = tmp_path / "figures" / "run1"
+    status, _, err = run(_short_loop(tmp_path, plot), capsys)
+    assert status == 0, err
+    assert sorted(p.name for p in plot.iterdir()) == sorted(LOOP_FIGURES)
+
+
+@pytest.mark.parametrize("failure, status", [(RuntimeError("a late bug"), 1), ("input", 2)])
+def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, monkeypatch):
+    """The telemetry is written, then the figures fail: nothing lands, no temporary stays, and
+    the folder made for the figures is gone again."""
+    from soulctl.cli import loop as loop_cli
+    from soulctl.errors import InputError
+
+    def fail(*_):
+        raise InputError("the figures could not be made") if failure == "input" else failure
+
+    monkeypatch.setattr(loop_cli, "write_loop_figures", fail)
+    before = set(os.listdir(tmp_path))
+    args = _short_loop(tmp_path, tmp_path / "figures" / "run1")
     if status == 1:
         with pytest.raises(RuntimeError):
             main([str(a) for a in args])

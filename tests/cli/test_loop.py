@@ -108,7 +108,7 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--mag", "16.5", "--tt-control", "iir"], "no IIR filter at 250 Hz"),
         (["--config", "missing.toml"], "run description not found"),
         (["--mag", "12", "--config", "x.toml"], "either --config or --mag"),
-        (["--plot", "no/such/dir"], "--plot must be an existing folder"),
+        (["--plot", "/dev/null/out"], "--plot must be a folder"),
         (["--misregistration", "0.3"], "--misregistration takes DX,DY[,ROT[,MAG]]"),
         (["--misregistration", "0.3,0,1,1,1"], "--misregistration takes DX,DY[,ROT[,MAG]]"),
         (["--misregistration", "3,0"], "--misregistration shift_x_pitch must be in -2..2 actuator pitches"),

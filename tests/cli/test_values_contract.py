@@ -254,7 +254,28 @@ def test_a_run_too_short_for_a_metric_reports_it_as_not_available(capsys, cache_
     m = json.loads(out, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))["metrics"]
     assert m["tt_jitter_mas"] is None and m["tt_jitter_pol_3hz_mas"] is None and m["rejection_13hz"] is None
     status, out, err = run(["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.0001"], capsys, cache_dir)
-    assert "n/a (run too short)" in out and "nan" not in out and "0.00 mas" not in out
+    assert "n/a (loop not settled" in out and "nan" not in out and "0.00 mas" not in out
+
+
+def test_a_loop_that_has_not_settled_has_no_closed_loop_figures(capsys, cache_dir):
+    """10 frames at 250 Hz: the metrics would start 5 frames in, before the 10 frames the loop
+    needs to close (a Strehl ratio of 0.02 there, the loop's is ~0.1); 20 frames settle it."""
+    args = ["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.039", "--json"]
+    status, out, err = run(args, capsys, cache_dir)
+    assert status == 0, err
+    m = json.loads(out)["metrics"]
+    assert m["strehl"] is None and m["residual_nm"] is None and "loop not settled" in m["not_available"]["strehl"]
+    status, out, err = run([*args[:-2], "0.08", "--json"], capsys, cache_dir)
+    assert json.loads(out)["metrics"]["strehl"] is not None
+
+
+def test_no_line_no_rejection(capsys, cache_dir):
+    """Without vibrations there is no 13 Hz line: the rejection is not a figure of the run."""
+    args = ["loop", "run", "--mag", "14.51", *CHEAP_PYRAMID, "--duration", "1", "--no-vibrations", "--json"]
+    status, out, err = run(args, capsys, cache_dir)
+    assert status == 0, err
+    m = json.loads(out)["metrics"]
+    assert m["rejection_13hz"] is None and "no line at 13 Hz" in m["not_available"]["rejection_13hz"]
 
 
 def test_unicode_digits_are_the_same_digits(capsys):

@@ -6,9 +6,10 @@ import pytest
 
 from soulctl.errors import InputError
 from soulctl.loop.delay_line import DelayLine
-from soulctl.loop.metrics import PsfAccumulator, band_wavelength, cumulative_spectrum, pseudo_open_loop, rejection_at
+from soulctl.loop.metrics import PsfAccumulator, band_wavelength
 from soulctl.optics.atmosphere import fft_phase_screen
 from soulctl.optics.pupil import Pupil
+from soulctl.telemetry.figures import pseudo_open_loop, rejection, tip_tilt_jitter
 
 
 def test_flat_wavefront_has_unit_strehl():
@@ -34,14 +35,39 @@ def test_strehl_of_a_small_random_aberration_is_marechal(sigma_rad):
     assert acc.strehl == pytest.approx(np.exp(-(sigma_rad**2)), rel=0.03)
 
 
-def test_cumulative_spectrum_and_rejection_of_a_sinusoid():
+def test_jitter_and_rejection_of_a_sinusoid():
     rate = 1000.0
     t = np.arange(8192) / rate
     x = 10.0 * np.sin(2 * np.pi * 13.0 * t)
-    f, cum = cumulative_spectrum(x, rate)
-    assert cum[f < 10].min() == pytest.approx(10 / np.sqrt(2), rel=0.02)  # all of it below 13 Hz
-    assert cum[f > 20].max() < 0.1
-    assert rejection_at(0.3 * x + 0.01 * np.sin(2 * np.pi * 80 * t), x, rate, 13.0) == pytest.approx(0.3, rel=0.01)
+    xy = np.column_stack([x, x])
+    j = tip_tilt_jitter(xy, rate, 1.0)
+    assert j.resolution_hz <= 1.0
+    assert j.total == pytest.approx(10 / np.sqrt(2), rel=0.02)  # all of it below 13 Hz
+    assert j.above(3.0) == pytest.approx(j.total, rel=1e-3)
+    assert j.cumulative_mas[j.f_hz > 20].max() < 0.1
+    other = 0.01 * np.sin(2 * np.pi * 80 * t)
+    value, why = rejection(np.column_stack([0.3 * x + other] * 2), xy, rate, 13.0)
+    assert why is None and value == pytest.approx(0.3, rel=0.01)
+
+
+def test_jitter_of_white_noise_is_its_rms_and_a_continuum_has_no_rejection():
+    rate = 1700.0
+    xy = np.random.default_rng(3).normal(0.0, 5.0, (1700, 2))
+    j = tip_tilt_jitter(xy, rate, 2.0)
+    assert j.total == pytest.approx(5.0 / 2.0, rel=0.05)
+    assert j.above(3.0) == pytest.approx(j.total * np.sqrt(1 - 3.0 / 850), rel=0.05)
+    value, why = rejection(xy * 0.5, xy, rate, 13.0)
+    assert value is None and "no line at 13 Hz" in why
+
+
+def test_a_short_window_states_its_resolution_and_leaves_out_what_it_cannot_resolve():
+    rate = 1700.0
+    xy = np.random.default_rng(4).normal(0.0, 1.0, (272, 2))
+    j = tip_tilt_jitter(xy, rate, 1.0)
+    assert j.resolution_hz == pytest.approx(rate / 272)
+    assert j.above(3.0) is None
+    assert rejection(xy, xy, rate, 13.0) == (None, "run too short: 6.25 Hz bins (needs 5 Hz or finer)")
+    assert tip_tilt_jitter(xy[:3], rate, 1.0) is None
 
 
 @pytest.mark.parametrize("d", [1.0, 2.51, 3.57])

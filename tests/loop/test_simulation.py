@@ -13,13 +13,13 @@ from soulctl.control.gains import LoopGains
 from soulctl.control.structure import StructuralResonance
 from soulctl.control.transfer import Loop, Plant
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
-from soulctl.loop.metrics import pseudo_open_loop
 from soulctl.loop.simulation import ClosedLoop as _ClosedLoop
 from soulctl.loop.simulation import LoopDiverged
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig
+from soulctl.telemetry.figures import pseudo_open_loop
 from soulctl.telemetry.recorder import MemorySink
 
 
