@@ -5,15 +5,9 @@ import subprocess
 import sys
 
 import pytest
+from cli_run import run
 
-from soulctl.cli.app import main
 from soulctl.observation import Observation
-
-
-def run(args, capsys):
-    status = main(args)
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 def test_json_is_one_object_with_the_configuration(capsys):

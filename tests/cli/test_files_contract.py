@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 from cheap import CHEAP_PYRAMID
+from cli_run import run
 
 from soulctl.cli.app import main
 
@@ -30,12 +31,6 @@ WRITERS = [
     (["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID], "--telemetry"),
     (["optimize", "gains", "--mag", "16.5", *CHEAP_PYRAMID], "--out"),
 ]
-
-
-def run(args, capsys):
-    status = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 def suffix(option: str, args: list) -> str:

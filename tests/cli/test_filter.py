@@ -4,15 +4,7 @@ import json
 
 import numpy as np
 import pytest
-
-from soulctl.cli.app import main
-
-
-def run(args, capsys):
-    status = main(args)
-    out, err = capsys.readouterr()
-    return status, out, err
-
+from cli_run import run
 
 PAPER_FIGURE = [
     "filter",

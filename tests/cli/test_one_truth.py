@@ -10,8 +10,8 @@ import re
 
 import pytest
 from cheap import CHEAP_PYRAMID
+from cli_run import run
 
-from soulctl.cli.app import main
 from soulctl.telemetry.figures import mas_text
 
 RUNS = {
@@ -22,8 +22,7 @@ RUNS = {
 
 
 def _run(argv, capsys) -> str:
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
+    status, out, err = run(argv, capsys)
     assert status == 0, err
     return out
 

@@ -5,18 +5,12 @@ import json
 import numpy as np
 import pytest
 from cheap import CHEAP_PYRAMID
+from cli_run import run
 
-from soulctl.cli.app import main
 from soulctl.optics.atmosphere import tilt_variance_rad2
 from soulctl.run_config import RunConfig
 
 SMALL = ["--binning", "4", "--modes", "20", *CHEAP_PYRAMID]
-
-
-def run(args, capsys):
-    status = main(args)
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 def test_atmosphere_json_against_the_seeing_relations(capsys):

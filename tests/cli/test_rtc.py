@@ -8,8 +8,8 @@ import h5py
 import numpy as np
 import pytest
 from astropy.io import fits
+from cli_run import run as _run
 
-from soulctl.cli.app import main
 from soulctl.control.gains import LoopGains, mode_filters
 from soulctl.control.rtc import build_rtc
 from soulctl.observation import Observation
@@ -25,12 +25,6 @@ def _observation() -> Observation:
 
 def _gains(obs, tt=0.5, mid=0.4, high=0.3) -> np.ndarray:
     return LoopGains(tt, mid, high).per_mode(obs.modes)
-
-
-def _run(args, capsys):
-    status = main(args)
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 def test_gain_file_safe_and_unsafe(tmp_path, capsys):

@@ -8,10 +8,10 @@ import json
 import aotpy
 import numpy as np
 import pytest
+from cli_run import run
 from foreign_records import LOW_PASS, RATE, modal_loop, tip_tilt_loop, write_aot
 from scipy.signal import lfilter
 
-from soulctl.cli.app import main
 from soulctl.identify.identify import identify
 from soulctl.identify.plant import read_plant
 from soulctl.loop.offline import PlantInputs, offline_mgm
@@ -19,12 +19,6 @@ from soulctl.loop.recorded import checked_rate
 from soulctl.telemetry.formats import open_telemetry
 
 KECK_LIKE = (np.array([1.0]), np.array([1.0, -0.6, -0.32, -0.08]))  # an integrator times 1 / (1 + 0.4 z^-1 + 0.08 z^-2)
-
-
-def run(argv, capsys):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 @pytest.fixture(scope="module")

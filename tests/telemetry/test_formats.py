@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from cheap import CHEAP_PYRAMID
+from cli_run import run
 
 from soulctl.cli.app import main
 from soulctl.loop.offline import recorded_run
@@ -20,12 +21,6 @@ from soulctl.telemetry.formats import open_telemetry, read_record, write_record
 
 # test_offline_mgm's small loop: 54 modes at 407 Hz on a 40-px pupil, with an R11 star's flux
 OBS = dataclasses.replace(observation_for_magnitude(17), magnitude_r=11.0)
-
-
-def run(argv, capsys):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 @pytest.fixture(scope="module")

@@ -8,19 +8,13 @@ import json
 import numpy as np
 import pytest
 from astropy.io import fits
+from cli_run import run
 from idl_save import write_sav
 from lbt_layout import FLAO_DELAY_FRAMES, SOUL_DELAY_FRAMES, wfs_cards, write_header_only, write_real_folder
 from scipy.io import readsav
 
-from soulctl.cli.app import main
 from soulctl.telemetry.formats import open_telemetry, read_record
 from soulctl.telemetry.lbt import elab_lib_delay_s
-
-
-def run(argv, capsys):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 @pytest.fixture(scope="module")

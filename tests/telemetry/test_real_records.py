@@ -10,18 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run
 
-from soulctl.cli.app import main
 from soulctl.telemetry.formats import read_record
 
 REAL = Path(__file__).resolve().parents[1] / "data" / "real"
 MAS_PER_ARCSEC = 1000.0
-
-
-def run(argv, capsys):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 @pytest.fixture(scope="module")
