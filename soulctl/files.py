@@ -158,8 +158,9 @@ def check_output_folder(path: str | Path, option: str, files: Iterable[str] = ()
 
 
 def _create_folder(folder: Path, option: str, path) -> None:
-    missing = [folder, *(parent for parent in folder.parents if not parent.is_dir())]
-    missing = missing[: next((i for i, f in enumerate(missing) if f.parent.is_dir()), len(missing)) + 1]
+    missing = [folder]  # the folder and its missing parents, up to one that is a folder
+    while not missing[-1].parent.is_dir() and missing[-1].parent != missing[-1]:
+        missing.append(missing[-1].parent)
     existing = missing[-1].parent
     if os.path.lexists(missing[-1]) or (str(existing) and not existing.is_dir()):
         raise InputError(f"{option} must be a folder, got {path} (a file or link is in its place)")

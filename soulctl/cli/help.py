@@ -28,8 +28,8 @@ _PANEL_OPTIONS = {
     "Output": "--telemetry --telemetry-fields --telemetry-every --plot --print-config --json --out",
 }
 PANELS = {option: panel for panel, options in _PANEL_OPTIONS.items() for option in options.split()}
-_MIN_OPTIONS_FOR_PANELS = 12
-_METAVARS = {"int": "N", "float": "X", "Path": "PATH", "str": "TEXT"}  # a shorter command reads in one panel
+_MIN_OPTIONS_FOR_PANELS = 12  # a shorter command reads in one panel
+_METAVARS = {"int": "N", "float": "X", "Path": "PATH", "str": "TEXT"}  # a value's name by its type
 
 
 def polish(command) -> None:
