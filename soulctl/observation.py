@@ -23,7 +23,7 @@ from .control.transfer import check_stabilisable
 from .errors import InputError
 from .files import atomic_write_text, read_toml
 from .optics.photometry import WfsPhotometry
-from .ranges import DELAY_FRAMES, FRAME_RATE_HZ, MODES, MODULATION_LAMBDA_OVER_D, ROOT_MODULUS, ZERO_POINT_PH_S, number_text
+from .ranges import DELAY_FRAMES, DESIGNED_GAIN, FRAME_RATE_HZ, MODES, MODULATION_LAMBDA_OVER_D, ROOT_MODULUS, ZERO_POINT_PH_S, number_text
 
 TT_CONTROLS = ("iir", "int")
 BINNINGS = {1: 40, 2: 20, 3: 13, 4: 10}  # binning -> sub-apertures across the pupil (paper, Tab. params)
@@ -97,6 +97,7 @@ class Observation:
     tt_filter_rate_hz: float | None = None  # rate of the roots-table row used, for provenance
     tt_zeros: tuple[float, ...] = ()
     tt_poles: tuple[float, ...] = ()
+    tt_gain: float | None = None  # the IIR's designed gain (a designed roots table); None: the paper's 0.69 rule
     delay_model: DelayModel = field(default_factory=DelayModel.from_table)
     photometry: WfsPhotometry = field(default_factory=WfsPhotometry.from_table)
 
@@ -132,6 +133,9 @@ class Observation:
                 f"tt_poles must be finite and in -1..1, got {list(self.tt_poles)}",
             )
             check_stabilisable(Filter.iir(self.tt_zeros, self.tt_poles, 1.0), d, self.frame_rate_hz, "the Tip/Tilt IIR filter")
+        if self.tt_gain is not None:
+            _require(self.tt_control == "iir", "tt_gain is the gain of a designed IIR: give it with tt_control 'iir'")
+            DESIGNED_GAIN.check(self.tt_gain, "tt_gain")
 
     # Derived quantities: computed, never stored.
     @property
@@ -180,6 +184,8 @@ class Observation:
                 tt_zeros=list(self.tt_zeros),
                 tt_poles=list(self.tt_poles),
             )
+            if self.tt_gain is not None:
+                d["control"]["tt_gain"] = self.tt_gain
         return d
 
     @classmethod
@@ -214,6 +220,7 @@ class Observation:
                 tt_filter_rate_hz=_number(control, "tt_filter_rate_hz", "control") if rate is not None else None,
                 tt_zeros=_numbers(control, "tt_zeros", "control"),
                 tt_poles=_numbers(control, "tt_poles", "control"),
+                tt_gain=_number(control, "tt_gain", "control") if "tt_gain" in control else None,
                 delay_model=delay_model,
                 photometry=phot,
             )
@@ -263,4 +270,5 @@ def observation_for_magnitude(
         tt_filter_rate_hz=roots.frame_rate_hz if roots else None,
         tt_zeros=roots.zeros if roots else (),
         tt_poles=roots.poles if roots else (),
+        tt_gain=roots.gain if roots else None,
     )

@@ -114,6 +114,7 @@ OVERSAMPLING = Range(1, 4, integer=True)
 WFS_FIELD_OF_VIEW_ARCSEC = Range(0.0, 4.0, "arcsec")  # the pyramid's simulated field (0: as sampled, no stop)
 SEED = Range(0, 2**63 - 1, integer=True)  # numpy's generators take non-negative seeds
 LOOP_GAIN = Range(0.0, 10.0)  # a modal gain of the RTC (the stability check comes after)
+DESIGNED_GAIN = Range(0.0, 10.0, lo_open=True)  # a roots table's gain column (filter design --out)
 FORGETTING = Range(0.0, 1.0)  # of the leaky integrators
 FRACTION = Range(0.0, 1.0)  # optics gains --controlled-fraction
 SCREENS = Range(1, 64, integer=True)  # optics gains --screens (~10 s each at 40x40, 500 modes)

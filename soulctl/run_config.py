@@ -11,6 +11,7 @@ look-up table's value for its star, else ``soulctl.defaults``:
                   modulation_lambda_over_d           modes takes the table's modes, a frame rate
     [control]     modes, tt_control, tt_zeros,       without roots the Tip/Tilt IIR of the nearest
                   tt_poles, tt_filter_rate_hz,       tabulated rate (an integrator below 750 Hz)
+                  tt_gain (a designed IIR's gain, the Tip/Tilt default when gains are not given),
                   gains (TT, 3-120, 121-last) or mode_gains (one per mode), forgetting,
                   allow_unstable
     [delay]       t_readout_ms, t_computation_ms, t_asm_ms, or frames (the total, explicitly)
@@ -87,7 +88,7 @@ REGISTRATION_KEYS = ("shift_x_pitch", "shift_y_pitch", "rotation_deg", "magnific
 KEYS: dict[str, tuple[str, ...] | None] = {
     "star": ("magnitude_r",),
     "wfs": ("binning", "frame_rate_hz", "modulation_lambda_over_d"),
-    "control": ("modes", "tt_control", "tt_filter_rate_hz", "tt_zeros", "tt_poles", *CONTROLLER_KEYS),
+    "control": ("modes", "tt_control", "tt_filter_rate_hz", "tt_zeros", "tt_poles", "tt_gain", *CONTROLLER_KEYS),
     "delay": ("t_readout_ms", "t_computation_ms", "t_asm_ms", "frames"),
     "photometry": ("zero_point_ph_s_per_subaperture",),
     "derived": None,  # informational, recomputed
@@ -104,7 +105,7 @@ KEYS: dict[str, tuple[str, ...] | None] = {
 }
 # What an override makes stale (re-derived unless given too); "section.*": the section's keys
 # but the controller's.
-_TT_FILTER = ("control.tt_control", "control.tt_zeros", "control.tt_poles", "control.tt_filter_rate_hz")
+_TT_FILTER = ("control.tt_control", "control.tt_zeros", "control.tt_poles", "control.tt_filter_rate_hz", "control.tt_gain")
 STALE = {
     "star.magnitude_r": (*(f"{s}.*" for s in OBSERVATION_SECTIONS), "control.mode_gains"),
     "wfs.binning": ("control.modes", "control.mode_gains"),
@@ -463,7 +464,7 @@ def _observation(data: dict) -> Observation:
     merged["control"] = {k: v for k, v in merged["control"].items() if k not in CONTROLLER_KEYS}
     c = merged["control"]
     if c.get("tt_control") == "int":
-        for k in ("tt_zeros", "tt_poles", "tt_filter_rate_hz"):
+        for k in ("tt_zeros", "tt_poles", "tt_filter_rate_hz", "tt_gain"):
             c.pop(k, None)
     elif c.get("tt_control") == "iir" and not c.get("tt_zeros"):
         raise InputError(f"control.tt_control 'iir': the roots table has no IIR filter at {merged['wfs']['frame_rate_hz']:g} Hz")

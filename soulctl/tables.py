@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .errors import InputError
 from .files import read_input_text
-from .ranges import FRAME_RATE_HZ, ROOT_MODULUS, ROOTS_RATE_TOLERANCE
+from .ranges import DESIGNED_GAIN, FRAME_RATE_HZ, ROOT_MODULUS, ROOTS_RATE_TOLERANCE
 
 
 def tables_dir() -> Path:
@@ -74,6 +74,7 @@ class IIRRoots:
     frame_rate_hz: float
     zeros: tuple[float, ...]
     poles: tuple[float, ...]
+    gain: float | None = None  # the gain designed with the filter (a designed table's gain column)
 
 
 MAGNITUDE_SOURCE = "Agapito et al. 2021, Tab. 'Summary of SOUL parameters'"
@@ -112,6 +113,7 @@ def band_for_magnitude(magnitude: float, bands: tuple[MagnitudeBand, ...]) -> Ma
 
 
 ROOT_COLUMNS = ("frame_rate_hz", *(f"zero{k}" for k in range(1, 5)), *(f"pole{k}" for k in range(1, 5)))
+GAIN_COLUMN = "gain"  # optional: the paper's table has none, a designed table (filter design --out) has it
 
 
 def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]:
@@ -137,11 +139,25 @@ def _parse_roots(rows: list[dict[str, str]], where: str) -> tuple[IIRRoots, ...]
             raise InputError(f"{where}: row {i + 1}: poles must be in -1..1, got {list(poles)}")
         if not all(abs(z) <= ROOT_MODULUS for z in zeros):
             raise InputError(f"{where}: row {i + 1}: zeros must be in -{ROOT_MODULUS:g}..{ROOT_MODULUS:g}, got {list(zeros)}")
-        out.append(IIRRoots(frame_rate_hz=rate, zeros=zeros, poles=poles))
+        out.append(IIRRoots(frame_rate_hz=rate, zeros=zeros, poles=poles, gain=_row_gain(r, i, where)))
     rates = [r.frame_rate_hz for r in out]
     if len(set(rates)) != len(rates):
         raise InputError(f"{where}: the roots table has two rows for one frame rate")
     return tuple(sorted(out, key=lambda r: r.frame_rate_hz))
+
+
+def _row_gain(row: dict[str, str], i: int, where: str) -> float | None:
+    """The row's designed gain, None where the table has no gain column (the paper's)."""
+    text = row.get(GAIN_COLUMN)
+    if text is None:
+        return None
+    try:
+        gain = float(text)
+    except (TypeError, ValueError):
+        gain = math.nan
+    if not DESIGNED_GAIN.contains(gain):
+        raise InputError(f"{where}: row {i + 1}: the gain must be in {DESIGNED_GAIN.text()}, got {text!r}")
+    return gain
 
 
 def tt_iir_table() -> tuple[IIRRoots, ...]:

@@ -41,6 +41,8 @@ def render(obs: Observation, console: Console, roots_source: str = "roots") -> N
         t.add_row("Tip/Tilt control", "IIR (N_f = 8)", f"{roots_source} at {obs.tt_filter_rate_hz:g} Hz")
         t.add_row("  zeros", " ".join(f"{z:+.3f}" for z in obs.tt_zeros), "")
         t.add_row("  poles", " ".join(f"{p:+.3f}" for p in obs.tt_poles), "")
+        if obs.tt_gain is not None:
+            t.add_row("  gain", f"{obs.tt_gain:g}", f"designed with the filter ({roots_source})")
     else:
         t.add_row("Tip/Tilt control", "integrator", f"rate below the {roots_source} table")
     t.add_row("other modes", "leaky integrators", "")

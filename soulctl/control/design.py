@@ -34,6 +34,7 @@ import numpy as np
 from scipy.optimize import brentq, differential_evolution, minimize
 
 from .. import blas, tables
+from ..tables import GAIN_COLUMN, ROOT_COLUMNS
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -359,13 +360,14 @@ def _initial_population(integ: Filter, n: int, seed: int) -> np.ndarray:
 
 
 def roots_table_csv(results: list[DesignResult], header: str) -> str:
-    """A roots table in the format of tables/tt_iir_roots.csv (readable by ``configure --roots``)."""
+    """A roots table in the format of tables/tt_iir_roots.csv and the designed gain of each row
+    (its ``gain`` column: ``configure --roots`` starts the loop at it)."""
     out = io.StringIO()
     for line in header.splitlines():
         out.write(f"# {line}\n")
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(["frame_rate_hz", *[f"zero{k}" for k in range(1, 5)], *[f"pole{k}" for k in range(1, 5)]])
+    w.writerow([*ROOT_COLUMNS, GAIN_COLUMN])
     for r in sorted(results, key=lambda r: -r.rate_hz):
         f = r.iir.filter
-        w.writerow([f"{r.rate_hz:g}", *[f"{z.real:.4f}" for z in f.zeros], *[f"{p.real:.4f}" for p in f.poles]])
+        w.writerow([f"{r.rate_hz:g}", *[f"{z.real:.4f}" for z in f.zeros], *[f"{p.real:.4f}" for p in f.poles], f"{f.gain:.4f}"])
     return out.getvalue()

@@ -162,13 +162,17 @@ def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structur
 
 
 def default_gains(observation: Observation, structure: StructuralResonance | None = StructuralResonance()) -> LoopGains:
-    """Tip/Tilt: 0.69 with the IIR (the paper's optimised 1700 Hz gain) capped at 0.7 of its
+    """Tip/Tilt: a designed IIR's own gain (``Observation.tt_gain``, from a designed roots
+    table), else 0.69 with the IIR (the paper's optimised 1700 Hz gain) capped at 0.7 of its
     maximum stable gain elsewhere, or half the integrator's maximum stable gain; modes 3-120:
     half, modes 121-last: 0.4 of the leaky integrator's.  Starting points, not optima
     (`optimize gains` tunes them)."""
     g_tt = max_stable_gain(nominal_loop(observation, 0.1, True, structure))
     g_ho = max_stable_gain(nominal_loop(observation, 0.1, False, structure))
-    tt = min(DEFAULT_IIR_TIP_TILT, 0.7 * g_tt) if observation.tt_control == "iir" else 0.5 * g_tt
+    if observation.tt_gain is not None:
+        tt = observation.tt_gain
+    else:
+        tt = min(DEFAULT_IIR_TIP_TILT, 0.7 * g_tt) if observation.tt_control == "iir" else 0.5 * g_tt
     return LoopGains(round(tt, 3), round(0.5 * g_ho, 3), round(0.4 * g_ho, 3))
 
 

@@ -1,6 +1,8 @@
 """`soulctl filter analyze|design`: output, exit status, plots, and one-line errors."""
 
 import json
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,6 +171,22 @@ def test_design_json_out_plot_and_configure_roots(tmp_path, capsys):
     c = json.loads(out)["control"]
     assert status == 0 and c["tt_filter_rate_hz"] == 1000
     assert c["tt_zeros"] == pytest.approx(design["iir"]["zeros"], abs=1e-4)
+    # ... and its designed gain, not the paper's 0.69 (the filter and its gain are one design)
+    assert c["tt_gain"] == pytest.approx(design["iir"]["gain"], abs=1e-4)
+
+
+def test_a_designed_gain_is_the_runs_tip_tilt_gain(tmp_path, capsys, monkeypatch):
+    """configure --roots carries a roots table's gain column into the observation file, and a
+    run of that file starts Tip/Tilt at it; the paper's table (no gain column) keeps 0.69."""
+    monkeypatch.chdir(tmp_path)
+    header = "frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4"
+    Path("r.csv").write_text(f"{header},gain\n1700,-0.31,0.69,0.698,0.705,0.042,0.102,0.954,1.0,0.512\n")
+    Path("paper.csv").write_text(f"{header}\n1700,-0.31,0.69,0.698,0.705,0.042,0.102,0.954,1.0\n")
+    for roots, gain in (("r.csv", 0.512), ("paper.csv", 0.69)):
+        status, _, _ = run(["configure", "--mag", "9.7", "--roots", roots, "--out", "obs.toml"], capsys)
+        assert status == 0
+        status, out, _ = run(["loop", "run", "--config", "obs.toml", "--print-config"], capsys)
+        assert status == 0 and tomllib.loads(out)["control"]["gains"][0] == gain
 
 
 @pytest.mark.parametrize(
@@ -178,6 +196,8 @@ def test_design_json_out_plot_and_configure_roots(tmp_path, capsys):
         ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,a,0,0,0,0,0,0,1\n", "must hold 9 numbers"),
         ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n1000,0,0,0,0,0,0,1.5,1\n", "poles must be in -1..1"),
         ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4\n", "no rows"),
+        ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4,gain\n1000,0,0,0,0,0,0,0,1,0\n", "the gain must be in 0..10 (> 0)"),
+        ("frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4,gain\n1000,0,0,0,0,0,0,0,1,nan\n", "the gain must be in"),
     ],
 )
 def test_configure_malformed_roots_exit_2(text, message, tmp_path, capsys):
