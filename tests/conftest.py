@@ -17,3 +17,12 @@ def cache_dir(optics_cache):
     once per session (per xdist worker), not once per test module.  Tests of the cache itself
     make their own."""
     return Path(optics_cache.directory)
+
+
+LONGEST_FIRST = ("tests/test_readme.py::test_readme_examples_run_in_order",)  # ~7 min in one process
+
+
+def pytest_collection_modifyitems(items):
+    """The longest tests first, so that pytest-xdist's work stealing balances the rest around
+    them instead of waiting for one at the end."""
+    items.sort(key=lambda item: item.nodeid not in LONGEST_FIRST)

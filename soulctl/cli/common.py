@@ -25,6 +25,7 @@ from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
 from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
+from . import quick
 from .numbers import number, parse_magnitude
 from .output import console as make_console
 
@@ -287,7 +288,28 @@ def run_description(config: Path | None, mag: str | None, overrides: dict) -> Ru
     base = read_run_config(config) if config is not None else RunConfig()
     if mag is not None:
         overrides = {"star.magnitude_r": parse_magnitude(mag), **overrides}
-    return base.with_values(overrides) if overrides else base
+    if quick.active():
+        overrides = quick.run_overrides(overrides)
+    description = base.with_values(overrides) if overrides else base
+    return _quick(description) if quick.active() else description
+
+
+def _quick(description: RunConfig) -> RunConfig:
+    """A run description at SOULCTL_QUICK's cost (``cli.quick``): its duration capped, the
+    auxiliary loops at their shortest update period unless one is given."""
+    from ..loop.optimize import shortest_period_s  # only here: the optimiser's imports are heavy
+
+    duration = quick.cap_duration(description.duration_s)
+    values: dict = {"run.duration_s": duration}
+    said = [f"the pyramid's field {description.wfs_field_arcsec:g}\""]
+    if duration < description.duration_s:
+        said.append(f"{duration:g} s of loop instead of {description.duration_s:g} s")
+    aux = description.auxiliary
+    if aux.period_s is None and (aux.mgm or aux.ogtl):
+        values["auxiliary.period_s"] = shortest_period_s(description.observation, aux.probe())
+        said.append(f"MGM/OGTL every {values['auxiliary.period_s']:g} s")
+    quick.notice(", ".join(said))
+    return description.with_values(values)
 
 
 PREPARING = "calibrating the pyramid (the first time; cached after) and building the loop"

@@ -38,6 +38,7 @@ from ..ranges import (
     WIND_M_S,
 )
 from ..run_config import RunConfig, read_run_config
+from . import quick
 from .common import CACHE_DIR, NO_CACHE, RUN_CONFIG, WFS_FIELD, array_cache, observation_option, quantity_table
 from .numbers import number
 from .option_table import command
@@ -67,6 +68,9 @@ def sensing_setup(
     for it; explicit --binning/--modes/--modulation/--oversampling/--wfs-field override."""
     if config is not None and mag is not None:
         raise InputError("give either --config or --mag, not both")
+    if quick.active() and wfs_field is None:
+        wfs_field = quick.FIELD_ARCSEC
+        quick.notice(f"the pyramid's field {wfs_field:g}\"")
     run = read_run_config(config) if config is not None else RunConfig()  # the runs' defaults
     obs = run.observation if config is not None else observation_option(None, mag)
     b = binning if binning is not None else (obs.binning if obs else 1)
@@ -312,10 +316,13 @@ def gains_cmd(o: OpticalGainsOptions) -> int:
         check_output_path(o.out, "--out", [("--config", o.config)])
     setup = sensing_setup(o.config, o.mag, o.binning, o.modes, o.modulation, o.oversampling, o.wfs_field)
     cache = array_cache(o.no_cache, o.cache_dir)
-    status = f"optical gains of {setup.n_modes} modes on {o.screens} residual screens…"
+    screens = min(o.screens, quick.SCREENS) if quick.active() else o.screens
+    if screens < o.screens:
+        quick.notice(f"{screens} residual screen instead of {o.screens}")
+    status = f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
     with nullcontext() if o.json_output else make_console(stderr=True).status(status):
         cal = calibrate(setup, cache)
-        table = optical_gains(cal, level, n_screens=o.screens, seed=o.seed)
+        table = optical_gains(cal, level, n_screens=screens, seed=o.seed)
     if o.out is not None:
         table.write_csv(o.out)
     if o.json_output:

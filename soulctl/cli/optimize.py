@@ -19,12 +19,12 @@ from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
 from ..loop.offline import REASONS, PlantInputs, offline_mgm
-from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize
+from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize, shortest_period_s
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
 from ..ranges import DELAY_FRAMES, EVALUATION_WINDOWS, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
 from ..telemetry.formats import open_telemetry, telemetry_input
-from . import common
+from . import common, quick
 from .common import (
     BAND,
     CACHE_DIR,
@@ -371,11 +371,29 @@ def gains_cmd(o: GainsOptions) -> int:
     # its duration is not used (--duration and --measure set the phases); automatic NCPA offsets come with this command's OGTL
     run = description.request(ogtl=o.ogtl)
     probe_of_run = description.auxiliary.probe()
-    requests = {
-        m: OptimizeRequest(run, m, o.duration, o.period, o.ogtl, probe_of_run, o.measure, o.sequence, windows=o.windows) for m in methods
-    }
+    period, duration, measure, sequence, windows = _phases(o, run.observation, probe_of_run)
+    requests = {m: OptimizeRequest(run, m, duration, period, o.ogtl, probe_of_run, measure, sequence, windows=windows) for m in methods}
     results = _optimize_each(requests, cache, show=not o.json_output and sys.stderr.isatty())
     return _report(o, results)
+
+
+def _phases(o: GainsOptions, observation, probe) -> tuple[float | None, float | None, float, float | None, int]:
+    """--period, --duration, --measure, --sequence and --windows as given; with SOULCTL_QUICK,
+    the ones left to their defaults at their smallest (``cli.quick``): the shortest update
+    period, one period of optimisation, a few frames per window and sequence."""
+    if not quick.active():
+        return o.period, o.duration, o.measure, o.sequence, o.windows
+    rate = observation.frame_rate_hz
+    period = o.period if o.period is not None else shortest_period_s(observation, probe)
+    duration = o.duration if o.duration is not None else period
+    measure = o.measure if o.measure != defaults.MEASURE_S else quick.MEASURE_FRAMES / rate
+    sequence = o.sequence if o.sequence is not None else quick.SEQUENCE_FRAMES / rate
+    windows = o.windows if o.windows != defaults.EVALUATION_WINDOWS else quick.WINDOWS
+    quick.notice(
+        f"update period {period:g} s, optimisation {duration:g} s, {windows} windows of {measure:.3g} s, "
+        f"trial sequences of {sequence:.3g} s"
+    )
+    return period, duration, measure, sequence, windows
 
 
 def _methods(method: str) -> list[str]:

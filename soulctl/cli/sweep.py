@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from .. import defaults
 from ..errors import InputError
 from ..files import atomic_write_text
 from ..observation import BINNINGS, observation_for_magnitude
@@ -24,7 +25,7 @@ from ..sweep.estimate import CONFIRM_ABOVE_S, estimate, needs_confirmation
 from ..sweep.grid import read_grid
 from ..sweep.results import ResultsTable
 from ..sweep.runner import execute, local_workers, plan_sweep
-from . import output
+from . import output, quick
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
 from .numbers import number
 from .option_table import command
@@ -139,6 +140,10 @@ def sweep(o: SweepOptions) -> int:
     Example: soulctl sweep grid.toml --workers 2 --out sweep/ --plot --derive-table
     """
     cases = read_grid(o.grid)
+    if quick.active():
+        cases = [quick.sweep_case(c, defaults.DURATION_S) for c in cases]
+        field, longest = f"{quick.FIELD_ARCSEC:g}", f"{quick.SWEEP_DURATION_S:g}"
+        quick.notice(f"the pyramid's field {field}\" unless the grid gives one, cases of at most {longest} s")
     _check_cluster(o.scheduler, o.workers, o.wait_workers)
     outputs = [name for name, wanted in ((DERIVED, o.derive_table), (FIGURE, o.plot)) if wanted]
     plan = plan_sweep(cases, o.out, o.resume, outputs)

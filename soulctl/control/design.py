@@ -34,10 +34,10 @@ import numpy as np
 from scipy.optimize import brentq, differential_evolution, minimize
 
 from .. import blas, tables
-from ..tables import GAIN_COLUMN, ROOT_COLUMNS
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
+from ..tables import GAIN_COLUMN, ROOT_COLUMNS
 from .delay import DelayModel
 from .filters import Filter
 from .transfer import RESONANCE_HZ, Loop, LoopAnalysis, Plant, analyze, frequency_grid, max_stable_gain

@@ -231,6 +231,17 @@ def default_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> fl
     return math.ceil(round(seconds * 10, 9)) / 10
 
 
+def shortest_period_s(observation, settings: OgtlSettings = OgtlSettings()) -> float:
+    """The shortest update period MGM and OGTL accept (to a whole ms): MGM's 4 Welch segments of
+    MIN_SEGMENT frames after the frames the delay leaves without commands, and the probe's
+    PROBE_MIN_CYCLES cycles (a smoke test's period: ``cli.quick``)."""
+    rate = observation.frame_rate_hz
+    n, _ = fractional_taps(observation.delay_frames)
+    need = mgm.min_frames(mgm.MgmSettings(segment=MIN_SEGMENT)) + n + 1
+    seconds = max(need / rate, PROBE_MIN_CYCLES / settings.probe_frequency(rate))
+    return math.ceil(round(seconds * 1000, 9)) / 1000
+
+
 def default_duration_s(period_s: float) -> float:
     """MGM's default optimisation phase: DEFAULT_UPDATES update periods, at least DEFAULT_DURATION_S."""
     return max(DEFAULT_DURATION_S, round(DEFAULT_UPDATES * period_s, 9))
