@@ -30,6 +30,7 @@ from ..errors import InputError
 from ..files import staged_outputs
 from .help import polish
 from .output import ascii_fallback
+from .progress import REQUESTED
 
 # The commands, each in its module and imported only when it runs or shows its own help, so
 # that the CLI starts at once (`soulctl --version`, `--help`) and a command pays only for the
@@ -107,8 +108,15 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    progress: bool = typer.Option(
+        False,
+        "--progress",
+        help="Progress as plain lines on stderr when stderr is not a terminal (a log, CI); a terminal always shows it.",
+    ),
 ) -> None:
     """soulctl: control engineering for a pyramid-WFS SCAO system (SOUL at the LBT)."""
+    if progress:
+        REQUESTED.set(True)
 
 
 def _fail(message: str, status: int = 2) -> int:
@@ -170,6 +178,14 @@ BROKEN_PIPE = 141  # 128 + SIGPIPE, as shell tools report a reader that went awa
 def _run(argv: list[str] | None, signals: _Signals) -> int:
     """Run the command inside staged outputs: committed on exit status 0 and 3 only (and when
     the reader of stdout went away after the work was done: the files are complete)."""
+    requested = REQUESTED.set(False)
+    try:
+        return _run_staged(argv, signals)
+    finally:
+        REQUESTED.reset(requested)
+
+
+def _run_staged(argv: list[str] | None, signals: _Signals) -> int:
     with staged_outputs() as stage, warnings.catch_warnings():
         # Third-party warnings (numpy casts, matplotlib's cache, Dask's ports) are not the
         # user's business and would break the one-line refusal: stderr is soulctl's own.

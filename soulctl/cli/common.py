@@ -5,13 +5,10 @@ bar, and the two-column quantity/value table."""
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from .. import defaults, ranges
@@ -27,7 +24,6 @@ from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
 from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
 from . import quick
 from .numbers import number, parse_magnitude
-from .output import console as make_console
 
 RUN_CONFIG = typer.Option(
     None,
@@ -310,36 +306,6 @@ def _quick(description: RunConfig) -> RunConfig:
         said.append(f"MGM/OGTL every {values['auxiliary.period_s']:g} s")
     quick.notice(", ".join(said))
     return description.with_values(values)
-
-
-PREPARING = "calibrating the pyramid (the first time; cached after) and building the loop"
-
-
-@contextmanager
-def frames_progress(label: str, show: bool, total: int | None = None, before: str = PREPARING) -> Iterator[Callable[..., None] | None]:
-    """A transient progress bar over frames on stderr when ``show``, labelled ``before`` until
-    the first frame (the calibration, first-time work, comes before it); yields its update
-    ``tick(done, total=None)`` (the callback `run` and `optimize` take), or None."""
-    if not show:
-        yield None
-        return
-    progress = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("frames"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=make_console(stderr=True),
-        transient=True,
-    )
-    with progress:
-        task = progress.add_task(before, total=total)
-
-        def tick(done: int, total: int | None = None) -> None:
-            progress.update(task, completed=done, total=total, description=label)  # rich keeps the total when None
-
-        yield tick
 
 
 def default_cache_dir() -> Path:

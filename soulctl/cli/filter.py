@@ -4,7 +4,6 @@ the Tip/Tilt IIR design (paper, Sec. 2.3)."""
 from __future__ import annotations
 
 import math
-from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -42,6 +41,7 @@ from ..ranges import (
     WIND_M_S,
     Range,
 )
+from . import progress
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -497,10 +497,9 @@ def design_command(o: DesignOptions) -> int:
             noise_mas=o.noise,
             resonance_mas=o.resonance_line,
         )
-    err = make_console(stderr=True)
     results = []
-    for r, d in zip(rates, delays):
-        with nullcontext() if o.json_output else err.status(f"designing the {r:g} Hz filter…"):
+    for i, (r, d) in enumerate(zip(rates, delays)):
+        with progress.step(f"designing the {r:g} Hz filter ({i + 1} of {len(rates)}, ~5 s each)"):
             results.append(design_tt_filter(r, disturbance, o.epsilon, delay_frames=d, seed=o.seed, in_use=in_use))
     if o.out is not None:
         atomic_write_text(o.out, roots_table_csv(results, _design_header(results, disturbance, o.epsilon, o.delay_ms, o.seed)))

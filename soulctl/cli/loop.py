@@ -22,7 +22,7 @@ from ..ranges import DURATION_S, NCPA_OFFSET_FRACTION, NCPA_RMS_NM, TELEMETRY_EV
 from ..telemetry.figures import mas_text
 from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
-from . import common
+from . import common, progress
 from .common import (
     BAND,
     CACHE_DIR,
@@ -46,7 +46,6 @@ from .common import (
     aux_rows,
     aux_summary,
     check_run_options,
-    frames_progress,
     gain_file_input,
     loop_overrides,
     probe_overrides,
@@ -266,7 +265,7 @@ def run_cmd(o: RunOptions) -> int:
     cache = array_cache(o.no_cache, o.cache_dir)
     fields = telemetry_fields(o.telemetry_fields)
     writer = None if o.telemetry is None else Hdf5Writer(o.telemetry, fields, o.telemetry_every, {"run_description": description.to_toml()})
-    result = _run_streaming(request, cache, aux, not o.json_output and sys.stderr.isatty(), writer)
+    result = _run_streaming(request, cache, aux, writer)
     message = result.failure()
     if message is not None:
         if o.json_output:
@@ -349,9 +348,9 @@ def _ideal(o: RunOptions, given: dict) -> dict:
     return IDEAL
 
 
-def _run_with_progress(request, cache, aux, show: bool, sink=None):
-    """``run`` with a progress bar when ``show``."""
-    with frames_progress("closed loop", show, total=request.frames) as tick:
+def _run_with_progress(request, cache, aux, sink=None):
+    """``run`` with its progress on stderr (``cli.progress``)."""
+    with progress.counted("closed loop", "frames", total=request.frames) as tick:
         return run(request, cache, progress=tick, aux=aux, sink=sink)
 
 
@@ -368,12 +367,12 @@ def telemetry_fields(text: str | None) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
-def _run_streaming(request, cache, aux, show: bool, writer: Hdf5Writer | None):
+def _run_streaming(request, cache, aux, writer: Hdf5Writer | None):
     """``run`` with its telemetry streamed to ``writer``, which is finished whatever happens:
     complete, or partial with the reason (divergence, an interrupt, an error); a run refused
     before its first frame leaves no file."""
     try:
-        result = _run_with_progress(request, cache, aux, show, writer)
+        result = _run_with_progress(request, cache, aux, writer)
     except BaseException as e:
         if writer is not None:
             if isinstance(e, InputError) and writer.recorded == 0:

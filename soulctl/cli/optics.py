@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import math
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,7 +37,7 @@ from ..ranges import (
     WIND_M_S,
 )
 from ..run_config import RunConfig, read_run_config
-from . import quick
+from . import progress, quick
 from .common import CACHE_DIR, NO_CACHE, RUN_CONFIG, WFS_FIELD, array_cache, observation_option, quantity_table
 from .numbers import number
 from .option_table import command
@@ -234,7 +233,7 @@ def calibrate_cmd(
     """
     setup = sensing_setup(config, mag, binning, modes, modulation, oversampling, wfs_field)
     cache = array_cache(no_cache, cache_dir)
-    with nullcontext() if json_output else make_console(stderr=True).status(f"calibrating {setup.n_modes} modes…"):
+    with progress.step(f"calibrating the pyramid on {setup.n_modes} modes (the first time; cached after)"):
         cal = calibrate(setup, cache)
     d = _calibration_dict(cal, cache)
     if json_output:
@@ -319,8 +318,8 @@ def gains_cmd(o: OpticalGainsOptions) -> int:
     screens = min(o.screens, quick.SCREENS) if quick.active() else o.screens
     if screens < o.screens:
         quick.notice(f"{screens} residual screen instead of {o.screens}")
-    status = f"optical gains of {setup.n_modes} modes on {screens} residual screens…"
-    with nullcontext() if o.json_output else make_console(stderr=True).status(status):
+    status = f"optical gains of {setup.n_modes} modes on {screens} residual screens (~10 s each at 40x40)"
+    with progress.step(status):
         cal = calibrate(setup, cache)
         table = optical_gains(cal, level, n_screens=screens, seed=o.seed)
     if o.out is not None:

@@ -24,7 +24,7 @@ from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
 from ..ranges import DELAY_FRAMES, EVALUATION_WINDOWS, MEASURE_S, OPTIMISATION_S, PERIOD_S, SEQUENCE_S
 from ..telemetry.formats import open_telemetry, telemetry_input
-from . import common, quick
+from . import common, progress, quick
 from .common import (
     BAND,
     CACHE_DIR,
@@ -50,7 +50,6 @@ from .common import (
     aux_rows,
     aux_summary,
     check_resonance,
-    frames_progress,
     gain_file_input,
     loop_overrides,
     probe_overrides,
@@ -231,11 +230,11 @@ def _check_phases(duration: float | None, period: float | None, measure: float |
             accepted.check(value, option)
 
 
-def _optimize_each(requests: dict[str, OptimizeRequest], cache, show: bool) -> dict[str, OptimizeResult]:
-    """Each method's optimisation, with a progress bar when ``show``."""
+def _optimize_each(requests: dict[str, OptimizeRequest], cache) -> dict[str, OptimizeResult]:
+    """Each method's optimisation, with its progress on stderr (``cli.progress``)."""
     results: dict[str, OptimizeResult] = {}
     for m, request in requests.items():
-        with frames_progress("trial-and-error" if m == "trial" else "MGM", show) as tick:
+        with progress.counted("trial-and-error" if m == "trial" else "MGM", "frames") as tick:
             results[m] = optimize(request, cache, progress=tick)
     return results
 
@@ -373,7 +372,7 @@ def gains_cmd(o: GainsOptions) -> int:
     probe_of_run = description.auxiliary.probe()
     period, duration, measure, sequence, windows = _phases(o, run.observation, probe_of_run)
     requests = {m: OptimizeRequest(run, m, duration, period, o.ogtl, probe_of_run, measure, sequence, windows=windows) for m in methods}
-    results = _optimize_each(requests, cache, show=not o.json_output and sys.stderr.isatty())
+    results = _optimize_each(requests, cache)
     return _report(o, results)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import codecs
 import json
 import math
+import os
 import sys
 import unicodedata
 
@@ -115,12 +116,18 @@ class _AsciiConsole(_Console):
         return super().render_str(ascii_text(text), **kwargs)
 
 
+PIPE_COLUMNS = 160  # the width of a table written to a pipe or a file (rich's own default: 80)
+
+
 def console(stderr: bool = False) -> Console:
     """A rich console that prints text as given (no markup, no emoji codes, lines not broken:
     a path stays on one line; tables still fit the terminal), in ASCII where the stream is not
-    UTF-8."""
-    kind = _Console if _utf(sys.stderr if stderr else sys.stdout) else _AsciiConsole
-    return kind(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True)
+    UTF-8.  Into a pipe or a file (no terminal, no COLUMNS), tables are laid out on PIPE_COLUMNS
+    columns, so that ``soulctl ... | grep`` finds a row on one line."""
+    stream = sys.stderr if stderr else sys.stdout
+    kind = _Console if _utf(stream) else _AsciiConsole
+    piped = not (hasattr(stream, "isatty") and stream.isatty()) and "COLUMNS" not in os.environ
+    return kind(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True, width=PIPE_COLUMNS if piped else None)
 
 
 def styled(text: str, style: str) -> Text:

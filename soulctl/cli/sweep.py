@@ -25,7 +25,7 @@ from ..sweep.estimate import CONFIRM_ABOVE_S, estimate, needs_confirmation
 from ..sweep.grid import read_grid
 from ..sweep.results import ResultsTable
 from ..sweep.runner import execute, local_workers, plan_sweep
-from . import output, quick
+from . import output, progress, quick
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, default_cache_dir
 from .numbers import number
 from .option_table import command
@@ -183,9 +183,12 @@ def _check_cluster(scheduler: str | None, workers: int | None, wait_workers: flo
 
 
 def _execute_with_progress(plan, cost, asked: bool, scheduler, workers, cache, wait_workers: float, json_output: bool):
-    """``execute`` with a progress bar on a terminal; the estimate printed once the run starts."""
-    show = not json_output and sys.stderr.isatty()
-    progress = Progress(
+    """``execute`` with its progress on stderr (``cli.progress``: a bar on a terminal, lines
+    with ``soulctl --progress``); the estimate printed once the run starts."""
+    if progress.mode() == "lines":
+        return _execute_with_lines(plan, cost, scheduler, workers, cache, wait_workers, json_output)
+    show = progress.mode() == "live"
+    bar = Progress(
         TextColumn("sweep"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -196,8 +199,8 @@ def _execute_with_progress(plan, cost, asked: bool, scheduler, workers, cache, w
         console=output.console(stderr=True),
         transient=True,
     )
-    with progress if show else nullcontext():
-        task = progress.add_task("sweep", total=None, state="") if show else None
+    with bar if show else nullcontext():
+        task = bar.add_task("sweep", total=None, state="") if show else None
 
         def started(n):
             # The estimate once the run really starts (the scheduler answered, the folder is
@@ -206,18 +209,32 @@ def _execute_with_progress(plan, cost, asked: bool, scheduler, workers, cache, w
                 output.console(stderr=True).print(cost.text())
             if show:
                 assert task is not None
-                progress.update(task, total=n, state=f"running {min(n, workers or n)}")
+                bar.update(task, total=n, state=f"running {min(n, workers or n)}")
 
         def finished(row, report):
             if show:
                 assert task is not None
-                left = progress.tasks[0].total - report.computed
-                progress.update(
-                    task, completed=report.computed, state=f"failed {report.failed}, diverged {report.diverged}, running {left}"
-                )
+                left = bar.tasks[0].total - report.computed
+                bar.update(task, completed=report.computed, state=f"failed {report.failed}, diverged {report.diverged}, running {left}")
 
         report = execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
     return report
+
+
+def _execute_with_lines(plan, cost, scheduler, workers, cache, wait_workers: float, json_output: bool):
+    """``execute`` with ``soulctl --progress`` into a log: the estimate, then lines of cases."""
+    with progress.counted("sweep", "cases", before="starting the workers") as tick:
+        assert tick is not None
+
+        def started(n):
+            if not json_output:
+                output.console(stderr=True).print(cost.text())
+            tick(0, n)
+
+        def finished(row, report):
+            tick(report.computed)
+
+        return execute(plan, scheduler, workers, cache, on_row=finished, on_start=started, wait_workers_s=wait_workers)
 
 
 def _json_report(report, cost, derived) -> dict:

@@ -19,6 +19,7 @@ from ..telemetry.analysis import inspect, spectra
 from ..telemetry.figures import RECORD_LABELS as LABELS
 from ..telemetry.figures import mas_text
 from ..telemetry.formats import open_telemetry, read_record, telemetry_format, telemetry_input, write_record
+from . import progress
 from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RECORD_DELAY, RESONANCE, array_cache, check_resonance, quantity_table
 from .numbers import number
 from .option_table import command
@@ -237,7 +238,8 @@ def identify_cmd(o: IdentifyOptions) -> int:
             check_output_path(path, option, [("FILE", o.path)])
     if o.plot is not None:
         check_output_folder(o.plot, "--plot", IDENTIFY_FIGURES)
-    ident = identify(o.path, o.delay_frames, array_cache(o.no_cache, o.cache_dir), o.resonance)
+    with progress.step(f"identifying the plant of {o.path}"):
+        ident = identify(o.path, o.delay_frames, array_cache(o.no_cache, o.cache_dir), o.resonance)
     if o.out is not None:
         atomic_write_text(o.out, ident.plant.to_toml())
     if o.vibrations_out is not None:

@@ -205,3 +205,16 @@ def test_configure_malformed_roots_exit_2(text, message, tmp_path, capsys):
     p.write_text(text)
     status, out, err = run(["configure", "--mag", "9", "--roots", str(p)], capsys)
     assert status == 2 and message in err and err.count("\n") == 1
+
+
+def test_a_piped_table_keeps_its_rows_on_one_line(tmp_path, capsys, monkeypatch):
+    """Into a pipe (no terminal, no COLUMNS) a table is laid out wider than rich's 80 columns,
+    so that a row greps whole (at 80 this row's source wrapped after 'filter')."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("COLUMNS", raising=False)
+    header = "frame_rate_hz,zero1,zero2,zero3,zero4,pole1,pole2,pole3,pole4,gain"
+    Path("designed_roots_of_a_night.csv").write_text(f"{header}\n1700,-0.31,0.69,0.698,0.705,0.042,0.102,0.954,1.0,0.512\n")
+    status, out, _ = run(["configure", "--mag", "9.7", "--roots", "designed_roots_of_a_night.csv"], capsys)
+    assert status == 0
+    assert any("0.512" in line and "designed with the filter (designed_roots_of_a_night.csv)" in line for line in out.splitlines())
+    assert max(len(line) for line in out.splitlines()) > 80
