@@ -45,7 +45,7 @@ from . import progress
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
-from .output import print_json, styled
+from .output import figure_text, print_json, styled
 
 app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).", no_args_is_help=True)
 
@@ -391,8 +391,8 @@ def _render_design(results: list[DesignResult], disturbance: Disturbance, consol
     turb = disturbance.turbulence
     console.print(
         f"jitter: residual Tip/Tilt RMS per axis (mas). Disturbance: von Kármán Tip/Tilt, seeing "
-        f'{turb.seeing_arcsec:g}", L0 {turb.outer_scale_m:g} m, wind {turb.wind_speed_m_s:g} m/s; '
-        f"vibrations: {disturbance.vibrations.source}; noise {disturbance.noise_mas:g} mas/frame; "
+        f'{figure_text(turb.seeing_arcsec)}", L0 {figure_text(turb.outer_scale_m)} m, wind {figure_text(turb.wind_speed_m_s)} m/s; '
+        f"vibrations: {disturbance.vibrations.source}; noise {figure_text(disturbance.noise_mas)} mas/frame; "
         f"{disturbance.resonance_mas:g} mas line at {disturbance.resonance_hz:g} Hz weighted by |T|².",
         style="dim",
     )
@@ -552,8 +552,9 @@ def _design_header(results: list, disturbance: Disturbance, epsilon: float, dela
     turb = disturbance.turbulence
     return (
         f"Tip/Tilt IIR roots designed by soulctl {__version__} (soulctl filter design):\n"
-        f"epsilon {epsilon:g}, seeing {turb.seeing_arcsec:g} arcsec, wind {turb.wind_speed_m_s:g} m/s, "
-        f"L0 {turb.outer_scale_m:g} m, noise {disturbance.noise_mas:g} mas/frame, {disturbance.resonance_mas:g} mas line "
+        f"epsilon {epsilon:g}, seeing {figure_text(turb.seeing_arcsec)} arcsec, wind {figure_text(turb.wind_speed_m_s)} m/s, "
+        f"L0 {figure_text(turb.outer_scale_m)} m, noise {figure_text(disturbance.noise_mas)} mas/frame, "
+        f"{disturbance.resonance_mas:g} mas line "
         f"at {RESONANCE_HZ:g} Hz, seed {seed};\n"
         f"vibrations: {disturbance.vibrations.source};\n"
         f"delay: {'SOUL delay model' if delay_ms is None else f'{delay_ms:g} ms'}.\n"

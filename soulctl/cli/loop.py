@@ -6,6 +6,7 @@ import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
@@ -14,13 +15,9 @@ from .. import defaults
 from ..control.gains import MID_GROUP_END, gain_groups
 from ..errors import InputError
 from ..files import check_output_folder, check_output_path
-from ..identify.plant import plant_overrides, read_plant
 from ..loop.metrics import BANDS
-from ..loop.run import run
-from ..plots.loop import LOOP_FIGURES, write_loop_figures
 from ..ranges import DURATION_S, NCPA_OFFSET_FRACTION, NCPA_RMS_NM, TELEMETRY_EVERY
 from ..telemetry.figures import mas_text
-from ..telemetry.hdf5 import Hdf5Writer
 from ..telemetry.schema import DEFAULT_FIELDS, PER_FRAME
 from . import common, progress
 from .common import (
@@ -54,8 +51,14 @@ from .common import (
 )
 from .numbers import number
 from .option_table import command
+
+if TYPE_CHECKING:
+    from ..telemetry.hdf5 import Hdf5Writer
+
+# The loop, its plots, its telemetry writer and the plant reader are imported where a run uses
+# them, not at the top: `soulctl loop run --help` and a refused option pay for none of them.
 from .output import console as make_console
-from .output import print_json, styled
+from .output import figure_text, print_json, styled
 
 app = typer.Typer(no_args_is_help=True, help="The simulated closed loop.")
 
@@ -99,7 +102,7 @@ def _render(result, console: Console) -> None:
     obs = r.observation
     t = quantity_table(
         f"Closed loop: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
-        f'{obs.frame_rate_hz:g} Hz, seeing {r.seeing_arcsec:g}", {r.duration_s:g} s'
+        f'{obs.frame_rate_hz:g} Hz, seeing {figure_text(r.seeing_arcsec)}", {r.duration_s:g} s'
     )
     g = result.gains
     t.add_row("Tip/Tilt control", f"{'IIR' if obs.tt_control == 'iir' else 'integrator'}, gain {g.tip_tilt:.3g}")
@@ -264,6 +267,9 @@ def run_cmd(o: RunOptions) -> int:
         aux.check(request.observation, request.duration_s)
     cache = array_cache(o.no_cache, o.cache_dir)
     fields = telemetry_fields(o.telemetry_fields)
+    from ..plots.loop import write_loop_figures
+    from ..telemetry.hdf5 import Hdf5Writer
+
     writer = None if o.telemetry is None else Hdf5Writer(o.telemetry, fields, o.telemetry_every, {"run_description": description.to_toml()})
     result = _run_streaming(request, cache, aux, writer)
     message = result.failure()
@@ -295,6 +301,8 @@ def _checked_overrides(o: RunOptions) -> dict:
     if o.telemetry is not None:
         check_output_path(o.telemetry, "--telemetry", inputs)
     if o.plot is not None:
+        from ..plots.loop import LOOP_FIGURES
+
         check_output_folder(o.plot, "--plot", LOOP_FIGURES)
     check_run_options(None, None, None, None, None, o.duration)
     TELEMETRY_EVERY.check(o.telemetry_every, "--telemetry-every")
@@ -304,6 +312,8 @@ def _checked_overrides(o: RunOptions) -> dict:
         NCPA_OFFSET_FRACTION.check(o.ncpa_offset_fraction, "--ncpa-offset-fraction")
     telemetry_fields(o.telemetry_fields)
     overrides = loop_overrides(o)
+    from ..identify.plant import plant_overrides, read_plant
+
     twin = plant_overrides(read_plant(o.plant)) if o.plant is not None else {}
     if "vibrations.file" in overrides or "vibrations.enabled" in overrides:
         twin = {k: v for k, v in twin.items() if not k.startswith("vibrations.")}
@@ -351,6 +361,8 @@ def _ideal(o: RunOptions, given: dict) -> dict:
 def _run_with_progress(request, cache, aux, sink=None):
     """``run`` with its progress on stderr (``cli.progress``)."""
     with progress.counted("closed loop", "frames", total=request.frames) as tick:
+        from ..loop.run import run
+
         return run(request, cache, progress=tick, aux=aux, sink=sink)
 
 

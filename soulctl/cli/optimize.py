@@ -59,7 +59,7 @@ from .common import (
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
-from .output import print_json
+from .output import figure_text, print_json
 
 app = typer.Typer(no_args_is_help=True, help="Gain optimisation: trial-and-error, MGM, OGTL.")
 
@@ -120,7 +120,7 @@ def _render(results: dict[str, OptimizeResult], console: Console) -> None:
     obs = rr.observation
     t = Table(
         title=f"Gain optimisation: R = {obs.magnitude_r:g}, {obs.subapertures}x{obs.subapertures}, {obs.modes} modes, "
-        f'{obs.frame_rate_hz:g} Hz, seeing {rr.seeing_arcsec:g}", wind {rr.wind_m_s:g} m/s',
+        f'{obs.frame_rate_hz:g} Hz, seeing {figure_text(rr.seeing_arcsec)}", wind {figure_text(rr.wind_m_s)} m/s',
         title_justify="left",
     )
     t.add_column("quantity")

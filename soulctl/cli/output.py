@@ -130,6 +130,24 @@ def console(stderr: bool = False) -> Console:
     return kind(stderr=stderr, markup=False, emoji=False, highlight=False, soft_wrap=True, width=PIPE_COLUMNS if piped else None)
 
 
+def figure_text(value: float, digits: int = 3) -> str:
+    """A measured or derived number to its meaningful digits, the one rule of the tables and
+    captions: ``digits`` significant (numbers of ``digits`` or more integer digits whole),
+    trailing zeros dropped, an exponent only below 1e-3 (0.673798 -> 0.674, 2.73348 -> 2.73,
+    8.0 -> 8, 1148.3 -> 1148, 0.5 -> 0.5).  Values a user gave are echoed as given
+    (``ranges.number_text``)."""
+    if not math.isfinite(value):
+        return "n/a"
+    if abs(value) >= 10 ** (digits - 1):
+        return f"{value:.0f}"
+    rounded = float(f"{value:.{digits}g}")
+    if rounded == 0 or abs(rounded) >= 1e-3:
+        order = math.floor(math.log10(abs(rounded))) if rounded else 0
+        text = f"{rounded:.{max(0, digits - 1 - order)}f}"
+        return text.rstrip("0").rstrip(".") if "." in text else text
+    return f"{rounded:.{digits - 1}e}"
+
+
 def styled(text: str, style: str) -> Text:
     """``text`` in a rich style (e.g. "bold red"), the way to colour output without markup."""
     return Text(text if _utf(sys.stdout) else ascii_text(text), style=style)

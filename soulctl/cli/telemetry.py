@@ -24,7 +24,7 @@ from .common import CACHE_DIR, JSON_OUTPUT, NO_CACHE, RECORD_DELAY, RESONANCE, a
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
-from .output import print_json, warn
+from .output import figure_text, print_json, warn
 
 app = typer.Typer(no_args_is_help=True, help="Loop telemetry: inspect, spectra, conversion between formats, plant identification.")
 
@@ -267,13 +267,14 @@ def _identify_table(ident: Identification):
             f"chi {pr.chi.value:.3f} ± {pr.chi.sigma:.3f}, d {pr.delay.value:.3f} ± {pr.delay.sigma:.3f}",
         )
     for g in p.optical_gains:
-        t.add_row(f"optical gain chi, modes {g.first_mode}-{g.last_mode}", f"{g.chi:.3f} ± {g.sigma:.3f}")
+        modes = f"mode {g.first_mode}" if g.first_mode == g.last_mode else f"modes {g.first_mode}-{g.last_mode}"
+        t.add_row(f"optical gain chi, {modes}", f"{g.chi:.3f} ± {g.sigma:.3f}")
     if p.tip_tilt_noise_mas is not None:
         t.add_row("Tip/Tilt noise [mas RMS per frame]", f"{p.tip_tilt_noise_mas:.3g}")
     if p.turbulence is not None:
         tu = p.turbulence
         t.add_row("seeing at 500 nm [arcsec]", f"{tu.seeing_arcsec:.3f} ± {tu.seeing_sigma:.3f}")
-        t.add_row("outer scale L0 [m]", f"{tu.L0_m:g} ± {tu.L0_sigma:.3g}")
+        t.add_row("outer scale L0 [m]", f"{figure_text(tu.L0_m)} ± {figure_text(tu.L0_sigma)}")
     for x in ident.lines:
         t.add_row(
             f"vibration {x.frequency.value:.2f} ± {x.frequency.sigma:.2f} Hz",
@@ -289,4 +290,4 @@ def _identify_table(ident: Identification):
 
 
 def _recorded(delay: float) -> str:
-    return f"recorded {delay:g}" if math.isfinite(delay) else "the record states none: searched 0-6 frames"
+    return f"recorded {figure_text(delay)}" if math.isfinite(delay) else "the record states none: searched 0-6 frames"

@@ -83,7 +83,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import csd, get_window, welch
 
 from ..errors import InputError
 from .filters import Filter
@@ -391,6 +390,8 @@ def _welch_correlations(segment: int) -> tuple[float, float, float]:
     """(overlap, r1, r2) of a Hann-window Welch estimate of a Gaussian series: the squared
     correlation of two half-overlapping segments' periodograms (1/36) and of one periodogram's
     bins 1 and 2 apart (4/9, 1/36), computed from the window as ``welch`` uses it."""
+    from scipy.signal import get_window  # here, not at the top: the CLI starts without scipy.signal
+
     w = get_window("hann", segment)
     w2 = np.sum(w * w)
     n = np.arange(segment)
@@ -484,6 +485,8 @@ class ModalGainMachine:
     def pol_psd(self, pol, modes: slice = slice(None)) -> np.ndarray:
         """The Welch PSD (modes, F) of the prewhitened POL series pol (frames, modes) of the
         machine's ``modes``, on ``frequencies`` (Hann window, no detrend, one-sided density)."""
+        from scipy.signal import welch
+
         y = self.prewhitened(pol, modes)
         return np.ascontiguousarray(welch(y, **_welch_settings(self.rate_hz, self.settings))[1].T)
 
@@ -492,6 +495,8 @@ class ModalGainMachine:
         Welch densities of A m and of A c and the real part of their cross density.  Welch is
         a quadratic form of the windowed segments, so ``psd_of_spectra(spectra, a)`` is exactly
         ``pol_psd(a m + c)``."""
+        from scipy.signal import csd, welch
+
         m, c = self.prewhitened(measured), self.prewhitened(shifted)
         kw = _welch_settings(self.rate_hz, self.settings)
         parts = (welch(m, **kw)[1], welch(c, **kw)[1], csd(m, c, **kw)[1].real)

@@ -21,7 +21,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import bilinear
 
 from ..errors import InputError
 
@@ -48,6 +47,8 @@ class StructuralResonance:
         prewarped = w0 / (2 * math.tan(w0 / (2 * rate_hz)))  # the 'fs' that maps w0 exactly
         if self.coupling == 0:
             return np.zeros(3), np.array([1.0, 0.0, 0.0])
+        from scipy.signal import bilinear  # here, not at the top: the CLI starts without scipy.signal
+
         b, a = bilinear([self.coupling, 0.0, 0.0], [1.0, 2 * self.damping * w0, w0**2], fs=prewarped)
         return np.asarray(b, float), np.asarray(a, float)
 

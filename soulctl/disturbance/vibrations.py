@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import lfilter
 
 from .. import tables
 from ..errors import InputError
@@ -140,7 +139,9 @@ class VibrationSource:
     however a run is split."""
 
     def __init__(self, spectrum: VibrationSpectrum, rate_hz: float, rng: np.random.Generator):
-        self.rng = rng
+        from scipy.signal import lfilter  # here, not at the top: the CLI starts without scipy.signal
+
+        self.rng, self._lfilter = rng, lfilter
         self._lines = []  # (a, per-axis scale, per-axis lfilter state)
         for line in spectrum.lines:
             a1, a2 = line.ar2_coefficients(rate_hz)
@@ -162,6 +163,6 @@ class VibrationSource:
         out = np.zeros((len(self._lines), n_frames, 2))
         for i, (a, scale, states) in enumerate(self._lines):
             for axis in range(2):
-                x, states[axis] = lfilter([1.0], a, self.rng.standard_normal(n_frames), zi=states[axis])
+                x, states[axis] = self._lfilter([1.0], a, self.rng.standard_normal(n_frames), zi=states[axis])
                 out[i, :, axis] = x * scale[axis]
         return out

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
-from scipy.signal import welch
 from scipy.stats import chi2
 
 from ..disturbance.vibrations import VibrationLine
@@ -132,6 +131,8 @@ def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEs
     """The lines of the (frames, 2) pseudo-open-loop Tip/Tilt (mas), with the frequencies and
     the mean PSD they were found on (for the plots).  The baseline is computed twice: the
     second time without the bins of the lines found the first time."""
+    from scipy.signal import welch  # here, not at the top: the CLI starts without scipy.signal
+
     n = pol_tip_tilt_mas.shape[0]
     nperseg = int(min(2 ** round(math.log2(SEGMENT_S * rate_hz)), 2 ** int(math.log2(n))))
     f, p = welch(pol_tip_tilt_mas, fs=rate_hz, nperseg=nperseg, axis=0, detrend="linear")

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-from scipy.signal import get_window
 
 from ..control.filters import Filter
 from ..control.transfer import Plant
@@ -190,6 +189,8 @@ class _Accumulator:
 
     def __init__(self, n_modes: int, segment: int, lags: int, probe_column: int | None):
         self.segment, self.hop, self.lags = segment, segment // 2, lags
+        from scipy.signal import get_window  # here, not at the top: the CLI starts without scipy.signal
+
         self.window = get_window("hann", segment)
         self.carry_m = np.zeros((0, n_modes))  # the rows of m the next segment starts in
         F = segment // 2 + 1

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft
 
 from ..errors import InputError
 from ..optics.pupil import Pupil
@@ -38,6 +37,8 @@ class PsfAccumulator:
         self.diffraction_peak = self._image(np.zeros(pupil.n_valid)).max()
 
     def _image(self, residual_nm: np.ndarray) -> np.ndarray:
+        import scipy.fft  # here, not at the top: the CLI starts without it
+
         f = self._field
         f[:] = 0
         phase = (2 * np.pi / (self.wavelength_m * 1e9) * residual_nm).astype(np.float32)

@@ -23,7 +23,6 @@ import dataclasses
 from collections.abc import Callable
 
 import numpy as np
-from scipy.signal import lfilter
 
 from .. import _core
 from ..control.rtc import build_rtc
@@ -132,6 +131,9 @@ class Mirror:
         if structure is not None:
             self._structure_ba = structure.coefficients(rate_hz)
             self._structure_state = np.zeros((2, 2))  # lfilter state per axis (order 2)
+        from scipy.signal import lfilter  # here, not at the top: the CLI starts without scipy.signal
+
+        self._lfilter = lfilter
 
     def _structure_tt(self, applied: np.ndarray) -> np.ndarray:
         """The structure's Tip/Tilt (nm) this frame, excited by the mirror's; its state advances."""
@@ -140,7 +142,7 @@ class Mirror:
             b, a = self._structure_ba
             u = self.basis.M_inv[:2] @ applied  # the mirror's Tip/Tilt (nm)
             for axis in range(2):
-                out, self._structure_state[axis] = lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
+                out, self._structure_state[axis] = self._lfilter(b, a, u[axis : axis + 1], zi=self._structure_state[axis])
                 y[axis] = out[0]
         return y
 

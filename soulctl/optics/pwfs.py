@@ -46,11 +46,18 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
-import scipy.fft
 
 from ..errors import InputError
 from ..ranges import WFS_FIELD_OF_VIEW_ARCSEC
 from .pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION, MAS_PER_RAD, Pupil, PupilResampler
+
+
+def _fft():
+    """scipy.fft, imported at the first transform, not at the top: the CLI starts without it."""
+    import scipy.fft
+
+    return scipy.fft
+
 
 SUBAPERTURES_BIN1 = 40
 WFS_WAVELENGTH_M = 750e-9
@@ -286,7 +293,7 @@ class Pyramid:
         field = np.zeros((batch, N, N), dtype=np.complex64)
         phase = (np.float32(k) * opd_nm).astype(np.float32)
         field[:, o : o + n_pup, o : o + n_pup] = self._amplitude * (np.cos(phase) + 1j * np.sin(phase)).astype(np.complex64)
-        focal = scipy.fft.fft2(field, workers=self.workers, overwrite_x=True)
+        focal = _fft().fft2(field, workers=self.workers, overwrite_x=True)
         # |images|^2 summed over the modulation points, kept with real and imaginary parts side
         # by side (N, 2N): they are added together with the detector's binning, in one pass.
         out = np.empty((batch, N, 2 * N), dtype=np.float32)
@@ -317,7 +324,7 @@ class Pyramid:
                 points = share[start : start + self._chunk]
                 field = sc.field[: len(points)]
                 np.multiply(focal, self._masks[points.start : points.stop : points.step], out=field)
-                v = scipy.fft.ifft2(field, workers=1, overwrite_x=True).view(np.float32)
+                v = _fft().ifft2(field, workers=1, overwrite_x=True).view(np.float32)
                 total += np.einsum("kij,kij->ij", v, v, out=sc.square)
 
     def _share_pool(self) -> None:

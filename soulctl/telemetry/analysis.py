@@ -7,7 +7,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import welch
 
 from ..control.mgm import noise_floor
 from ..errors import InputError
@@ -169,6 +168,8 @@ def spectra(tm: TelemetryReader, modes: tuple[int, ...], pseudo_open: bool, dela
         raise InputError(f"telemetry file {tm.path} holds {frames} frames in its window: PSDs need at least 16")
     # ~1 Hz resolution where the record allows, else segments of half the record (3 averages)
     nperseg = min(2 ** int(np.ceil(np.log2(rate / RESOLUTION_HZ))), 2 ** int(np.log2(frames / 2)))
+    from scipy.signal import welch  # here, not at the top: the CLI starts without scipy.signal
+
     scale, note = nm_per_mas_of(tm)
     psd, jitter, floor = {}, {}, {}
     for name, x in records.items():

@@ -44,6 +44,14 @@ def test_configure_imports_no_heavy_module():
     assert _heavy(_imported_by(["configure", "--mag", "13", "--json"])) == []
 
 
+def test_the_loops_help_imports_neither_its_plots_nor_scipy_signal():
+    """`loop run --help` reads the option table: its plots, its telemetry writer and
+    scipy.signal are imported where a run uses them.  (The run description still imports
+    soulctl.loop.run and with it h5py: issue 85's downward imports.)"""
+    modules = _imported_by(["loop", "run", "--help"])
+    assert not {"soulctl.plots.loop", "soulctl.telemetry.hdf5", "scipy.signal", "matplotlib"} & modules
+
+
 def test_import_of_the_cli_package_is_light():
     code = "import sys, json, soulctl.cli, soulctl.cli.app; print(json.dumps(sorted(sys.modules)))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
