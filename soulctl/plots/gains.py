@@ -37,7 +37,8 @@ def gain_vector_figure(gains: dict[str, np.ndarray], title: str) -> Figure:
 
 def time_series_figure(result, title: str) -> Figure:
     """Three panels against simulated time: gains of TIME_SERIES_MODES (steps at each change),
-    the slope sensitivity k and 1 / optical gain estimate of OGTL, the live Strehl estimate."""
+    the slope sensitivity k and 1 / optical gain estimate of OGTL, the phases and their Strehl
+    ratios (the table's "during the run")."""
     tm = result.loop.telemetry
     rate = tm.rate_hz
     end = result.loop.frame / rate
@@ -55,12 +56,8 @@ def time_series_figure(result, title: str) -> Figure:
     if len(ogtl.get("frame", [])):
         ax_k.plot(ogtl["frame"] / rate, 1.0 / np.maximum(ogtl["optical_gain"], 1e-3), ".", color="C1", label="1 / optical gain estimate")
     ax_k.set_ylabel("k")
-    live = tm.aux_arrays("metrics")
-    if len(live.get("frame", [])):
-        ax_s.plot(live["frame"] / rate, live["strehl_estimate"], ".-", color="C2", label="Strehl estimate (controlled modes)")
-    for name, (a, b) in result.phases.items():
-        ax_s.axvspan(a / rate, b / rate, alpha=0.08, color={"before": "C0", "optimisation": "C1", "after": "C2"}.get(name, "0.5"))
-    ax_s.set_ylabel("Strehl")
+    _phase_strehls(ax_s, result, rate)
+    ax_s.set_ylabel(f"Strehl ({result.request.run.band})")
     ax_s.set_xlabel("time [s]")
     for ax in (ax_g, ax_k, ax_s):
         ax.grid(True, alpha=0.25)
@@ -68,6 +65,18 @@ def time_series_figure(result, title: str) -> Figure:
             ax.legend(fontsize=8, ncol=3 if ax is ax_g else 1)
     ax_g.set_title(title, fontsize=10)
     return fig
+
+
+def _phase_strehls(ax, result, rate: float) -> None:
+    """The run's phases shaded, and the Strehl ratio of its *before* and *after* phases drawn
+    over them at the table's value ("during the run"), labelled with it as the table prints it:
+    one number per figure (the live controlled-mode estimate, blind to fitting error and
+    biased by noise at faint stars, is not drawn)."""
+    for name, (a, b) in result.phases.items():
+        ax.axvspan(a / rate, b / rate, alpha=0.08, color={"before": "C0", "optimisation": "C1", "after": "C2"}.get(name, "0.5"))
+        phase = result.during_run.get(name)
+        if phase is not None:
+            ax.hlines(phase.strehl, a / rate, b / rate, color="C2" if name == "after" else "C0", label=f"{name}: {phase.strehl:.3f}")
 
 
 def gain_figure_names(methods) -> tuple[str, ...]:

@@ -74,9 +74,20 @@ def test_an_optimiser_waits_for_a_calibrated_k(monkeypatch, capsys, cache_dir):
         assert d["strehl_difference"]["mean"] == 0.0
 
 
-def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir):
+def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir, monkeypatch):
     """Both methods on one seed, with OGTL; MGM alone on that seed then gives MGM's gains and
     figures to the bit (the same seed, the same numbers, whichever way the command ran it)."""
+    from soulctl.plots import gains as gain_plots
+
+    legends: dict[str, list[str]] = {}
+    draw = gain_plots.time_series_figure
+
+    def capture(result, title):  # the Strehl panel's legend of each time series, as drawn
+        fig = draw(result, title)
+        legends[result.request.method] = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
+        return fig
+
+    monkeypatch.setattr(gain_plots, "time_series_figure", capture)
     out_file = tmp_path / "gains.toml"
     args = ["optimize", "gains", *SMALL, "--period", "1", "--duration", "2", "--measure", "0.3", "--sequence", "0.1", "--json"]
     status, out, err = cli([*args, "--method", "both", "--out", str(out_file), "--plot", str(tmp_path)], capsys, cache_dir)
@@ -107,6 +118,9 @@ def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, 
     assert np.allclose(parse_gains(str(out_file), 0.99).per_mode(54), d["mgm"]["gains"], atol=1e-5)
     for name in ("gains.png", "timeseries_trial.png", "timeseries_mgm.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the time series' Strehl ratios are the table's "during the run" figures, not an estimate
+    for m, r in d.items():
+        assert legends[m] == [f"{phase}: {r['during_run'][phase]['strehl']:.3f}" for phase in ("before", "after")]
     status, out, err = cli([*args, "--method", "mgm"], capsys, cache_dir)
     assert status == 0, err
     alone = json.loads(out)
