@@ -138,6 +138,9 @@ def _status_of_cli_exception(e: Exception) -> int | None:
         return e.exit_code
     if name == "Abort":
         return _fail("aborted", 130)
+    if name == "BadParameter" and getattr(e, "param", None) is not None and e.param.opts:  # type: ignore[attr-defined]
+        # a value the option's parser refused: in the words of every other check ("--wind must be in ...")
+        return _fail(f"{e.param.opts[0]} {e.message}", 2)  # type: ignore[attr-defined]
     if hasattr(e, "format_message") and hasattr(e, "exit_code"):  # usage errors: bad option, missing value
         return _fail(e.format_message(), 2)
     return None

@@ -42,32 +42,49 @@ NO_CACHE = typer.Option(False, "--no-cache", help="Recompute and do not store (t
 CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder (default $XDG_CACHE_HOME/soulctl or ~/.cache/soulctl).")
 
 
+# The turbulence's options, declared once for every command that takes them (`loop run`,
+# `optimize gains`, `filter design`, `optics`): one help text, the range checked by the parser.
+def seeing_option(default: float | None = None):
+    """--seeing; ``default`` None: an override of the run description's (else soulctl.defaults)."""
+    return typer.Option(
+        default,
+        "--seeing",
+        parser=number(ranges.SEEING_ARCSEC, "--seeing"),
+        metavar="ARCSEC",
+        show_default=str(defaults.SEEING_ARCSEC) if default is None else True,
+        help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).",
+    )
+
+
+def wind_option(default: float | None = None):
+    """--wind; ``default`` None: an override of the run description's (else soulctl.defaults)."""
+    return typer.Option(
+        default,
+        "--wind",
+        parser=number(ranges.WIND_M_S, "--wind"),
+        metavar="M/S",
+        show_default=str(defaults.WIND_M_S) if default is None else True,
+        help=f"Effective (5/3-moment) wind speed of the LBT profile ({ranges.WIND_M_S.text()}).",
+    )
+
+
+def outer_scale_option(default: float | None = None):
+    """--L0; ``default`` None: an override of the run description's (else soulctl.defaults)."""
+    return typer.Option(
+        default,
+        "--L0",
+        parser=number(ranges.OUTER_SCALE_M, "--L0"),
+        metavar="M",
+        show_default=str(defaults.L0_M) if default is None else True,
+        help=f"Outer scale of the von Kármán turbulence ({ranges.OUTER_SCALE_M.text()}).",
+    )
+
+
 # Options of a simulated loop, shared by `loop run` and `optimize gains`: each an override of a
 # field of the run description (None: the description's value, else soulctl.defaults).
-SEEING = typer.Option(
-    None,
-    "--seeing",
-    parser=number(ranges.SEEING_ARCSEC),
-    metavar="ARCSEC",
-    show_default=str(defaults.SEEING_ARCSEC),
-    help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).",
-)
-WIND = typer.Option(
-    None,
-    "--wind",
-    parser=number(ranges.WIND_M_S),
-    metavar="M/S",
-    show_default=str(defaults.WIND_M_S),
-    help=f"Effective wind speed of the LBT profile ({ranges.WIND_M_S.text()}).",
-)
-OUTER_SCALE = typer.Option(
-    None,
-    "--L0",
-    parser=number(ranges.OUTER_SCALE_M),
-    metavar="M",
-    show_default=str(defaults.L0_M),
-    help=f"Outer scale ({ranges.OUTER_SCALE_M.text()}).",
-)
+SEEING = seeing_option()
+WIND = wind_option()
+OUTER_SCALE = outer_scale_option()
 TT_CONTROL = typer.Option(
     None, "--tt-control", metavar="|".join(TT_CONTROLS), help="Tip/Tilt controller (default: the roots table's IIR where it has one)."
 )

@@ -34,14 +34,12 @@ from ..ranges import (
     MAX_DESIGN_RATES,
     NOISE_MAS,
     OPTICAL_GAIN,
-    OUTER_SCALE_M,
     ROOT_MODULUS,
     SEED,
-    SEEING_ARCSEC,
-    WIND_M_S,
     Range,
 )
 from . import progress
+from .common import outer_scale_option, seeing_option, wind_option
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -409,27 +407,9 @@ class DesignOptions:
         help=f"Frame rate(s) in Hz ({DESIGN_RATE_HZ.text()}, at most {MAX_DESIGN_RATES}); default the paper's four.",
     )
     epsilon: float = typer.Option(0.2, "--epsilon", parser=number(EPSILON), help="Modulus margin: |1 + H P| > ε on the band, 0 < ε < 1.")
-    seeing: float = typer.Option(
-        defaults.SEEING_ARCSEC,
-        "--seeing",
-        parser=number(SEEING_ARCSEC),
-        metavar="ARCSEC",
-        help=f"Seeing at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
-    )
-    wind: float = typer.Option(
-        defaults.WIND_M_S,
-        "--wind",
-        parser=number(WIND_M_S),
-        metavar="M/S",
-        help=f"Wind speed of the equivalent turbulent layer ({WIND_M_S.text()}).",
-    )
-    outer_scale: float = typer.Option(
-        defaults.L0_M,
-        "--L0",
-        parser=number(OUTER_SCALE_M),
-        metavar="M",
-        help=f"Outer scale of the von Kármán turbulence ({OUTER_SCALE_M.text()}).",
-    )
+    seeing: float = seeing_option(defaults.SEEING_ARCSEC)
+    wind: float = wind_option(defaults.WIND_M_S)
+    outer_scale: float = outer_scale_option(defaults.L0_M)
     vibrations: Path | None = typer.Option(
         None,
         "--vibrations",
@@ -524,9 +504,6 @@ def _design_inputs(o: DesignOptions) -> tuple[list[float], list[float | None]]:
         raise InputError(f"--rate lists a frame rate twice: {o.rate}")
     EPSILON.check(o.epsilon, "--epsilon")
     for value, name, accepted in (
-        (o.seeing, "--seeing", SEEING_ARCSEC),
-        (o.wind, "--wind", WIND_M_S),
-        (o.outer_scale, "--L0", OUTER_SCALE_M),
         (o.noise, "--noise", NOISE_MAS),
         (o.resonance_line, "--resonance-line", NOISE_MAS),
         (o.seed, "--seed", SEED),

@@ -13,7 +13,7 @@ import typer
 
 from .. import tables
 from ..errors import InputError
-from ..ranges import Range
+from ..ranges import Range, number_text
 
 _EXACT_FLOAT_INTEGERS = 2**53  # above, a float no longer holds every integer
 
@@ -30,9 +30,10 @@ def _integer(text: str) -> int | None:
     return int(value) if math.isfinite(value) and value.is_integer() and abs(value) < _EXACT_FLOAT_INTEGERS else None
 
 
-def number(accepted: Range) -> Callable[[str], float | int]:
+def number(accepted: Range, option: str | None = None) -> Callable[[str], float | int]:
     """A typer ``parser=`` for an option whose values are in ``accepted`` (ints for an integer
-    range, floats otherwise)."""
+    range, floats otherwise); given the ``option``'s name, it also checks the range (one line
+    naming the option and the range, before the command's body runs)."""
 
     def parse(text):
         if isinstance(text, (int, float)) and not isinstance(text, bool):  # a default
@@ -49,6 +50,8 @@ def number(accepted: Range) -> Callable[[str], float | int]:
         if value is None:
             kind = "an integer" if accepted.integer else "a number"
             raise typer.BadParameter(f"must be {kind} in {accepted.text()}, got '{text}'")
+        if option is not None and not accepted.contains(value):
+            raise typer.BadParameter(f"must be in {accepted.text()}, got {number_text(value)}")
         return value
 
     return parse

@@ -28,17 +28,26 @@ from ..ranges import (
     FRACTION,
     MODES,
     MODULATION_LAMBDA_OVER_D,
-    OUTER_SCALE_M,
     OVERSAMPLING,
     SCREENS,
     SEED,
     SEEING_ARCSEC,
     WFS_FIELD_OF_VIEW_ARCSEC,
-    WIND_M_S,
 )
 from ..run_config import RunConfig, read_run_config
 from . import progress, quick
-from .common import CACHE_DIR, NO_CACHE, RUN_CONFIG, WFS_FIELD, array_cache, observation_option, quantity_table
+from .common import (
+    CACHE_DIR,
+    NO_CACHE,
+    RUN_CONFIG,
+    WFS_FIELD,
+    array_cache,
+    observation_option,
+    outer_scale_option,
+    quantity_table,
+    seeing_option,
+    wind_option,
+)
 from .numbers import number
 from .option_table import command
 from .output import console as make_console
@@ -113,23 +122,9 @@ _JSON = typer.Option(False, "--json", help="Print one JSON object instead of the
 
 @app.command("atmosphere")
 def atmosphere(
-    seeing: float = typer.Option(
-        defaults.SEEING_ARCSEC,
-        "--seeing",
-        parser=number(SEEING_ARCSEC),
-        metavar="ARCSEC",
-        help=f"Seeing FWHM at 500 nm on the line of sight ({SEEING_ARCSEC.text()}).",
-    ),
-    wind: float = typer.Option(
-        defaults.WIND_M_S,
-        "--wind",
-        parser=number(WIND_M_S),
-        metavar="M/S",
-        help=f"Effective (5/3-moment) wind speed of the LBT profile ({WIND_M_S.text()}).",
-    ),
-    L0: float = typer.Option(
-        defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
-    ),
+    seeing: float = seeing_option(defaults.SEEING_ARCSEC),
+    wind: float = wind_option(defaults.WIND_M_S),
+    L0: float = outer_scale_option(defaults.L0_M),
     json_output: bool = _JSON,
 ) -> None:
     """Turbulence figures of the default LBT profile.
@@ -139,9 +134,6 @@ def atmosphere(
 
     Example: soulctl optics atmosphere --seeing 0.8 --wind 10
     """
-    SEEING_ARCSEC.check(seeing, "--seeing")
-    WIND_M_S.check(wind, "--wind")
-    OUTER_SCALE_M.check(L0, "--L0")
     atm = AtmosphereConfig.lbt_default(seeing_arcsec=seeing, L0_m=L0, wind_speed_m_s=wind)
     r0 = atm.r0_m
     tilt = TurbulenceTipTilt(seeing_arcsec=seeing, outer_scale_m=L0, wind_speed_m_s=atm.effective_wind_speed_m_s)
@@ -268,9 +260,7 @@ class OpticalGainsOptions:
         parser=number(SEEING_ARCSEC),
         help=f"Seeing of the correction level (the paper's table: {CHI_TABLE_SEEING_ARCSEC:g}; {SEEING_ARCSEC.text()}).",
     )
-    L0: float = typer.Option(
-        defaults.L0_M, "--L0", metavar="M", parser=number(OUTER_SCALE_M), help=f"Outer scale ({OUTER_SCALE_M.text()})."
-    )
+    L0: float = outer_scale_option(defaults.L0_M)
     controlled_fraction: float = typer.Option(
         CorrectionLevel.controlled_fraction,
         "--controlled-fraction",

@@ -55,3 +55,21 @@ def test_loop_run_help_reads_in_panels(capsys, monkeypatch):
     assert {"Observation", "Atmosphere and telescope", "Control", "Auxiliary loops (MGM, OGTL)", "Output"} <= set(panels)
     for body in re.split(r"╭─ .+? ─+╮\n", text)[1:]:
         assert body.count("\n") <= 40
+
+
+def test_the_turbulence_options_are_declared_once():
+    """--wind and --L0 have one declaration (one help text, the range checked by the parser)
+    for every command; --seeing two: the run's and `optics gains`' correction level."""
+    import ast
+    from pathlib import Path
+
+    import soulctl.cli
+
+    declared: dict[str, int] = {}
+    for path in Path(soulctl.cli.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "Option":
+                for arg in node.args:
+                    if isinstance(arg, ast.Constant) and arg.value in ("--seeing", "--wind", "--L0"):
+                        declared[arg.value] = declared.get(arg.value, 0) + 1
+    assert declared == {"--seeing": 2, "--wind": 1, "--L0": 1}
