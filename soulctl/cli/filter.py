@@ -16,7 +16,7 @@ from .. import __version__, defaults, tables
 from ..control.delay import DelayModel
 from ..control.design import DesignResult, Disturbance, design_tt_filter, roots_table_csv
 from ..control.filters import Filter
-from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, LoopAnalysis, Plant, analyze
+from ..control.transfer import RESONANCE_HZ, UNSTABLE_NOTE, VIBRATION_HZ, Loop, LoopAnalysis, Plant, analyze
 from ..disturbance.turbulence import TurbulenceTipTilt
 from ..disturbance.vibrations import VibrationSpectrum
 from ..errors import InputError
@@ -166,13 +166,27 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
     row("verdict", lambda a: styled("stable", "green") if a.analysis.stable else styled("UNSTABLE", "bold red"))
     row("gain margin", lambda a: _fmt(a.analysis.gain_margin, ".2f"))
     row("phase margin", lambda a: _fmt(a.analysis.phase_margin_deg, ".1f") + "°" if a.analysis.phase_margin_deg is not None else "—")
-    row("modulus margin min|1+L|", lambda a: f"{a.analysis.modulus_margin:.3f} @ {a.analysis.modulus_margin_hz:.0f} Hz")
+    row("modulus margin min|1+L|", lambda a: _closed(a.analysis, "modulus_margin", _at_frequency(a.analysis)))
     row("max stable gain", lambda a: _fmt(a.analysis.max_stable_gain, ".3f"))
-    row("|S(13 Hz)| rejection", lambda a: _fmt(a.analysis.rejection_13hz, ".3f"))
-    row("|T(127 Hz)|", lambda a: _fmt(a.analysis.noise_127hz, ".3f"))
-    row("|S| -3 dB (rejection bw)", lambda a: _fmt(a.analysis.rejection_bandwidth_hz, ".1f") + " Hz")
-    row("|T| -3 dB bandwidth", lambda a: _fmt(a.analysis.bandwidth_hz, ".1f") + " Hz")
+    row("|S(13 Hz)| rejection", lambda a: _closed(a.analysis, "rejection_13hz", lambda x: f"{x:.3f}"))
+    row("|T(127 Hz)|", lambda a: _closed(a.analysis, "noise_127hz", lambda x: f"{x:.3f}"))
+    row("|S| -3 dB (rejection bw)", lambda a: _closed(a.analysis, "rejection_bandwidth_hz", lambda x: f"{x:.1f} Hz"))
+    row("|T| -3 dB bandwidth", lambda a: _closed(a.analysis, "bandwidth_hz", lambda x: f"{x:.1f} Hz"))
     console.print(t)
+    if any(a.analysis.not_available() for a in loops):
+        console.print(f"n/a (unstable): {UNSTABLE_NOTE}; lower the gain below the maximum stable gain.", style="dim")
+
+
+def _at_frequency(analysis):
+    return lambda x: f"{x:.3f} @ {analysis.modulus_margin_hz:.0f} Hz"
+
+
+def _closed(analysis, name: str, text) -> str:
+    """A closed-loop figure's cell: n/a for an unstable loop, — where it does not exist."""
+    if analysis.not_available():
+        return "n/a (unstable)"
+    value = analysis.figure(name)
+    return "—" if value is None else text(value)
 
 
 @dataclass(frozen=True)

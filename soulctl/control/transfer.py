@@ -204,6 +204,13 @@ def _roots_text(roots) -> str:
     return "[" + ", ".join(f"{complex(r).real:.4g}" if complex(r).imag == 0 else f"{complex(r):.4g}" for r in roots) + "]"
 
 
+# The closed loop's figures (from S and T): an unstable loop has none, since S and T then
+# describe no steady state; its gain margin (the factor to lower the gain by), phase margin
+# (negative) and maximum stable gain stay (``LoopAnalysis.figure``).
+CLOSED_LOOP_FIGURES = ("modulus_margin", "modulus_margin_hz", "rejection_13hz", "noise_127hz", "rejection_bandwidth_hz", "bandwidth_hz")
+UNSTABLE_NOTE = "the closed loop is unstable: S and T describe no steady state"
+
+
 @dataclass(frozen=True)
 class LoopAnalysis:
     """Robustness and performance figures of one loop (the rows of ``soulctl filter analyze``)."""
@@ -224,13 +231,21 @@ class LoopAnalysis:
     rejection_bandwidth_hz: float | None  # first |S| = -3 dB
     bandwidth_hz: float | None  # first |T| = -3 dB, the closed-loop bandwidth
 
+    def figure(self, name: str):
+        """A figure as it may be reported: None for a closed-loop figure of an unstable loop."""
+        return None if not self.stable and name in CLOSED_LOOP_FIGURES else getattr(self, name)
+
+    def not_available(self) -> dict[str, str]:
+        """The figures ``figure`` withholds, each with its reason."""
+        return {} if self.stable else dict.fromkeys(CLOSED_LOOP_FIGURES, UNSTABLE_NOTE)
+
     def to_dict(self) -> dict:
         def clean(x):
             if isinstance(x, float) and not math.isfinite(x):
                 return None if math.isnan(x) else "inf"
             return x
 
-        return {k: clean(v) for k, v in self.__dict__.items()}
+        return {k: clean(self.figure(k)) for k in self.__dict__} | {"not_available": self.not_available()}
 
 
 def _at(fun, f_hz: float, nyquist: float) -> float | None:

@@ -103,9 +103,13 @@ def test_unstable_loop_exit_3_with_figures(capsys):
     status, out, err = run(["filter", "analyze", "--rate", "1700", "--control", "int", "--gain", "0.6", "--json"], capsys)
     assert status == 3
     c = json.loads(out)["controllers"][0]
-    assert c["stable"] is False and c["gain_margin"] < 1
+    assert c["stable"] is False and c["gain_margin"] < 1 and c["max_stable_gain"] == pytest.approx(0.523, abs=1e-3)
+    # no closed-loop figure for a loop without a steady state: null with the reason, n/a in the table
+    for name in ("modulus_margin", "rejection_13hz", "noise_127hz", "rejection_bandwidth_hz", "bandwidth_hz"):
+        assert c[name] is None and "unstable" in c["not_available"][name]
     status, out, _ = run(["filter", "analyze", "--rate", "1700", "--control", "int", "--gain", "0.6"], capsys)
     assert status == 3 and "UNSTABLE" in out
+    assert "n/a (unstable)" in [line for line in out.splitlines() if "|S(13 Hz)|" in line][0]
 
 
 @pytest.mark.parametrize(
