@@ -280,8 +280,14 @@ def _identify_table(ident: Identification):
             f"vibration {x.frequency.value:.2f} ± {x.frequency.sigma:.2f} Hz",
             f"tip {x.tip.value:.2f}, tilt {x.tilt.value:.2f} mas, damping {x.damping:.2g}",
         )
-    if not ident.lines and "vibration_lines" not in ident.not_estimated:
-        t.add_row("vibration lines", "none above the detection threshold")
+    if ident.line_limit is not None:
+        lim = ident.line_limit
+        found = "none found; " if not ident.lines else ""
+        t.add_row(
+            "vibration lines: detection limit",
+            f"{found}{lim['rms_mas']:.2f} mas RMS per axis at {lim['at_hz']:g} Hz "
+            f"(a line narrower than the {lim['resolution_hz']:.3g} Hz bins)",
+        )
     for figure, why in ident.not_estimated.items():
         t.add_row(f"{figure.replace('_', ' ')}", f"not estimated: {why}")
     for note in p.notes:

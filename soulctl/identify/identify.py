@@ -24,7 +24,7 @@ from ..optics.cache import ArrayCache, EntrySpec, cache_key
 from ..optics.calibration import controlled_basis
 from ..telemetry.figures import pseudo_open_loop
 from . import seeing
-from .lines import LineEstimate, fit_lines
+from .lines import LIMIT_HZ, LineEstimate, LineSearch, search_lines
 from .plant import OpticalGainGroup, PlantModel, chi_per_mode
 from .probe import ProbeFit, fit_probe
 from .record import LoopRecord, pol_variance, read_record
@@ -46,6 +46,7 @@ class Identification:
     line_psd: tuple[np.ndarray, np.ndarray]  # (f, mean PSD of the pseudo-open-loop Tip/Tilt, mas^2/Hz)
     seconds: dict = field(default_factory=dict)
     not_estimated: dict = field(default_factory=dict)  # figure -> why the record cannot give it
+    line_limit: dict | None = None  # the weakest line the search could find (``LineSearch.limit_mas``), where and at what resolution
 
     def _lines_window(self) -> dict:
         skip = _skipped(self.plant.delay.value)
@@ -82,6 +83,7 @@ class Identification:
                 {"frequency_hz": x.frequency.to_dict(), "damping": x.damping, "tip_mas": x.tip.to_dict(), "tilt_mas": x.tilt.to_dict()}
                 for x in self.lines
             ],
+            "vibration_line_limit": self.line_limit,
             "not_estimated": self.not_estimated,
             "notes": list(p.notes),
             "seconds": self.seconds,
@@ -137,12 +139,12 @@ def _skipped(d: float) -> int:
     return int(d) + 1 + RING_DOWN
 
 
-def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> tuple[list[LineEstimate], np.ndarray, np.ndarray]:
+def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> LineSearch:
     """The lines of the pseudo-open-loop Tip/Tilt, over the frames since the last change of the
     gains (m divided by each frame's k; OGTL's k need not have settled)."""
     m, c = record.tip_tilt
     pol = pseudo_open_loop(m / chi_tt, c, d, record.structure_ba)
-    return fit_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
+    return search_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
 
 
 def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache, diameter_m: float):
@@ -182,9 +184,11 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     noise = rej.noise_nm2.copy()
     missing: dict[str, str] = {}
     lines: list[LineEstimate] = []
-    f_lines, p_lines = np.zeros(0), np.zeros(0)
+    f_lines, p_lines, limit = np.zeros(0), np.zeros(0), None
     if record.n_modes >= 2:
-        lines, f_lines, p_lines = _vibrations(record, rej.delay.value, float(chi[0]))
+        search = _vibrations(record, rej.delay.value, float(chi[0]))
+        lines, f_lines, p_lines = search.lines, search.f, search.mean_psd
+        limit = {"rms_mas": search.limit_mas, "at_hz": LIMIT_HZ, "resolution_hz": search.resolution_hz}
     else:
         missing["vibration_lines"] = missing["tip_tilt_noise_mas"] = "the record holds one mode, not the Tip/Tilt pair"
     clock["vibrations"] = time.perf_counter()
@@ -207,7 +211,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
         record.path, record.rate_hz, rej.delay, REJECTION_METHOD, groups, method, noise, tt_noise, turbulence, spectrum, notes, in_use
     )
     seconds = {k: clock[k] - clock["start"] for k in ("read", "delay_and_gains", "vibrations", "turbulence")}
-    return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds, missing)
+    return Identification(plant, rej, probe, lines, record, variance, model_variance, (f_lines, p_lines), seconds, missing, limit)
 
 
 def _notes(record: LoopRecord, rej: RejectionFit) -> tuple[str, ...]:

@@ -114,12 +114,15 @@ def _share(bins: np.ndarray, df: float, f0: float, zeta: float) -> float:
     return float(np.trapezoid(_oscillator(grid, f0, zeta), grid))
 
 
-def _baseline(f: np.ndarray, p: np.ndarray, width: int, masked: np.ndarray) -> np.ndarray:
+def _baseline(f: np.ndarray, p: np.ndarray, width: int, masked: np.ndarray, dof: int) -> np.ndarray:
     """Running median of log p over ``width`` bins, over the bins outside ``masked`` (the lines
-    found so far, whose tails would raise it), interpolated across them."""
+    found so far, whose tails would raise it), interpolated across them, and divided by the
+    median of a Welch PSD of ``dof`` degrees of freedom over its mean (chi^2/dof: 0.84 for one
+    segment averaged over two axes, 4 dof): the threshold and the lines' excess are relative
+    to the spectrum's mean, not its median (a 10 s record's white noise found two lines)."""
     keep = ~masked
     smooth = median_filter(np.log(np.maximum(p[keep], 1e-30)), size=width, mode="nearest")
-    return np.exp(np.interp(f, f[keep], smooth))
+    return np.exp(np.interp(f, f[keep], smooth)) / (chi2.median(dof) / dof)
 
 
 def _candidates(f, mean, base, inside, threshold) -> list[int]:
@@ -127,10 +130,35 @@ def _candidates(f, mean, base, inside, threshold) -> list[int]:
     return sorted(peaks, key=lambda i: -(mean[i] - base[i]))
 
 
+@dataclass(frozen=True)
+class LineSearch:
+    """What the search found and how weak a line it could have found: ``limit_mas`` is the
+    RMS per axis of the weakest line narrower than a bin, centred on one, that crosses the
+    threshold at ``LIMIT_HZ`` (its PSD there, Hann's 1.5-bin noise bandwidth: sigma^2 =
+    (threshold - 1) x baseline x 1.5 df), at least ``MIN_RMS_MAS``."""
+
+    lines: list[LineEstimate]
+    f: np.ndarray  # the frequencies and mean PSD the lines were found on (for the plots)
+    mean_psd: np.ndarray
+    limit_mas: float
+    resolution_hz: float
+
+
+LIMIT_HZ = 13.0  # where the detection limit is stated: LBT's principal line
+HANN_ENBW_BINS = 1.5
+
+
 def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEstimate], np.ndarray, np.ndarray]:
     """The lines of the (frames, 2) pseudo-open-loop Tip/Tilt (mas), with the frequencies and
-    the mean PSD they were found on (for the plots).  The baseline is computed twice: the
-    second time without the bins of the lines found the first time."""
+    the mean PSD they were found on (``search_lines`` without its detection limit)."""
+    found = search_lines(pol_tip_tilt_mas, rate_hz)
+    return found.lines, found.f, found.mean_psd
+
+
+def search_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> LineSearch:
+    """The lines of the (frames, 2) pseudo-open-loop Tip/Tilt (mas) and the detection limit.
+    The baseline is computed twice: the second time without the bins of the lines found the
+    first time."""
     from scipy.signal import welch  # here, not at the top: the CLI starts without scipy.signal
 
     n = pol_tip_tilt_mas.shape[0]
@@ -143,12 +171,12 @@ def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEs
     inside = (f >= F_MIN_HZ) & (f <= 0.45 * rate_hz)
     threshold = chi2.isf(FALSE_ALARMS / max(1, inside.sum()), 4 * segments) / (4 * segments)  # two axes averaged
     masked = np.zeros(f.shape, dtype=bool)
-    first = _baseline(f, mean, width, masked)
+    first = _baseline(f, mean, width, masked, 4 * segments)
     for i in _candidates(f, mean, first, inside, threshold)[:MAX_LINES]:
         _, zeta, _ = _fit_peak(f, mean, first, i)  # the line's width sets how much of it to mask
         masked |= np.abs(f - f[i]) <= max(1.0, 3 * df, MASK_WIDTHS * zeta * f[i])
-    bases = np.stack([_baseline(f, p[:, a], width, masked) for a in range(2)], axis=1)
-    base = _baseline(f, mean, width, masked)
+    bases = np.stack([_baseline(f, p[:, a], width, masked, 2 * segments) for a in range(2)], axis=1)
+    base = _baseline(f, mean, width, masked, 4 * segments)
     out: list[LineEstimate] = []
     model = base.copy()  # the baseline plus the lines fitted so far: a candidate they explain is their skirt
     for i in _candidates(f, mean, base, inside, threshold)[: 2 * MAX_LINES]:
@@ -161,4 +189,6 @@ def fit_lines(pol_tip_tilt_mas: np.ndarray, rate_hz: float) -> tuple[list[LineEs
         model += 0.5 * (tip.value**2 + tilt.value**2) * _oscillator(f, f0, zeta)
         if max(tip.value, tilt.value) >= MIN_RMS_MAS:
             out.append(LineEstimate(Estimate(f0, max(sf, 0.0)), zeta, tip, tilt))
-    return sorted(out, key=lambda x: x.frequency.value), f, mean
+    at = int(np.argmin(np.abs(f - min(LIMIT_HZ, 0.45 * rate_hz))))
+    limit = math.sqrt(max(threshold - 1.0, 0.0) * base[at] * HANN_ENBW_BINS * df)
+    return LineSearch(sorted(out, key=lambda x: x.frequency.value), f, mean, max(limit, MIN_RMS_MAS), float(df))

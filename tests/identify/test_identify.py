@@ -20,7 +20,7 @@ from soulctl.control.transfer import Loop, Plant, analyze
 from soulctl.disturbance.vibrations import VibrationSource, VibrationSpectrum
 from soulctl.identify import seeing
 from soulctl.identify.identify import _weak_groups
-from soulctl.identify.lines import fit_lines
+from soulctl.identify.lines import fit_lines, search_lines
 from soulctl.identify.plant import Estimate, OpticalGainGroup, PlantModel, Turbulence, read_plant
 from soulctl.identify.probe import fit_probe
 from soulctl.identify.record import read_record
@@ -152,6 +152,28 @@ def test_lines_frequency_and_rms_against_the_realised_series():
                 assert abs(est / truth - 1) < 0.15, (nominal.frequency_hz, est, truth)
     # no line where there is none: white noise alone gives no detection
     assert fit_lines(rng.standard_normal((frames, 2)), rate)[0] == []
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_detection_limit_is_where_a_narrow_line_starts_to_be_found(seed):
+    """A sinusoid on a bin (narrower than the bins) over white noise: found at 1.5x the stated
+    limit, not at 0.5x; the limit is the threshold's excess over the baseline (white noise of
+    RMS s at rate R: PSD 2 s^2 / R) in Hann's 1.5-bin noise bandwidth.  (The search allows 5 %
+    false alarms per spectrum anywhere: only the line's own bins are looked at.)"""
+    rate, frames, s = 1000.0, 10_000, 60.0
+    rng = np.random.default_rng(seed)
+    noise = s * rng.standard_normal((frames, 2))
+    alone = search_lines(noise, rate)
+    excess = alone.limit_mas**2 / (1.5 * alone.resolution_hz * 2 * s**2 / rate)  # threshold - 1 over the mean
+    assert 3.0 < excess < 10.0
+    f0 = round(13.0 / alone.resolution_hz) * alone.resolution_hz  # on a bin
+    assert not [x for x in alone.lines if abs(x.frequency.value - f0) < 0.5]
+    t = np.arange(frames) / rate
+    for factor, found in ((1.5, True), (0.5, False)):
+        amplitude = factor * alone.limit_mas * math.sqrt(2)  # a sinusoid's RMS is its amplitude / sqrt 2
+        line = amplitude * np.sin(2 * np.pi * f0 * t + rng.uniform(0, 2 * np.pi))[:, None] * np.ones(2)
+        lines = search_lines(noise + line, rate).lines
+        assert any(abs(x.frequency.value - f0) < 0.5 for x in lines) == found, (factor, [x.frequency.value for x in lines])
 
 
 def test_turbulence_fit_recovers_r0_and_L0_from_von_karman_variances():
