@@ -163,13 +163,13 @@ def test_a_plot_folder_is_created_with_its_parents(tmp_path, capsys):
 def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, monkeypatch):
     """The telemetry is written, then the figures fail: nothing lands, no temporary stays, and
     the folder made for the figures is gone again."""
-    from soulctl.cli import loop as loop_cli
     from soulctl.errors import InputError
+    from soulctl.plots import loop as loop_plots  # `loop run` imports its figures when it draws them
 
     def fail(*_):
         raise InputError("the figures could not be made") if failure == "input" else failure
 
-    monkeypatch.setattr(loop_cli, "write_loop_figures", fail)
+    monkeypatch.setattr(loop_plots, "write_loop_figures", fail)
     before = set(os.listdir(tmp_path))
     args = _short_loop(tmp_path, tmp_path / "figures" / "run1")
     if status == 1:
@@ -182,11 +182,12 @@ def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, m
 
 INTERRUPTED = """
 import os, sys, time
-from soulctl.cli import app, loop as loop_cli
+from soulctl.cli import app
+from soulctl.plots import loop as loop_plots
 def slow(*args):
     open(os.environ["SOULCTL_TEST_READY"], "w").close()
     time.sleep(60)
-loop_cli.write_loop_figures = slow
+loop_plots.write_loop_figures = slow
 sys.exit(app.main(sys.argv[1:]))
 """
 
@@ -330,7 +331,7 @@ def test_a_terminal_without_utf8_gets_ascii(args, tmp_path):
 def test_a_signal_lost_in_a_finaliser_still_discards_the_outputs(tmp_path, capsys, monkeypatch):
     """Python prints and drops an exception raised in a finaliser or weakref callback (h5py
     closing a file): the signal is remembered and nothing is committed."""
-    from soulctl.cli import loop as loop_cli
+    from soulctl.plots import loop as loop_plots
 
     def swallowed(*_):
         try:
@@ -339,7 +340,7 @@ def test_a_signal_lost_in_a_finaliser_still_discards_the_outputs(tmp_path, capsy
         except BaseException:  # noqa: BLE001 - as a finaliser would
             pass
 
-    monkeypatch.setattr(loop_cli, "write_loop_figures", swallowed)
+    monkeypatch.setattr(loop_plots, "write_loop_figures", swallowed)
     args = [
         "loop",
         "run",

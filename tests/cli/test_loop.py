@@ -118,7 +118,7 @@ def test_unstable_gains_are_refused_with_the_maximum_stable_gain(capsys, cache_d
         (["--ncpa", "-5"], "--ncpa must be in 0..1000 nm"),
         (["--ncpa", "nan"], "--ncpa must be"),
         (["--ncpa-offset-fraction", "1.5"], "--ncpa-offset-fraction must be in 0..1"),
-        (["--ncpa-offset-fraction", "half"], "--ncpa-offset-fraction': must be a number in 0..1"),
+        (["--ncpa-offset-fraction", "half"], "--ncpa-offset-fraction must be a number in 0..1"),
         (["--ideal", "--ncpa-offset-fraction", "0.3"], "--ideal turns OGTL and the error terms off"),
     ],
 )

@@ -326,7 +326,7 @@ def test_offline_without_a_recorded_delay_takes_the_configurations(recorded, tmp
         (["--sequence", "0.01", "--method", "trial"], "--sequence must be at least"),
         (["--seeing", "0"], "--seeing must be in"),
         (["--windows", "0"], "--windows must be in 1..100"),
-        (["--windows", "1.5"], "'--windows': must be an integer in 1..100"),
+        (["--windows", "1.5"], "--windows must be an integer in 1..100"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args, message, capsys, cache_dir):
