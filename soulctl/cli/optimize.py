@@ -185,13 +185,22 @@ def _offline(o: GainsOptions, cache) -> int:
 PER_MODE_ROWS = 4  # records of at most this many modes get a row per mode
 
 
+def _window_reason(result) -> str:
+    """Why offline MGM read from a frame after the record's first: the gains in force are the
+    window's, so it starts after their last change (or k's), and it is at most 600 s long."""
+    return (
+        f"from frame {result.first_frame}: the frames after the last change of the gains or k (at most the last 600 s); "
+        "a record at fixed gains and k gives MGM all of it"
+    )
+
+
 def _offline_table(result, name: str, o: GainsOptions):
     """Recorded, optimum and applied gains (per mode for a few modes, else per group), why the
     applied differ from the optimum, and the plant MGM modelled."""
     r = result
     t = quantity_table(
         f"MGM on {name}: {r.n_modes} modes, {r.rate_hz:g} Hz, delay {r.delay_frames:.3g} frames, window of {r.frames} frames "
-        f"({r.frames / r.rate_hz:.2f} s, Welch segment {r.segment})"
+        f"({r.frames / r.rate_hz:.2f} s, Welch segment {r.segment})" + (f"\n{_window_reason(r)}" if r.first_frame > 0 else "")
     )
     t.add_row("gains", "recorded → optimum → MGM")
     if r.n_modes <= PER_MODE_ROWS:

@@ -245,6 +245,10 @@ def test_only_the_needed_fields_and_rows_are_read(env, capsys):
     status, out, err, _ = offline(path, env, capsys)
     assert status == 0, err
     assert json.loads(out)["window"]["first_frame"] == 100
+    # the table says where the window starts and why (a record at fixed gains and k: all of it)
+    status = main(["optimize", "gains", "--method", "mgm", "--telemetry", str(path), "--cache-dir", str(env["cache"])])
+    table = capsys.readouterr().out
+    assert status == 0 and "from frame 100: the frames after the last change of the gains or k" in " ".join(table.split())
     status, _, err, out_file = offline(edited(env, replace("slopes", lambda a: a[:10])), env, capsys)
     assert_refused(status, err, out_file, "field slopes has 10 frames")
 
