@@ -43,41 +43,33 @@ CACHE_DIR = typer.Option(None, "--cache-dir", metavar="DIR", help="Cache folder 
 
 
 # The turbulence's options, declared once for every command that takes them (`loop run`,
-# `optimize gains`, `filter design`, `optics`): one help text, the range checked by the parser.
-def seeing_option(default: float | None = None):
-    """--seeing; ``default`` None: an override of the run description's (else soulctl.defaults)."""
+# `optimize gains`, `filter design`, `optics`): one help text, the range checked by the parser;
+# ``default`` None makes the option an override of the run description's (else soulctl.defaults).
+def _turbulence_option(flag: str, accepted: ranges.Range, metavar: str, run_default: float, what: str, default: float | None):
     return typer.Option(
         default,
-        "--seeing",
-        parser=number(ranges.SEEING_ARCSEC, "--seeing"),
-        metavar="ARCSEC",
-        show_default=str(defaults.SEEING_ARCSEC) if default is None else True,
-        help=f"Seeing at 500 nm on the line of sight ({ranges.SEEING_ARCSEC.text()}).",
+        flag,
+        parser=number(accepted, flag),
+        metavar=metavar,
+        show_default=str(run_default) if default is None else True,
+        help=f"{what} ({accepted.text()}).",
+    )
+
+
+def seeing_option(default: float | None = None):
+    return _turbulence_option(
+        "--seeing", ranges.SEEING_ARCSEC, "ARCSEC", defaults.SEEING_ARCSEC, "Seeing at 500 nm on the line of sight", default
     )
 
 
 def wind_option(default: float | None = None):
-    """--wind; ``default`` None: an override of the run description's (else soulctl.defaults)."""
-    return typer.Option(
-        default,
-        "--wind",
-        parser=number(ranges.WIND_M_S, "--wind"),
-        metavar="M/S",
-        show_default=str(defaults.WIND_M_S) if default is None else True,
-        help=f"Effective (5/3-moment) wind speed of the LBT profile ({ranges.WIND_M_S.text()}).",
+    return _turbulence_option(
+        "--wind", ranges.WIND_M_S, "M/S", defaults.WIND_M_S, "Effective (5/3-moment) wind speed of the LBT profile", default
     )
 
 
 def outer_scale_option(default: float | None = None):
-    """--L0; ``default`` None: an override of the run description's (else soulctl.defaults)."""
-    return typer.Option(
-        default,
-        "--L0",
-        parser=number(ranges.OUTER_SCALE_M, "--L0"),
-        metavar="M",
-        show_default=str(defaults.L0_M) if default is None else True,
-        help=f"Outer scale of the von Kármán turbulence ({ranges.OUTER_SCALE_M.text()}).",
-    )
+    return _turbulence_option("--L0", ranges.OUTER_SCALE_M, "M", defaults.L0_M, "Outer scale of the von Kármán turbulence", default)
 
 
 # Options of a simulated loop, shared by `loop run` and `optimize gains`: each an override of a

@@ -68,7 +68,8 @@ def test_the_turbulence_options_are_declared_once():
     declared: dict[str, int] = {}
     for path in Path(soulctl.cli.__file__).parent.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "Option":
+            callee = getattr(node.func, "attr", None) or getattr(node.func, "id", None) if isinstance(node, ast.Call) else None
+            if callee in ("Option", "_turbulence_option"):
                 for arg in node.args:
                     if isinstance(arg, ast.Constant) and arg.value in ("--seeing", "--wind", "--L0"):
                         declared[arg.value] = declared.get(arg.value, 0) + 1
