@@ -22,7 +22,7 @@ from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
 from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config
-from . import quick
+from . import output, quick
 from .numbers import number, parse_magnitude
 
 RUN_CONFIG = typer.Option(
@@ -157,7 +157,7 @@ PROBE_FREQUENCY = typer.Option(
     metavar="HZ",
     help=f"OGTL probe frequency (default: frame rate / 4; below Nyquist, at least {ranges.PROBE_MIN_CYCLES} cycles per --period).",
 )
-JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+JSON_OUTPUT = output.JSON_OUTPUT
 
 
 def check_resonance(choice: str) -> str:

@@ -11,9 +11,9 @@ from rich.table import Table
 from .. import tables
 from ..files import check_output_path
 from ..observation import Observation, observation_for_magnitude
-from .numbers import parse_magnitude
+from .numbers import magnitude_option, parse_magnitude
+from .output import JSON_OUTPUT, print_json
 from .output import console as make_console
-from .output import print_json
 
 
 def render(obs: Observation, console: Console, roots_source: str = "roots") -> None:
@@ -52,7 +52,7 @@ def render(obs: Observation, console: Console, roots_source: str = "roots") -> N
 
 
 def configure(
-    mag: str = typer.Option(..., "--mag", metavar="R", help="Guide star R magnitude (0 to 18.5)."),
+    mag: str = magnitude_option(...),
     out: Path | None = typer.Option(
         None, "--out", metavar="FILE", help="Write the configuration as TOML (for --config of later commands)."
     ),
@@ -62,7 +62,7 @@ def configure(
         metavar="FILE",
         help="Tip/Tilt IIR roots table to use instead of the paper's (e.g. from 'soulctl filter design --out').",
     ),
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
+    json_output: bool = JSON_OUTPUT,
 ) -> None:
     """Set up an observation for a guide star of R magnitude from the SOUL look-up table.
 

@@ -42,8 +42,8 @@ from . import progress
 from .common import outer_scale_option, seeing_option, wind_option
 from .numbers import number
 from .option_table import command
+from .output import JSON_OUTPUT, figure_text, print_json, styled
 from .output import console as make_console
-from .output import figure_text, print_json, styled
 
 app = typer.Typer(help="Analyse and design temporal control filters (margins, rejection, the Tip/Tilt IIR design).", no_args_is_help=True)
 
@@ -227,7 +227,7 @@ class AnalyzeOptions:
         None, "--poles", metavar="A1,A2,…", help=f"IIR poles, at least one (modulus <= {ROOT_MODULUS:g}, at most {N_ROOTS_MAX})."
     )
     label: str | None = typer.Option(None, "--label", metavar="NAME[,NAME…]", help="Names of the controllers in the table and plot.")
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+    json_output: bool = JSON_OUTPUT
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and the Nyquist plot.")
 
 
@@ -461,7 +461,7 @@ class DesignOptions:
         "replace --rate, --delay-ms, --seeing, --L0, --vibrations and --noise.",
     )
     out: Path | None = typer.Option(None, "--out", metavar="FILE.csv", help="Write the designed roots table (for 'configure --roots').")
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+    json_output: bool = JSON_OUTPUT
     plot: Path | None = typer.Option(None, "--plot", metavar="FILE.png", help="Write |S|, |T| and Nyquist of the designs.")
 
 

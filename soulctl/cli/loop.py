@@ -49,7 +49,7 @@ from .common import (
     quantity_table,
     run_description,
 )
-from .numbers import number
+from .numbers import magnitude_option, number
 from .option_table import command
 
 if TYPE_CHECKING:
@@ -144,9 +144,7 @@ class RunOptions:
     """The options of `loop run` (an option table: see ``option_table``)."""
 
     config: Path | None = RUN_CONFIG
-    mag: str | None = typer.Option(
-        None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}, the paper's bright star)."
-    )
+    mag: str | None = magnitude_option(None, f"{defaults.MAGNITUDE_R:g}, the paper's bright star")
     plant: Path | None = typer.Option(
         None,
         "--plant",

@@ -57,6 +57,18 @@ def number(accepted: Range, option: str | None = None) -> Callable[[str], float 
     return parse
 
 
+def magnitude_option(default=None, show_default: str | bool = False):
+    """--mag, declared once: the guide star whose look-up table row sets the configuration
+    (binning, modes, frame rate, modulation, filters), parsed by ``parse_magnitude``."""
+    return typer.Option(
+        default,
+        "--mag",
+        metavar="R",
+        show_default=show_default,
+        help="Guide star R magnitude (0 to 18.5): the look-up table's binning, modes, frame rate, modulation and filters.",
+    )
+
+
 def parse_magnitude(text: str) -> float:
     """The --mag value as a finite number inside the look-up table's range."""
     lo, hi = tables.magnitude_range(tables.magnitude_table())

@@ -48,10 +48,10 @@ from .common import (
     seeing_option,
     wind_option,
 )
-from .numbers import number
+from .numbers import magnitude_option, number
 from .option_table import command
+from .output import JSON_OUTPUT, print_json
 from .output import console as make_console
-from .output import print_json
 
 app = typer.Typer(no_args_is_help=True, help="Optical models: turbulence, calibration, optical gains.")
 
@@ -99,7 +99,7 @@ def sensing_setup(
     return CalibrationSetup(pyramid, n, BasisSetup(AsmGeometry(influence=run.influence)))
 
 
-_MAG = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: binning, modes and modulation from the look-up table.")
+_MAG = magnitude_option()
 _BINNING = typer.Option(None, "--binning", parser=number(BINNING), help="Detector binning 1..4 (40/20/13/10 sub-apertures across).")
 _MODES = typer.Option(
     None, "--modes", parser=number(MODES), help=f"Controlled modes ({MODES.text()}; default: the look-up table's for the binning)."
@@ -117,7 +117,7 @@ _OVERSAMPLING = typer.Option(
     parser=number(OVERSAMPLING),
     help=f"Simulation pixels per binning-1 detector pixel (1..4; default: --config's, else {defaults.OVERSAMPLING}).",
 )
-_JSON = typer.Option(False, "--json", help="Print one JSON object instead of the table.")
+_JSON = JSON_OUTPUT
 
 
 @app.command("atmosphere")

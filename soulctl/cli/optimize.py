@@ -56,7 +56,7 @@ from .common import (
     quantity_table,
     run_description,
 )
-from .numbers import number
+from .numbers import magnitude_option, number
 from .option_table import command
 from .output import console as make_console
 from .output import figure_text, print_json
@@ -270,7 +270,7 @@ class GainsOptions:
         help="MGM, trial-and-error (the three groups) or both (same seed, side by side).",
     )
     config: Path | None = RUN_CONFIG
-    mag: str | None = typer.Option(None, "--mag", metavar="R", help=f"Guide star R magnitude (default {defaults.MAGNITUDE_R:g}).")
+    mag: str | None = magnitude_option(None, f"{defaults.MAGNITUDE_R:g}, the paper's bright star")
     telemetry: Path | None = typer.Option(
         None,
         "--telemetry",

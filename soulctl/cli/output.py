@@ -18,10 +18,12 @@ import os
 import sys
 import unicodedata
 
+import typer
 from rich.console import Console
 from rich.text import Text
 
 ERRORS = "soulctl-ascii"
+JSON_OUTPUT = typer.Option(False, "--json", help="Print one JSON object instead of the table.")  # every command's
 _ASCII = {
     "λ": "lambda",
     "χ": "chi",

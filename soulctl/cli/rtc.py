@@ -34,7 +34,7 @@ from .common import (
     quantity_table,
     run_description,
 )
-from .numbers import number
+from .numbers import magnitude_option, number
 from .option_table import command
 from .output import console as make_console
 from .output import print_json
@@ -54,7 +54,7 @@ class CheckOptions:
         ..., metavar="GAINS", help="Per-mode gains: a gain file as 'optimize gains --out' writes it (TOML, CSV or text)."
     )
     config: Path | None = RUN_CONFIG
-    mag: str | None = typer.Option(None, "--mag", metavar="R", help="Guide star R magnitude: the look-up table's filters and modes.")
+    mag: str | None = magnitude_option()
     plant: Path | None = typer.Option(None, "--plant", metavar="PLANT.toml", help="Identified plant: its delay and optical gains chi_i.")
     chi_table: Path | None = typer.Option(
         None, "--chi-table", metavar="FILE.csv", help="Optical gains per mode ('optics gains --out'), instead of the plant's."

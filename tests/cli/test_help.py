@@ -57,9 +57,10 @@ def test_loop_run_help_reads_in_panels(capsys, monkeypatch):
         assert body.count("\n") <= 40
 
 
-def test_the_turbulence_options_are_declared_once():
-    """--wind and --L0 have one declaration (one help text, the range checked by the parser)
-    for every command; --seeing two: the run's and `optics gains`' correction level."""
+def test_the_shared_options_are_declared_once():
+    """--wind, --L0, --mag and --json have one declaration (one help text; the ranges checked
+    by the parser) for every command; --seeing two: the run's and `optics gains`' correction
+    level."""
     import ast
     from pathlib import Path
 
@@ -71,6 +72,6 @@ def test_the_turbulence_options_are_declared_once():
             callee = getattr(node.func, "attr", None) or getattr(node.func, "id", None) if isinstance(node, ast.Call) else None
             if callee in ("Option", "_turbulence_option"):
                 for arg in node.args:
-                    if isinstance(arg, ast.Constant) and arg.value in ("--seeing", "--wind", "--L0"):
+                    if isinstance(arg, ast.Constant) and arg.value in ("--seeing", "--wind", "--L0", "--mag", "--json"):
                         declared[arg.value] = declared.get(arg.value, 0) + 1
-    assert declared == {"--seeing": 2, "--wind": 1, "--L0": 1}
+    assert declared == {"--seeing": 2, "--wind": 1, "--L0": 1, "--mag": 1, "--json": 1}
