@@ -13,7 +13,7 @@ import typer
 
 from .. import tables
 from ..errors import InputError
-from ..ranges import Range, number_text
+from ..ranges import Range
 
 _EXACT_FLOAT_INTEGERS = 2**53  # above, a float no longer holds every integer
 
@@ -50,9 +50,12 @@ def number(accepted: Range, option: str | None = None) -> Callable[[str], float 
         if value is None:
             kind = "an integer" if accepted.integer else "a number"
             raise typer.BadParameter(f"must be {kind} in {accepted.text()}, got '{text}'")
-        if option is not None and not accepted.contains(value):
-            raise typer.BadParameter(f"must be in {accepted.text()}, got {number_text(value)}")
-        return value
+        if option is None:
+            return value
+        try:
+            return accepted.check(value, option)  # the range's own message, without the name click adds
+        except InputError as e:
+            raise typer.BadParameter(str(e).removeprefix(f"{option} ")) from None
 
     return parse
 

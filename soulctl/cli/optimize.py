@@ -18,7 +18,7 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
-from ..loop.offline import REASONS, PlantInputs, offline_mgm
+from ..loop.offline import MAX_WINDOW_S, REASONS, PlantInputs, offline_mgm
 from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize, shortest_period_s
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures
@@ -189,7 +189,7 @@ def _window_reason(result) -> str:
     """Why offline MGM read from a frame after the record's first: the gains in force are the
     window's, so it starts after their last change (or k's), and it is at most 600 s long."""
     return (
-        f"from frame {result.first_frame}: the frames after the last change of the gains or k (at most the last 600 s); "
+        f"from frame {result.first_frame}: the frames after the last change of the gains or k (at most the last {MAX_WINDOW_S:g} s); "
         "a record at fixed gains and k gives MGM all of it"
     )
 

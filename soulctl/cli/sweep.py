@@ -185,9 +185,10 @@ def _check_cluster(scheduler: str | None, workers: int | None, wait_workers: flo
 def _execute_with_progress(plan, cost, asked: bool, scheduler, workers, cache, wait_workers: float, json_output: bool):
     """``execute`` with its progress on stderr (``cli.progress``: a bar on a terminal, lines
     with ``soulctl --progress``); the estimate printed once the run starts."""
-    if progress.mode() == "lines":
+    how = progress.mode()
+    if how == "lines":
         return _execute_with_lines(plan, cost, scheduler, workers, cache, wait_workers, json_output)
-    show = progress.mode() == "live"
+    show = how == "live"
     bar = Progress(
         TextColumn("sweep"),
         BarColumn(),
