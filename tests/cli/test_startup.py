@@ -7,10 +7,15 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
 
 import pytest
 
 from soulctl.cli.app import COMMANDS, load_command
+
+# A fresh interpreter started with ``-c`` puts its working directory first on sys.path: run it
+# outside the source tree, so that it imports the installed package (with its compiled core).
+OUTSIDE_THE_TREE = tempfile.gettempdir()
 
 HEAVY = ("matplotlib", "dask", "distributed", "h5py", "astropy", "aotpy", "scipy.signal", "scipy.optimize", "scipy.stats")
 
@@ -24,7 +29,7 @@ def _imported_by(argv: list[str]) -> set[str]:
         "assert status == 0, status\n"
         "print(json.dumps(sorted(sys.modules)))\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=OUTSIDE_THE_TREE)
     return set(json.loads(done.stdout.strip().splitlines()[-1]))
 
 
@@ -54,7 +59,7 @@ def test_the_loops_help_imports_neither_its_plots_nor_scipy_signal():
 
 def test_import_of_the_cli_package_is_light():
     code = "import sys, json, soulctl.cli, soulctl.cli.app; print(json.dumps(sorted(sys.modules)))"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=OUTSIDE_THE_TREE)
     assert _heavy(set(json.loads(done.stdout))) == []
 
 

@@ -195,7 +195,7 @@ def test_the_basis_is_the_same_whatever_the_blas_threads(tmp_path):
     for threads in ("1", "2"):
         env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
         path = tmp_path / f"M{threads}.npy"
-        subprocess.run([sys.executable, "-c", _BASIS_SIGNS, str(path)], env=env, check=True, timeout=300)
+        subprocess.run([sys.executable, "-c", _BASIS_SIGNS, str(path)], env=env, check=True, timeout=300, cwd=tmp_path)
         bases.append(np.load(path))
     a, b = bases
     cos = (a * b).sum(axis=0) / np.linalg.norm(a, axis=0) / np.linalg.norm(b, axis=0)
