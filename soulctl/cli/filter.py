@@ -160,9 +160,9 @@ def _render_analysis(loops: list[AnalyzedLoop], console: Console) -> None:
 
     row("controller", lambda a: a.description)
     row("frame rate", lambda a: f"{a.analysis.rate_hz:g} Hz")
-    row("gain", lambda a: f"{a.analysis.gain:g}")
+    row("gain", lambda a: figure_text(a.analysis.gain))
     row("delay", lambda a: f"{a.delay_ms:.3g} ms = {a.analysis.delay_frames:.3f} fr")
-    row("optical gain χ", lambda a: f"{a.analysis.optical_gain:g}")
+    row("optical gain χ", lambda a: figure_text(a.analysis.optical_gain))
     row("verdict", lambda a: styled("stable", "green") if a.analysis.stable else styled("UNSTABLE", "bold red"))
     row("gain margin", lambda a: _fmt(a.analysis.gain_margin, ".2f"))
     row("phase margin", lambda a: _fmt(a.analysis.phase_margin_deg, ".1f") + "°" if a.analysis.phase_margin_deg is not None else "—")

@@ -83,7 +83,7 @@ def _telescope_text(d: dict) -> str:
 
 
 def _text(value) -> str:
-    return "-" if value is None else f"{value:g}"
+    return "-" if value is None else figure_text(value)
 
 
 def _modes(text: str) -> tuple[int, ...]:
@@ -255,6 +255,9 @@ def identify_cmd(o: IdentifyOptions) -> int:
     return 0
 
 
+L0_LABEL = "outer scale L0 [m]"
+
+
 def _identify_table(ident: Identification):
     p = ident.plant
     t = quantity_table(f"plant identified from {ident.record.path} ({ident.record.frames / p.rate_hz:.3g} s window)")
@@ -274,7 +277,8 @@ def _identify_table(ident: Identification):
     if p.turbulence is not None:
         tu = p.turbulence
         t.add_row("seeing at 500 nm [arcsec]", f"{tu.seeing_arcsec:.3f} ± {tu.seeing_sigma:.3f}")
-        t.add_row("outer scale L0 [m]", f"{figure_text(tu.L0_m)} ± {figure_text(tu.L0_sigma)}")
+        if "L0" not in ident.not_estimated:
+            t.add_row(L0_LABEL, f"{figure_text(tu.L0_m)} ± {figure_text(tu.L0_sigma)}")
     for x in ident.lines:
         t.add_row(
             f"vibration {x.frequency.value:.2f} ± {x.frequency.sigma:.2f} Hz",
@@ -289,7 +293,7 @@ def _identify_table(ident: Identification):
             f"(a line narrower than the {lim['resolution_hz']:.3g} Hz bins)",
         )
     for figure, why in ident.not_estimated.items():
-        t.add_row(f"{figure.replace('_', ' ')}", f"not estimated: {why}")
+        t.add_row(L0_LABEL if figure == "L0" else figure.replace("_", " "), f"not estimated: {why}")
     for note in p.notes:
         t.add_row("note", note)
     return t

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -147,10 +147,16 @@ def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> LineSearch:
     return search_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
 
 
-def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache, diameter_m: float):
+def _turbulence(record: LoopRecord, d: float, chi: np.ndarray, noise: np.ndarray, cache: ArrayCache, missing: dict):
+    """Seeing and L0 from the pseudo-open-loop variances less the noise, corrected for the
+    record's length (``seeing.record_length``); L0 into ``missing`` where the record is too
+    short for it."""
+    whole, first, second = (pol_variance(record, d, chi, mo) - np.nan_to_num(noise) / chi**2 for mo in (None, *record.half_moments))
+    variance, n_low = seeing.record_length(whole, 0.5 * (first + second))
     L0s: tuple[float, ...]
     if record.description is None:
-        table, L0s = seeing.noll_variances(record.n_modes, diameter_m), (seeing.UNKNOWN_L0_M,)
+        table, L0s = seeing.noll_variances(record.n_modes, record.loop.diameter_m), (seeing.UNKNOWN_L0_M,)
+        missing["L0"] = "a foreign modal basis: the seeing is fitted to Kolmogorov's variances of its radial orders, without L0"
     else:
         setup = calibration_setup(record.description.request())  # its basis and pupil, not its sensing
         L0s = seeing.L0_GRID
@@ -161,9 +167,16 @@ def _turbulence(record: LoopRecord, variance: np.ndarray, cache: ArrayCache, dia
         else:
             table = seeing.basis_variances(controlled_basis(setup, cache), setup.pyramid.pupil, L0s)
             cache.store(key, {"variances": table})
-    t = seeing.fit_turbulence(variance, table, L0s)
+    t = seeing.fit_turbulence(variance, table, L0s, n_low)
     r0 = r0_from_seeing(t.seeing_arcsec)
     best = table[L0s.index(t.L0_m)] if t.L0_m in L0s else table[0]
+    if len(L0s) > 1 and n_low < seeing.MIN_CORRELATION_TIMES:
+        missing["L0"] = (
+            f"the record's {record.frames / record.rate_hz:.3g} s span ~{n_low:.0f} correlation times of modes 3-14 "
+            f"(their variance over half the record against the whole); L0 needs {seeing.MIN_CORRELATION_TIMES:g} or more: "
+            "record longer (the lowest orders decorrelate over ~D/wind)"
+        )
+        t = replace(t, L0_m=seeing.UNKNOWN_L0_M, L0_sigma=math.inf)
     return t, best * r0 ** (-5 / 3) * seeing.NM_PER_RAD**2
 
 
@@ -195,7 +208,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     variance = pol_variance(record, rej.delay.value, chi) - np.nan_to_num(noise) / chi**2
     turbulence, model_variance = None, None
     if record.n_modes >= MIN_SEEING_MODES:
-        turbulence, model_variance = _turbulence(record, variance, cache, record.loop.diameter_m)
+        turbulence, model_variance = _turbulence(record, rej.delay.value, chi, noise, cache, missing)
     else:
         missing["turbulence"] = f"seeing and L0 need modes beyond Tip/Tilt (at least {MIN_SEEING_MODES}; the record holds {record.n_modes})"
     clock["turbulence"] = time.perf_counter()

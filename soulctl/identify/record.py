@@ -69,6 +69,7 @@ class LoopRecord:
     f_hz: np.ndarray
     p_m: np.ndarray  # (n_modes, F) PSD of m/k, nm^2/Hz
     moments: np.ndarray  # (n_modes, 3 + lags): var m/k, var c, cov(c(k), c(k-1)), cov(m/k(k), c(k-j)) j = 0..lags-1
+    half_moments: tuple[np.ndarray, np.ndarray]  # ``moments`` of the window's first and second halves
     tip_tilt: tuple[np.ndarray, np.ndarray]  # (frames, 2) of m/k and of c, from ``tip_tilt_first_frame``
     probe: Probe | None
     probe_series: tuple[np.ndarray, np.ndarray] | None  # m/k and c of the probed mode
@@ -160,7 +161,7 @@ def read_record(path, delay_frames: float | None = None, structure: str = "auto"
         segment = 2 ** int(round(math.log2(SEGMENT_S * rate)))
         lags = int(math.ceil(delay_search(delay)[1] + 0.5)) + 2
         probe = _probe(tm, rate)
-        stats = _Accumulator(n_modes, segment, lags, probe.mode - 1 if probe else None)
+        stats = _Accumulator(n_modes, segment, lags, probe.mode - 1 if probe else None, window // 2)
         before: list[tuple[np.ndarray, np.ndarray]] = []  # Tip/Tilt while k settled: the lines' longer window
         for lo in range(gains_start, frames, ROW_BLOCK):
             hi = min(frames, lo + ROW_BLOCK)
@@ -176,7 +177,7 @@ def read_record(path, delay_frames: float | None = None, structure: str = "auto"
     tt_m, tt_c = (x.reshape(len(x), -1) for x in stats.series(0, min(2, n_modes)))  # (frames, 2), or 1 for a one-mode record
     tt = (np.concatenate([x[0] for x in before] + [tt_m]), np.concatenate([x[1] for x in before] + [tt_c]))
     return LoopRecord(
-        str(path), rate, float(delay), description, loop, gains, sensitivity, f, p_m, stats.moments(),
+        str(path), rate, float(delay), description, loop, gains, sensitivity, f, p_m, stats.moments(), stats.half_moments(),
         tt, probe, stats.series(probe.mode - 1, probe.mode) if probe else None, start, window, window // segment, gains_start,
     )  # fmt: skip
 
@@ -187,8 +188,10 @@ class _Accumulator:
     row block after row block (every row read once: the files are chunked by frames), and
     the Tip/Tilt and probed mode's series."""
 
-    def __init__(self, n_modes: int, segment: int, lags: int, probe_column: int | None):
+    def __init__(self, n_modes: int, segment: int, lags: int, probe_column: int | None, half: int):
         self.segment, self.hop, self.lags = segment, segment // 2, lags
+        self.half = half
+        self.at_half: tuple[np.ndarray, int] = (np.zeros(0), 0)  # the sums over the window's first ``half`` frames
         from scipy.signal import get_window  # here, not at the top: the CLI starts without scipy.signal
 
         self.window = get_window("hann", segment)
@@ -219,6 +222,11 @@ class _Accumulator:
         return scipy.fft.rfft(seg, axis=1, workers=-1)
 
     def _moments(self, m: np.ndarray, c: np.ndarray) -> None:
+        cut = self.half - self.n
+        if 0 < cut < len(m):  # the block spans the window's middle: the first half's sums are kept at it
+            self._moments(m[:cut], c[:cut])
+            self._moments(m[cut:], c[cut:])
+            return
         cc = np.concatenate([self.last_c, c])  # c with the rows before this block, for the lags
         off = len(self.last_c)
         s = self.sums
@@ -232,6 +240,8 @@ class _Accumulator:
             s[5 + j] += np.einsum("ij,ij->j", m[lo:], cc[off + lo - j : off + len(m) - j])
         self.n += len(m)
         self.last_c = cc[-self.lags :]
+        if self.n == self.half:
+            self.at_half = (s.copy(), self.n)
 
     def spectrum(self, rate: float):
         scale = 1.0 / (rate * np.sum(self.window**2) * max(1, self.count))
@@ -243,7 +253,17 @@ class _Accumulator:
 
     def moments(self) -> np.ndarray:
         """As the rows of ``pol_variance`` need them: var m, var c, cov c(k)c(k-1), cov m(k)c(k-j)."""
-        n, s = self.n, self.sums
+        return self._moments_of(self.sums, self.n)
+
+    def half_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """``moments`` of the window's first and second halves (the second's lagged products
+        at its start reach into the first: a few frames in thousands)."""
+        first, n = self.at_half
+        if n == 0:  # a window of one frame
+            return self.moments(), self.moments()
+        return self._moments_of(first, n), self._moments_of(self.sums - first, self.n - n)
+
+    def _moments_of(self, s: np.ndarray, n: int) -> np.ndarray:
         mean_m, mean_c = s[0] / n, s[1] / n
         out = [s[2] / n - mean_m**2, s[3] / n - mean_c**2, s[4] / n - mean_c**2]
         out += [s[5 + j] / n - mean_m * mean_c for j in range(self.lags)]
@@ -256,13 +276,14 @@ class _Accumulator:
         return (m, c) if hi - lo > 1 else (m[:, 0], c[:, 0])
 
 
-def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray) -> np.ndarray:
+def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray, moments: np.ndarray | None = None) -> np.ndarray:
     """Variance of m/(k chi) + (1 - e) c(k - n) + e c(k - n - 1) per mode (without the
     structural resonance: Tip/Tilt's variance is the vibrations' and turbulence's, at low
-    frequencies where the resonance does not act)."""
+    frequencies where the resonance does not act), over the window or from ``moments`` (one
+    of ``record.half_moments``)."""
     n = int(math.floor(delay_frames + 1e-12))
     e = delay_frames - n
-    mo = record.moments
+    mo = record.moments if moments is None else moments
     if n + 4 > mo.shape[1]:
         raise ValueError(f"delay {delay_frames:g} beyond the lags recorded")
     x = 1.0 / np.asarray(chi, dtype=float)

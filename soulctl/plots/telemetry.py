@@ -71,7 +71,8 @@ def write_identify_figures(directory: Path, ident) -> list[Path]:
     ax.loglog(modes, np.maximum(ident.pol_variance_nm2, 1e-3), ".", markersize=3, label="pseudo-open loop less noise")
     if ident.model_variance_nm2 is not None and plant.turbulence is not None:
         t = plant.turbulence
-        ax.loglog(modes, ident.model_variance_nm2, "-", label=f'von Kármán: seeing {t.seeing_arcsec:.3f}", L0 {t.L0_m:g} m')
+        L0 = "L0 not estimated" if "L0" in ident.not_estimated else f"L0 {t.L0_m:g} m"
+        ax.loglog(modes, ident.model_variance_nm2, "-", label=f'von Kármán: seeing {t.seeing_arcsec:.3f}", {L0}')
     _finish(ax, fig, "modal variance [nm²]", "mode", directory / IDENTIFY_FIGURES[2], out)
     return out
 

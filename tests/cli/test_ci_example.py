@@ -32,6 +32,8 @@ def test_ci_chain_on_a_simulated_night(tmp_path):
     identify = json.loads((out / "identify.json").read_text())
     assert check["passed"] and check["delay_frames"] == pytest.approx(identify["delay_frames"]["value"])
     assert abs(identify["delay_frames"]["value"] - identify["delay_frames"]["recorded"]) < 0.1
+    # 3 s at 8 m/s: the seeing (1.0") within 10 %, L0 not estimated (~6 correlation times of modes 3-14)
+    assert abs(identify["turbulence"]["seeing_arcsec"] - 1.0) < 0.1 and "correlation times" in identify["not_estimated"]["L0"]
     # an unsafe gain file fails the job with exit 3
     (out / "gains.toml").write_text("gains = [" + ", ".join(["9.0"] * len(check["modes"])) + "]\n")
     bad = run("soulctl", "rtc", "check", "out/gains.toml", "--config", "night.toml", "--plant", "out/plant.toml")

@@ -117,7 +117,9 @@ def test_identify_cli_writes_a_plant_that_filter_analyze_takes(files, tmp_path, 
     status = main(["telemetry", "identify", str(files[1]), "--out", str(plant), "--json", "--no-cache"])
     out, err = capsys.readouterr()
     assert status == 0, err
-    assert json.loads(out)["probe"]["mode"] == PROBE_MODE
+    d = json.loads(out)
+    assert d["probe"]["mode"] == PROBE_MODE
+    assert "foreign modal basis" in d["not_estimated"]["L0"] and d["turbulence"]["L0_sigma"] is None
     p = read_plant(plant)
     assert abs(p.delay.value - DELAY) < 0.1
     assert all(abs(g.chi / CHI - 1) < 0.1 for g in p.optical_gains)
@@ -184,6 +186,43 @@ def test_turbulence_fit_recovers_r0_and_L0_from_von_karman_variances():
     t = seeing.fit_turbulence(truth, table, L0s)
     assert t.L0_m == 20.0
     assert abs(t.seeing_arcsec / (0.98 * 500e-9 / r0 * 206264.8) - 1) < 1e-6
+
+
+def test_the_records_halves_are_read_with_the_whole(files, monkeypatch):
+    """The moments of the window's two halves, accumulated in the one read (a block spanning
+    the middle split there), are those of the halves' own frames."""
+    import soulctl.identify.record as record_module
+
+    monkeypatch.setattr(record_module, "ROW_BLOCK", 777)  # blocks that straddle the middle
+    record = read_record(files[0])
+    import h5py
+
+    with h5py.File(files[0]) as f:
+        m = f["measured_modes"][record.first_frame :].astype(float)
+        c = f["command_modes"][record.first_frame :].astype(float)
+    half = len(m) // 2
+    for mo, (lo, hi) in zip(record.half_moments, ((0, half), (half, len(m)))):
+        assert mo[:, 0] == pytest.approx(m[lo:hi].var(axis=0), rel=1e-9)
+        assert mo[:, 1] == pytest.approx(c[lo:hi].var(axis=0), rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_record_length_corrects_a_short_records_variances_and_counts_its_correlation_times(seed):
+    """Unit-variance AR(1) modes (a = 0.99: 199 frames per correlation time, Sokal's
+    (1 + a)/(1 - a)): 1200 frames, N = 6, read ~1/6 low, corrected to within a few percent and
+    counted N ~ 6 (L0 refused); 20 000 frames, N = 100, counted above the threshold."""
+    from scipy.signal import lfilter
+
+    a, rng = 0.99, np.random.default_rng(seed)
+    for frames, n_true in ((1200, 6.0), (20000, 100.0)):
+        x = lfilter([math.sqrt(1 - a * a)], [1, -a], rng.standard_normal((frames + 2000, 250)), axis=0)[2000:]
+        whole = x.var(axis=0)
+        halves = 0.5 * (x[: frames // 2].var(axis=0) + x[frames // 2 :].var(axis=0))
+        corrected, n = seeing.record_length(whole, halves)
+        if n_true < seeing.MIN_CORRELATION_TIMES:
+            assert whole.mean() < 0.9 and abs(corrected.mean() - 1) < 0.08 and n_true / 2 < n < 2 * n_true
+        else:
+            assert abs(whole.mean() - 1) < 0.03 and n > seeing.MIN_CORRELATION_TIMES
 
 
 def test_noll_fallback_has_noll_1976_variances():
