@@ -73,8 +73,8 @@ def writer_cost(n_slopes: int, n_modes: int = 500, n_actuators: int = 672, frame
     """Seconds per frame of ``Hdf5Writer.append`` (buffering, chunk compression and flushes
     included) at 40x40's sizes, in this process: default fields and all fields.  Robust to
     other load, unlike the loop-speed ratio: it is the cost itself."""
-    from soulctl.telemetry.hdf5 import Hdf5Writer
     from soulctl.telemetry.schema import DEFAULT_FIELDS, PER_FRAME
+    from soulctl.telemetry.stream import Hdf5Writer
 
     rng = np.random.default_rng(1)
     sizes = {"slopes": n_slopes, "commands": n_actuators}

@@ -4,8 +4,6 @@ and the Python API assume when the user says nothing.  The run description
 prints them resolved.  Physical constants of the telescope and the tables' values have their
 own homes (``optics.pupil``, ``tables/``); these are choices of a run."""
 
-from .optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC
-
 MAGNITUDE_R = 9.7  # the paper's bright-star on-sky tests (Sec. 4)
 SEEING_ARCSEC = 1.0  # at 500 nm, on the line of sight
 WIND_M_S = 8.0  # effective wind speed of the LBT profile
@@ -18,6 +16,7 @@ OVERSAMPLING = 2  # simulation pixels per binning-1 detector pixel
 # gives, +-0.75" at oversampling 2, with no stop): SOUL's.  The sampled field read partly
 # corrected residuals 30-40 % low at 1.5" and let the pupil's rim lock falsely (docs/physics.md,
 # "The pyramid's field of view"); SOUL's costs ~2x a loop frame (bench/bench_frame_cost.py).
+SOUL_FIELD_OF_VIEW_ARCSEC = 2.1  # SOUL's WFS field, a diameter (Arcetri error budget; LBTO elab_lib)
 WFS_FIELD_ARCSEC = SOUL_FIELD_OF_VIEW_ARCSEC
 # What a description or telemetry soulctl stored without ``wfs_field_arcsec`` ran: the key was
 # written only when set until SOUL's field became the default, so such a file re-runs with 0.

@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 
 from soulctl import defaults, tables
+from soulctl.defaults import SOUL_FIELD_OF_VIEW_ARCSEC
 from soulctl.errors import InputError
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import SIGN_SEED
 from soulctl.optics.cache import cache_key
-from soulctl.optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC
 from soulctl.run_config import HEADER, RunConfig, read_run_config
 
 EXPLICIT = """

@@ -36,9 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
+from soulctl.defaults import SOUL_FIELD_OF_VIEW_ARCSEC
 from soulctl.files import atomic_write_text
 from soulctl.optics.pupil import PupilResampler
-from soulctl.optics.pwfs import SOUL_FIELD_OF_VIEW_ARCSEC, Pyramid, PyramidConfig
+from soulctl.optics.pwfs import Pyramid, PyramidConfig
 from soulctl.optics.sensor import WavefrontSensor
 
 sys.path.insert(0, str(Path(__file__).parent))

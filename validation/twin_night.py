@@ -22,8 +22,7 @@ import numpy as np
 
 from soulctl.files import atomic_write_text
 from soulctl.identify.plant import read_plant
-from soulctl.plots.loop import new_figure
-from soulctl.plots.transfer import save_figure
+from soulctl.plots.figure import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "validation" / "results"

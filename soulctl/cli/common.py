@@ -17,8 +17,8 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..errors import InputError
 from ..loop.auxloops import summary as aux_summary
 from ..loop.metrics import BANDS
-from ..loop.recorded import STRUCTURE_CHOICES
 from ..observation import TT_CONTROLS, Observation, observation_for_magnitude
+from ..offline.recorded import STRUCTURE_CHOICES
 from ..optics.cache import ArrayCache
 from ..ranges import LOOP_GAIN, MAGNIFICATION, ROTATION_DEG, SHIFT_PITCH
 from ..run_config import REGISTRATION_KEYS, RunConfig, read_run_config

@@ -246,7 +246,8 @@ def analyze_command(o: AnalyzeOptions) -> int:
     """
     loops = _analyzed_loops(o)
     if o.plot is not None:
-        from ..plots.transfer import Curve, save_figure, transfer_figure
+        from ..plots.figure import save_figure
+        from ..plots.transfer import Curve, transfer_figure
 
         save_figure(transfer_figure([Curve(a.label, a.loop) for a in loops]), o.plot)
     all_stable = all(a.analysis.stable for a in loops)
@@ -284,7 +285,7 @@ def _analyzed_loops(o: AnalyzeOptions) -> list[AnalyzedLoop]:
         raise InputError("give --delay-frames or --delay-ms, not both")
     if o.plot is not None:
         check_output_path(o.plot, "--plot")
-        from ..plots.transfer import plot_format
+        from ..plots.figure import plot_format
 
         plot_format(o.plot)
     lists = _analysis_lists(o.rate, o.control, o.gain, o.system, o.chi, o.forgetting, o.delay_frames, o.delay_ms, o.label)
@@ -532,7 +533,7 @@ def _design_inputs(o: DesignOptions) -> tuple[list[float], list[float | None]]:
     if o.out is not None and o.plot is not None and same_file(o.out, o.plot):
         raise InputError(f"--out and --plot name the same file {o.out}")
     if o.plot is not None:
-        from ..plots.transfer import plot_format
+        from ..plots.figure import plot_format
 
         plot_format(o.plot)
     return rates, delays
@@ -569,7 +570,8 @@ def _disturbance_dict(disturbance: Disturbance) -> dict:
 
 def _plot_designs(results: list, epsilon: float, plot: Path) -> None:
     """The designed IIRs (solid) and the best integrators (dashed), one colour per rate."""
-    from ..plots.transfer import Curve, save_figure, transfer_figure
+    from ..plots.figure import save_figure
+    from ..plots.transfer import Curve, transfer_figure
 
     colors = ["C0", "C1", "C2", "C3", "C4", "C5", "C6", "C7"]
     curves = []

@@ -53,7 +53,7 @@ from .numbers import magnitude_option, number
 from .option_table import command
 
 if TYPE_CHECKING:
-    from ..telemetry.hdf5 import Hdf5Writer
+    from ..telemetry.stream import Hdf5Writer
 
 # The loop, its plots, its telemetry writer and the plant reader are imported where a run uses
 # them, not at the top: `soulctl loop run --help` and a refused option pay for none of them.
@@ -266,7 +266,7 @@ def run_cmd(o: RunOptions) -> int:
     cache = array_cache(o.no_cache, o.cache_dir)
     fields = telemetry_fields(o.telemetry_fields)
     from ..plots.loop import write_loop_figures
-    from ..telemetry.hdf5 import Hdf5Writer
+    from ..telemetry.stream import Hdf5Writer
 
     writer = None if o.telemetry is None else Hdf5Writer(o.telemetry, fields, o.telemetry_every, {"run_description": description.to_toml()})
     result = _run_streaming(request, cache, aux, writer)

@@ -16,8 +16,8 @@ from ..control.structure import sampled_structure
 from ..errors import InputError
 from ..files import input_file
 from ..identify.plant import read_plant
-from ..loop.recorded import checked_rate
 from ..loop.run import calibration_for, loop_calibration
+from ..offline.recorded import checked_rate
 from ..optics.cache import ArrayCache
 from ..optics.calibration import moved_mirror_response
 from ..optics.optical_gains import read_optical_gain_table

@@ -20,8 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..observation import Observation
-from .gains import unit_loops
+from .gains import LoopSettings, unit_loops
 from .transfer import Loop, Plant
 
 MARGIN_SCALES = np.union1d(np.geomspace(1e-3, 1e4, 71), [1.0])  # factors on diag(g chi) searched for the margin
@@ -135,7 +134,7 @@ def coupling_stability(coupling: np.ndarray, gains_chi: np.ndarray, tip_tilt_uni
 
 
 def registration_verdict(
-    observation: Observation, structure, forgetting: float, coupling: np.ndarray, gains_chi: np.ndarray, delay_frames: float
+    observation: LoopSettings, structure, forgetting: float, coupling: np.ndarray, gains_chi: np.ndarray, delay_frames: float
 ) -> CouplingStability:
     """``coupling_stability`` with the configuration's own unit loops: Tip/Tilt's filter on
     z^-d and the 127 Hz structure (when the frame rate samples it), the other modes' leaky

@@ -26,12 +26,12 @@ import csv
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from ..errors import InputError
 from ..files import read_input_text, read_toml
-from ..observation import Observation
 from ..ranges import LOOP_GAIN, number_text
 from .filters import Filter
 from .mgm import gain_limits
@@ -43,6 +43,26 @@ TIP_TILT = slice(0, 2)  # modes 1-2
 DEFAULT_FORGETTING = 0.99  # of the leaky integrators of modes 3..last (proposal)
 DEFAULT_IIR_TIP_TILT = 0.69  # the paper's optimised Tip/Tilt gain of its 1700 Hz IIR
 SUFFIXES = (".toml", ".txt", ".csv", ".dat")  # of gain files
+
+
+class LoopSettings(Protocol):
+    """What the gains' rules read of an observation (``observation.Observation`` is one): the
+    frame rate, the loop delay, the controlled modes and the Tip/Tilt controller."""
+
+    @property
+    def frame_rate_hz(self) -> float: ...
+    @property
+    def delay_frames(self) -> float: ...
+    @property
+    def modes(self) -> int: ...
+    @property
+    def tt_control(self) -> str: ...
+    @property
+    def tt_zeros(self) -> tuple[float, ...]: ...
+    @property
+    def tt_poles(self) -> tuple[float, ...]: ...
+    @property
+    def tt_gain(self) -> float | None: ...
 
 
 def gain_groups(n_modes: int) -> list[tuple[str, slice]]:
@@ -115,7 +135,7 @@ class LoopGains:
         return g
 
 
-def tip_tilt_filter(observation: Observation, gain: float) -> Filter:
+def tip_tilt_filter(observation: LoopSettings, gain: float) -> Filter:
     """The observation's Tip/Tilt controller: its IIR (unit-gain zeros/poles times ``gain``) or
     an integrator."""
     if observation.tt_control == "iir":
@@ -123,7 +143,7 @@ def tip_tilt_filter(observation: Observation, gain: float) -> Filter:
     return Filter.integrator(gain)
 
 
-def mode_filters(observation: Observation, gains: LoopGains, n_modes: int) -> list[Filter]:
+def mode_filters(observation: LoopSettings, gains: LoopGains, n_modes: int) -> list[Filter]:
     """Tip/Tilt: ``tip_tilt_filter``; the other modes leaky integrators."""
     g = gains.per_mode(n_modes)
     return [tip_tilt_filter(observation, float(gi)) for gi in g[TIP_TILT]] + [
@@ -150,7 +170,7 @@ def mode_gains(blocks: Sequence, n_modes: int, delta) -> np.ndarray:
     return g
 
 
-def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structure: StructuralResonance | None) -> Loop:
+def nominal_loop(observation: LoopSettings, gain: float, tip_tilt: bool, structure: StructuralResonance | None) -> Loop:
     """The loop of one mode as the analysis sees it (chi = 1): Tip/Tilt with the observation's
     filter and the structural resonance, other modes leaky integrators."""
     rate = observation.frame_rate_hz
@@ -161,7 +181,7 @@ def nominal_loop(observation: Observation, gain: float, tip_tilt: bool, structur
     return Loop(Filter.leaky(DEFAULT_FORGETTING, gain), Plant(d), rate)
 
 
-def default_gains(observation: Observation, structure: StructuralResonance | None = StructuralResonance()) -> LoopGains:
+def default_gains(observation: LoopSettings, structure: StructuralResonance | None = StructuralResonance()) -> LoopGains:
     """Tip/Tilt: a designed IIR's own gain (``Observation.tt_gain``, from a designed roots
     table), else 0.69 with the IIR (the paper's optimised 1700 Hz gain) capped at 0.7 of its
     maximum stable gain elsewhere, or half the integrator's maximum stable gain; modes 3-120:
@@ -176,14 +196,14 @@ def default_gains(observation: Observation, structure: StructuralResonance | Non
     return LoopGains(round(tt, 3), round(0.5 * g_ho, 3), round(0.4 * g_ho, 3))
 
 
-def design_gains(observation: Observation, structure: StructuralResonance | None, gains: LoopGains | None = None) -> LoopGains:
+def design_gains(observation: LoopSettings, structure: StructuralResonance | None, gains: LoopGains | None = None) -> LoopGains:
     """The gains a run starts from: ``gains`` when given, else ``default_gains`` for the
     structural resonance as the frame rate samples it (``sampled_structure``: none above
     Nyquist), the one rule every run, optimisation and check uses."""
     return gains or default_gains(observation, sampled_structure(structure, observation.frame_rate_hz))
 
 
-def _named_groups(observation: Observation, gains: LoopGains) -> list[tuple[str, float, bool]]:
+def _named_groups(observation: LoopSettings, gains: LoopGains) -> list[tuple[str, float, bool]]:
     """(name, gain, is Tip/Tilt) of each distinct gain to check."""
     if gains.modes is not None:
         first: dict[tuple[bool, float], int] = {}  # each distinct gain, named by the first mode that has it
@@ -201,7 +221,7 @@ def _named_groups(observation: Observation, gains: LoopGains) -> list[tuple[str,
     ]
 
 
-def check_stability(observation: Observation, gains: LoopGains, structure: StructuralResonance | None) -> None:
+def check_stability(observation: LoopSettings, gains: LoopGains, structure: StructuralResonance | None) -> None:
     """InputError naming the maximum stable gain if a group's gain is unstable for the nominal
     plant (chi = 1, the structural resonance on Tip/Tilt)."""
     for name, g, tt in _named_groups(observation, gains):
@@ -215,7 +235,7 @@ def check_stability(observation: Observation, gains: LoopGains, structure: Struc
             )
 
 
-def unit_loops(observation: Observation, structure, forgetting: float, n_modes: int) -> tuple[list[Filter], tuple | None]:
+def unit_loops(observation: LoopSettings, structure, forgetting: float, n_modes: int) -> tuple[list[Filter], tuple | None]:
     """The unit-gain filters per mode and the (b, a) of the structural resonance on Tip/Tilt
     when the frame rate samples it (else None): the optimisers' plant without chi."""
     rate = observation.frame_rate_hz
@@ -224,7 +244,9 @@ def unit_loops(observation: Observation, structure, forgetting: float, n_modes: 
     return unit, ba
 
 
-def capped_gains(gains: np.ndarray, observation: Observation, structure, chi: np.ndarray, forgetting: float, fraction: float) -> np.ndarray:
+def capped_gains(
+    gains: np.ndarray, observation: LoopSettings, structure, chi: np.ndarray, forgetting: float, fraction: float
+) -> np.ndarray:
     """``gains``, each capped at ``fraction`` of its maximum stable gain for a plant with
     optical gains chi_i (chi_i z^-d, the structure on Tip/Tilt)."""
     unit, ba = unit_loops(observation, structure, forgetting, len(chi))

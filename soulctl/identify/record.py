@@ -23,8 +23,8 @@ import scipy.fft
 from ..control.filters import Filter
 from ..control.transfer import Plant
 from ..errors import InputError
-from ..loop.offline import recorded_run
-from ..loop.recorded import RecordedLoop, recorded_loop
+from ..offline.mgm import recorded_run
+from ..offline.recorded import RecordedLoop, recorded_loop
 from ..ranges import DELAY_FRAMES
 from ..run_config import RunConfig
 from ..telemetry.formats import check_decimation, open_telemetry

@@ -367,7 +367,7 @@ def run(
     """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
     ``aux`` (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`) adds auxiliary loops once
     the loop has closed; ``calibration``: the request's, already computed (a sweep shares it);
-    ``sink``: where every frame's records go (``telemetry.hdf5.Hdf5Writer``), described
+    ``sink``: where every frame's records go (``telemetry.stream.Hdf5Writer``), described
     (rate, delay, modes, configuration) before the first frame."""
     obs = request.observation
     structure = request.sampled_structure()

@@ -61,7 +61,6 @@ def _fft():
 
 SUBAPERTURES_BIN1 = 40
 WFS_WAVELENGTH_M = 750e-9
-SOUL_FIELD_OF_VIEW_ARCSEC = 2.1  # SOUL's WFS field, a diameter (Arcetri error budget; LBTO elab_lib)
 MAX_BAND_WAVELENGTHS = 9
 _FFT_PER_PUPIL = 96 / 40  # N / n_pup
 _SEPARATION_PER_PUPIL = 48 / 40  # distance between pupil image centres / n_pup

@@ -9,8 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .loop import new_figure
-from .transfer import save_figure
+from .figure import new_figure, save_figure
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

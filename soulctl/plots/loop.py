@@ -13,20 +13,10 @@ from ..control.transfer import VIBRATION_HZ
 from ..loop.metrics import band_wavelength
 from ..optics.pupil import LBT_DIAMETER_M
 from ..telemetry.figures import RECORD_LABELS, mas_text
-from .transfer import save_figure
+from .figure import new_figure, save_figure
 
 if TYPE_CHECKING:  # matplotlib is imported when a figure is made: every command would pay ~0.3 s
     from matplotlib.figure import Figure
-
-
-def new_figure(size=(6.4, 4.8)) -> Figure:
-    """A constrained-layout figure on the Agg canvas (no pyplot state)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=size, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
 
 
 def psf_figure(psf: np.ndarray, band: str, strehl: float, lambda_over_d_mas: float, pad: int = 2) -> Figure:

@@ -8,8 +8,7 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
-from .loop import new_figure
-from .transfer import save_figure
+from .figure import new_figure, save_figure
 
 
 def strehl_vs_magnitude(rows: list[dict], path: Path) -> Path:

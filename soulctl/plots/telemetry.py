@@ -9,8 +9,8 @@ import numpy as np
 
 from ..control.mgm import unit_open_loops
 from ..telemetry.figures import RECORD_LABELS
-from .loop import draw_jitter, new_figure
-from .transfer import save_figure
+from .figure import new_figure, save_figure
+from .loop import draw_jitter
 
 LABELS = RECORD_LABELS
 

@@ -4,20 +4,15 @@ paper's figures comparing SOUL-IIR, SOUL-INT and FLAO-INT (Fig. IIR1700TF, TFcom
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..control.transfer import RESONANCE_HZ, VIBRATION_HZ, Loop, frequency_grid
-from ..errors import InputError
-from ..files import atomic_write
+from .figure import new_figure
 
 if TYPE_CHECKING:  # matplotlib is imported when a figure is made
     from matplotlib.figure import Figure
-    from matplotlib.text import Text
-
-FORMATS = ("png", "pdf", "svg")
 
 
 @dataclass(frozen=True)
@@ -28,16 +23,7 @@ class Curve:
     linestyle: str = "-"
 
 
-def plot_format(path: Path) -> str:
-    fmt = path.suffix.lower().lstrip(".")
-    if fmt not in FORMATS:
-        raise InputError(f"--plot must end in .png, .pdf or .svg, got '{path.name}'")
-    return fmt
-
-
 def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None = None) -> Figure:
-    from .loop import new_figure
-
     fig = new_figure((14, 4.6))
     ax_s, ax_t, ax_n = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.15, 1.15, 0.9]})
     f_lo = 1.0
@@ -80,24 +66,3 @@ def transfer_figure(curves: list[Curve], title: str = "", epsilon: float | None 
     if title:
         fig.suptitle(title, fontsize=11)
     return fig
-
-
-def _tick_labels(ax) -> list[Text]:
-    out = []
-    for axis in (ax.xaxis, ax.yaxis):
-        for tick in axis.get_major_ticks() + axis.get_minor_ticks():
-            out += [tick.label1, tick.label2]
-    return out
-
-
-def save_figure(fig: Figure, path: Path) -> None:
-    """Write the figure atomically in the format its suffix names.  Every text is drawn as
-    given: '$' in a user's label is a dollar sign, not matplotlib's math mode."""
-    fmt = plot_format(path)
-    ticks = {id(t) for ax in fig.axes for t in _tick_labels(ax)}  # the formatters' own text: 10^k on log axes is math
-    from matplotlib.text import Text
-
-    for text in fig.findobj(Text):
-        if id(text) not in ticks:
-            text.set_parse_math(False)
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120))

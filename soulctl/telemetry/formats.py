@@ -5,6 +5,7 @@ schema's fields, checked); analyses read only the model."""
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -107,7 +108,24 @@ def check_decimation(tm: TelemetryReader, path, what: str) -> None:
 def stored_run_description(path: str | Path) -> dict:
     """The run description stored in telemetry of any format (``run_config.RunConfig.from_dict``
     reads it); InputError when it holds none."""
-    from .hdf5 import run_description_of
-
     with open_telemetry(telemetry_input(path), required=()) as tm:
         return run_description_of(tm)
+
+
+def run_description_of(tm: TelemetryReader) -> dict:
+    """The stored run description of an open telemetry file, as a dict."""
+    text = tm.attribute("run_description", None)
+    if text is None:
+        raise InputError(f"telemetry file {tm.path} holds no run description (written by `loop run` before soulctl stored one)")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"telemetry file {tm.path}: attribute run_description is not TOML ({e})") from None
+
+
+def read_telemetry(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+    """(arrays, attributes with the configuration decoded) of every field of the schema the
+    file holds, each checked against it (``TelemetryReader``); InputError naming the field
+    otherwise.  The whole file is read into memory (offline MGM reads only its window)."""
+    with TelemetryReader(path) as tm:
+        return record_of(tm)

@@ -1,5 +1,5 @@
 """The one schema of a telemetry file (what `loop run --telemetry` writes; what
-``hdf5.read_telemetry`` and `optimize gains --telemetry` read) and the reader that
+``formats.read_telemetry`` and `optimize gains --telemetry` read) and the reader that
 holds a file to it.
 
 ``TELEMETRY_SCHEMA`` lists every dataset and attribute: what its values are (real numbers,

@@ -422,8 +422,7 @@ def test_figures_draw_user_text_as_given_and_log_ticks_as_powers(tmp_path):
     """save_figure turns math off for the figure's text (a '$' in a label is a dollar) but not
     for the tick labels the formatters make: 10^k on a log axis is drawn as a power, not as
     the raw '$\\mathdefault{10^{1}}$'."""
-    from soulctl.plots.loop import new_figure
-    from soulctl.plots.transfer import save_figure
+    from soulctl.plots.figure import new_figure, save_figure
 
     fig = new_figure()
     ax = fig.subplots()

@@ -8,7 +8,7 @@ from cheap import CHEAP_PYRAMID
 
 from soulctl.cli.app import main
 from soulctl.sweep.case import run_case
-from soulctl.telemetry.hdf5 import read_telemetry
+from soulctl.telemetry.formats import read_telemetry
 
 FAINT = ["loop", "run", "--mag", "16.5", *CHEAP_PYRAMID, "--duration", "0.3"]
 

@@ -15,12 +15,12 @@ from soulctl.control import mgm
 from soulctl.control.gains import LoopGains, check_stability
 from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.loop.auxloops import SafetyNet
-from soulctl.loop.offline import nominal_limits
 from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
 from soulctl.loop.run import RunRequest, closing_frames
 from soulctl.observation import observation_for_magnitude
+from soulctl.offline.mgm import nominal_limits
 from soulctl.sweep.case import run_case
-from soulctl.telemetry.hdf5 import read_telemetry
+from soulctl.telemetry.formats import read_telemetry
 
 # The R17 configuration (binning 4, 10x10 sub-apertures, 54 modes, 407 Hz, Tip/Tilt
 # integrator) on a 40-px pupil, with an R11 star's flux at 0.6" seeing: a small loop well inside
@@ -237,8 +237,8 @@ def test_offline_chi_is_the_table_at_the_records_seeing(recorded, tmp_path, caps
     whose lower gamma over-drove the loop; docs/physics.md); --seeing overrides it, and a
     record without a run description (LBT's, AOT's) falls back to 0.8" and says so."""
     from soulctl.loop.chi_model import optical_gain_table
-    from soulctl.loop.offline import recorded_run
     from soulctl.loop.run import calibration_for
+    from soulctl.offline.mgm import recorded_run
     from soulctl.optics.cache import ArrayCache
     from soulctl.telemetry.formats import open_telemetry
 

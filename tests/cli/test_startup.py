@@ -54,7 +54,7 @@ def test_the_loops_help_imports_neither_its_plots_nor_scipy_signal():
     scipy.signal are imported where a run uses them.  (The run description still imports
     soulctl.loop.run and with it h5py: issue 85's downward imports.)"""
     modules = _imported_by(["loop", "run", "--help"])
-    assert not {"soulctl.plots.loop", "soulctl.telemetry.hdf5", "scipy.signal", "matplotlib"} & modules
+    assert not {"soulctl.plots.loop", "soulctl.telemetry.hdf5", "soulctl.telemetry.stream", "scipy.signal", "matplotlib"} & modules
 
 
 def test_import_of_the_cli_package_is_light():

@@ -14,8 +14,8 @@ from scipy.signal import lfilter
 
 from soulctl.identify.identify import identify
 from soulctl.identify.plant import read_plant
-from soulctl.loop.offline import PlantInputs, offline_mgm
-from soulctl.loop.recorded import checked_rate
+from soulctl.offline.mgm import PlantInputs, offline_mgm
+from soulctl.offline.recorded import checked_rate
 from soulctl.telemetry.formats import open_telemetry
 
 KECK_LIKE = (np.array([1.0]), np.array([1.0, -0.6, -0.32, -0.08]))  # an integrator times 1 / (1 + 0.4 z^-1 + 0.08 z^-2)

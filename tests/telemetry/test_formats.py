@@ -15,8 +15,8 @@ from cheap import CHEAP_PYRAMID
 from cli_run import run
 
 from soulctl.cli.app import main
-from soulctl.loop.offline import recorded_run
 from soulctl.observation import observation_for_magnitude
+from soulctl.offline.mgm import recorded_run
 from soulctl.telemetry.formats import open_telemetry, read_record, write_record
 
 # test_offline_mgm's small loop: 54 modes at 407 Hz on a 40-px pupil, with an R11 star's flux

@@ -10,7 +10,8 @@ import pytest
 
 from soulctl.errors import InputError
 from soulctl.telemetry import hdf5 as telemetry_file
-from soulctl.telemetry.hdf5 import read_telemetry, write_telemetry
+from soulctl.telemetry.formats import read_telemetry
+from soulctl.telemetry.hdf5 import write_telemetry
 from soulctl.telemetry.schema import DATASETS, TELEMETRY_SCHEMA, TelemetryReader
 
 FRAMES, MODES = 40, 3

@@ -51,19 +51,18 @@ from ..control.gains import DEFAULT_FORGETTING, unit_loops
 from ..control.ogtl import HELD, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_coefficients
 from ..errors import InputError
+from ..loop.chi_model import mgm_chi, optical_gain_table
+from ..loop.optimize import welch_settings
+from ..loop.run import calibration_for
 from ..observation import Observation
 from ..optics.cache import ArrayCache
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC
 from ..ranges import LOOP_GAIN, PERIOD_S
 from ..run_config import ControllerSpec, RunConfig, stored
 from ..telemetry.figures import pseudo_open_loop
-from ..telemetry.formats import check_decimation, open_telemetry
-from ..telemetry.hdf5 import run_description_of
+from ..telemetry.formats import check_decimation, open_telemetry, run_description_of
 from ..telemetry.schema import REQUIRED, TelemetryReader, configuration_member, configuration_observation, configuration_structure
-from .chi_model import mgm_chi, optical_gain_table
-from .optimize import welch_settings
 from .recorded import RecordedLoop, checked_rate, recorded_loop
-from .run import calibration_for
 
 MAX_WINDOW_S = PERIOD_S.hi  # the longest window of live MGM
 BLOCK_BYTES = 32 * 2**20  # float64 bytes of one block of modes of /measured_modes (and as many of /command_modes)

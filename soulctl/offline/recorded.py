@@ -11,7 +11,7 @@ and the pupil that turns Tip/Tilt nm into mas.  One rule each (docs/telemetry-fo
   where the record's corrector is LBT's adaptive secondary; none otherwise.  ``structure``
   "lbt" or "none" overrides either.
 * **Sensor**: the record's (``schema.SENSORS``): the optical-gain model follows from it
-  (``loop.offline``): the pyramid's model for a pyramid, 1 for a Shack-Hartmann or a quad cell.
+  (``offline.mgm``): the pyramid's model for a pyramid, 1 for a Shack-Hartmann or a quad cell.
 * **Pupil**: the record's telescope (diameter, obstruction); LBT's where it states none, said so.
 
 The rate of a record and of a configuration agree within ``RATE_TOLERANCE`` (a rate measured
