@@ -15,7 +15,7 @@ frame: the loop's wall time (closing and run, not the calibration, which is comp
 cache before the timed runs) over its frames, and the median and 99th percentile of the single
 frames.  The ratio is the median over repeats of the variant's ms per frame over the
 ``ideal, gaussian`` one's.
-Run:  python bench/bench_default_loop.py [--cases R9.7,R13,R16.5] [--repeats 2] [--out bench/results/default_loop.json]
+Run:  python -m bench.bench_default_loop [--cases R9.7,R13,R16.5] [--repeats 2] [--out bench/results/default_loop.json]
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_file import save
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import save
 from soulctl.cli.common import default_cache_dir
 from soulctl.cli.loop import IDEAL
 from soulctl.loop.optimize import LiveOptimisers

@@ -9,7 +9,7 @@ Cases, run side by side in one process:
                     (--repeat calls): median and p99 per call.
 Target (issue 3): <= 60 s per frame rate on 2 cores.
 
-Run:  python bench/bench_design.py [--rates 1700,1350,1000,750] [--seeds 3] [--out bench/results/design.json]
+Run:  python -m bench.bench_design [--rates 1700,1350,1000,750] [--seeds 3] [--out bench/results/design.json]
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_file import save
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import save
 from soulctl import tables
 from soulctl.control.delay import DelayModel
 from soulctl.control.design import design_tt_filter

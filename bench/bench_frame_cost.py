@@ -11,7 +11,7 @@ least of the two runs) over the frames, the fixed cost per case the intercept (s
 metrics).  CPU time, not wall time, so that other work on the machine does not count.  The
 calibration is timed cold (empty cache) once, in CPU time too.
 Default conditions (seeing 1", noise, vibrations, resonance).
-Run:  python bench/bench_frame_cost.py [--frames 100,400] [--oversampling 1,2,3,4] [--wfs-field 0,2.1]
+Run:  python -m bench.bench_frame_cost [--frames 100,400] [--oversampling 1,2,3,4] [--wfs-field 0,2.1]
       [--out bench/results/frame_cost.json]
 """
 
@@ -29,6 +29,7 @@ from rich.console import Console
 from rich.table import Table
 from threadpoolctl import threadpool_limits
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.files import atomic_write_text
 from soulctl.sweep.case import calibrate_case, calibration_setup, observation_for, run_case
@@ -64,7 +65,7 @@ def main() -> None:
         "rows": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(result | provenance(), indent=1) + "\n")
 
 
 def measure(base: dict, short: int, long: int, cache: Path) -> dict:

@@ -10,7 +10,7 @@ time of the command, its own per-stage times (identify's JSON) and peak RSS (wai
 side for the durations; rtc check on the same configuration's 500 modes, median and p99 of
 --repeat runs, with a gain file and with a whole RTC description (npz).
 
-Run:  python bench/bench_identify.py [--durations 10,30,60] [--repeat 5] [--out bench/results/identify.json]
+Run:  python -m bench.bench_identify [--durations 10,30,60] [--repeat 5] [--out bench/results/identify.json]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.control.gains import LoopGains, mode_filters
 from soulctl.control.rtc import build_rtc
@@ -177,7 +178,7 @@ def main() -> None:
         "identify": rows,
         "rtc_check": rtc_rows,
     }
-    atomic_write_text(args.out, json.dumps(report, indent=1))
+    atomic_write_text(args.out, json.dumps(report | provenance(), indent=1))
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ loops are built from their own calibration, then run in alternation, ``--repeats
 a block is the CPU time of the process (BLAS at one thread), the per-frame figure the median
 over blocks, with the mirror stage (F c, F^T r) apart.  Also the non-zeros per pixel of the
 sparse influence matrix (responses below 1e-4 of the peak dropped) and the time to build it.
-Run:  python bench/bench_influence.py [--frames 100] [--repeats 5] [--out bench/results/influence.json]
+Run:  python -m bench.bench_influence [--frames 100] [--repeats 5] [--out bench/results/influence.json]
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 from bench_loop import benchmark_loop
-from results_file import save
 from rich.console import Console
 from rich.table import Table
 from threadpoolctl import threadpool_limits
 
+from bench.results_file import save
 from soulctl.loop.simulation import ClosedLoop
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import INFLUENCES, AsmGeometry

@@ -15,7 +15,7 @@ mirror modes, the recorder), metrics (PSF).
 Calibration: modal basis + interaction matrix with an empty cache (cold), then from the cache.
 
 Per frame: the median and 99th percentile of the wall time of one iteration.
-Run:  python bench/bench_loop.py [--frames 300] [--out bench/results/loop.json]
+Run:  python -m bench.bench_loop [--frames 300] [--out bench/results/loop.json]
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.control.gains import default_gains
 from soulctl.control.structure import StructuralResonance, sampled_structure
@@ -145,7 +146,7 @@ def main() -> None:
         "rows": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(result | provenance(), indent=1) + "\n")
     print(f"written {args.out}")
 
 

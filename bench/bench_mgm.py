@@ -11,7 +11,7 @@ modes, vectorised golden-section refinement).  Naive: the same PSD, then per mod
 scipy.optimize.minimize_scalar(method='bounded') on the same cost over [0, upper].
 Reported: median and 99th percentile of the wall time of one update over the repeats, the
 ratio naive / MGM, the PSD / minimisation split, and the agreement of the gains.
-Run:  python bench/bench_mgm.py [--repeats 15] [--out bench/results/mgm.json]
+Run:  python -m bench.bench_mgm [--repeats 15] [--out bench/results/mgm.json]
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from rich.table import Table
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.control.filters import Filter
 from soulctl.control.mgm import MgmSettings, ModalGainMachine, cost, optimal_gains
@@ -191,7 +192,7 @@ def main() -> None:
         "agreement": agreement,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(result | provenance(), indent=1) + "\n")
     print(f"written {args.out}")
 
 

@@ -9,7 +9,7 @@ pyramid's FFTs do between two frames of the loop, so that F comes from memory as
 there.  Calls alternate between the variants, ``--calls`` each; the table gives the median
 and the 99th percentile of the wall time per call and the ratio of the medians, and checks
 that both give the same numbers bit for bit.
-Run:  python bench/bench_mirror_stage.py [--calls 400] [--out bench/results/mirror_stage.json]
+Run:  python -m bench.bench_mirror_stage [--calls 400] [--out bench/results/mirror_stage.json]
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_file import save
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import save
 from soulctl.loop.stages import core_influence
 from soulctl.optics.asm import INFLUENCES, AsmGeometry
 from soulctl.optics.pupil import Pupil

@@ -11,7 +11,7 @@ Cases, side by side in one process, per configuration (the paper's R9.7, R13 and
             first run with a new mis-registration adds (D' + verdict) as a fraction of it.
 Peak RSS of the process at the end (the verdict keeps one n_slopes x n_modes matrix).
 
-Run:  python bench/bench_misregistration.py [--cases R9.7,R13,R16.5] [--repeat 3] [--duration 1]
+Run:  python -m bench.bench_misregistration [--cases R9.7,R13,R16.5] [--repeat 3] [--duration 1]
           [--out bench/results/misregistration.json]
 """
 
@@ -24,10 +24,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from results_file import save
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import save
 from soulctl.cli.common import default_cache_dir
 from soulctl.loop.run import calibration_for, closed_loop_for, registration_stability, run
 from soulctl.optics.cache import ArrayCache

@@ -15,7 +15,7 @@ Cases, run side by side in one process, on turbulent wavefronts (the LBT profile
                               modulation points): what a band costs over the monochromatic model.
 Frames are timed one by one, cases interleaved in rounds; median and p99 per frame.
 
-Run:  python bench/bench_pwfs.py [--frames 60] [--rounds 5] [--out bench/results/pwfs.json]
+Run:  python -m bench.bench_pwfs [--frames 60] [--rounds 5] [--out bench/results/pwfs.json]
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import scipy.fft
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.files import atomic_write_text
 from soulctl.optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere
@@ -225,7 +226,7 @@ def main() -> None:
         "rows": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(result | provenance(), indent=1) + "\n")
     print(f"written {args.out}")
 
 

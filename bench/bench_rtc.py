@@ -21,7 +21,7 @@ Targets: (a) core frame->commands median <= 1.3 x numpy bare matvec median;
 (b) core frame->commands p99 <= 2 x its median; (c) core frame->commands >= 1.5x faster
 (median) than numpy frame->commands.
 
-Run:  python bench/bench_rtc.py [--steps 20000] [--rounds 10] [--threads 0] [--out bench/results/rtc.json]
+Run:  python -m bench.bench_rtc [--steps 20000] [--rounds 10] [--threads 0] [--out bench/results/rtc.json]
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+
+from bench.results_file import provenance
 
 try:
     import soulctl
@@ -269,7 +271,7 @@ def main() -> None:
     fd, tmp = tempfile.mkstemp(dir=args.out.parent, prefix=".rtc-", suffix=".json.tmp")
     try:
         with os.fdopen(fd, "w") as fh:
-            json.dump(out, fh, indent=2)
+            json.dump(out | provenance(), fh, indent=2)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600
         os.replace(tmp, args.out)
     except BaseException:

@@ -14,7 +14,7 @@ them), so that both are measured side by side on the same machine state.
 
 Targets (issue 84): --version and --help <= 0.3 s, configure --mag 13 <= 0.6 s (medians).
 
-Run:  python bench/bench_startup.py [--repeats 20] [--baseline DIR] [--out bench/results/startup.json]
+Run:  python -m bench.bench_startup [--repeats 20] [--baseline DIR] [--out bench/results/startup.json]
 """
 
 from __future__ import annotations
@@ -31,8 +31,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).parent))
-from results_file import save  # noqa: E402
+from bench.results_file import save
 
 CASES = {
     "--version": ["--version"],

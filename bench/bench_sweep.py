@@ -6,7 +6,7 @@ table's configurations (13x13 and 10x10 sub-apertures, 90 and 54 modes), 40-px p
 each worker count (the sweep computes each distinct one once, as a task).
 Reported per worker count: wall time (cluster start-up included), the sum of
 the cases' own run times, the speed-up over 1 worker and the parallel efficiency.
-Run:  python bench/bench_sweep.py [--workers 1,2] [--out bench/results/sweep.json]
+Run:  python -m bench.bench_sweep [--workers 1,2] [--out bench/results/sweep.json]
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.files import atomic_write_text
 from soulctl.sweep.grid import parse_grid
@@ -70,7 +71,7 @@ def main() -> None:
         "rows": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(result | provenance(), indent=1) + "\n")
 
 
 if __name__ == "__main__":

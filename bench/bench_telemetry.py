@@ -13,7 +13,7 @@ squares over the durations), frames per second, and the telemetry's cost in loop
 (frames/s with against without, same duration).  Targets (issue 17): slope <= 20 MB/s;
 a 600 s run under 2 GB; telemetry costs <= 5 % of loop speed.
 
-Run:  python bench/bench_telemetry.py [--mags 9.7,16.5] [--durations 0.25,1,5] [--out bench/results/telemetry.json]
+Run:  python -m bench.bench_telemetry [--mags 9.7,16.5] [--durations 0.25,1,5] [--out bench/results/telemetry.json]
       (a 600 s run at R16.5: --mags 16.5 --durations 600)
 """
 
@@ -33,6 +33,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from bench.results_file import provenance
 from soulctl import __version__
 from soulctl.files import atomic_write_text
 
@@ -128,7 +129,7 @@ def main() -> None:
         w.add_row(r["fields"], f"{r['mean_ms']:.3f}", f"{r['median_ms']:.3f}", f"{r['p99_ms']:.3f}")
     console.print(w)
     if args.writer_only:
-        atomic_write_text(args.out, json.dumps({"soulctl": __version__, "writer_cost": cost}, indent=1))
+        atomic_write_text(args.out, json.dumps({"writer_cost": cost} | provenance(), indent=1))
         return
     rows = []
     for mag in args.mags.split(","):
@@ -176,7 +177,7 @@ def main() -> None:
         "rss_slope_mb_per_s": slopes,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(report, indent=1))
+    atomic_write_text(args.out, json.dumps(report | provenance(), indent=1))
 
 
 if __name__ == "__main__":

@@ -19,6 +19,21 @@ def cache_dir(optics_cache):
     return Path(optics_cache.directory)
 
 
+@pytest.fixture(scope="session")
+def validation(tmp_path_factory):
+    """``validation(name)``: the module ``validation.<name>`` of the repository's studies,
+    imported as ``python -m validation.<name>`` from the root would import it, but with the
+    installed soulctl (a folder holding only a link to validation/ goes first on sys.path, not
+    the source tree, whose soulctl has no compiled core)."""
+    import importlib
+    import sys
+
+    folder = tmp_path_factory.mktemp("validation-path")
+    (folder / "validation").symlink_to(Path(__file__).resolve().parents[1] / "validation")
+    sys.path.insert(0, str(folder))
+    return lambda name: importlib.import_module(f"validation.{name}")
+
+
 LONGEST_FIRST = ("tests/test_readme.py::test_readme_examples_run_in_order",)  # ~7 min in one process
 
 

@@ -77,12 +77,7 @@ def _graph() -> dict[str, set[str]]:
 
 
 def test_every_import_runs_down_or_within_its_unit():
-    upward = [
-        f"{a} -> {b}"
-        for a, targets in _graph().items()
-        for b in sorted(targets)
-        if _unit(a) != _unit(b) and _layer(b) > _layer(a)
-    ]
+    upward = [f"{a} -> {b}" for a, targets in _graph().items() for b in sorted(targets) if _unit(a) != _unit(b) and _layer(b) > _layer(a)]
     assert upward == []
 
 

@@ -1,11 +1,13 @@
-"""The README as a test: every command of its ``sh`` and ``python`` blocks runs, in the README's
-order, in one folder, with SOULCTL_QUICK set (``soulctl/cli/quick.py``: the same command lines
-at a smoke test's cost), and exits as its comment says (``# exit N``), else 0.
+"""The README and the guide as a test: every command of their ``sh`` and ``python`` blocks runs,
+in order (``DOCS``), in one folder, with SOULCTL_QUICK set (``soulctl/cli/quick.py``: the same
+command lines at a smoke test's cost), and exits as its comment says (``# exit N``), else 0.
 
 A block after ``<!-- doc-test: skip: REASON -->`` is not run (the reason is required); a block
 after ``<!-- doc-test: file NAME -->`` is written to NAME when the README reaches it.  The
 blocks marked ``test-command`` (.ci/run runs it) and ``real-record-example``
-(tests/telemetry/test_real_records.py runs it) are run by their own tests."""
+(tests/telemetry/test_real_records.py runs it) are run by their own tests.  A document whose
+blocks the test does not read is a document whose examples may break: ``DOCS`` lists every
+Markdown file of the repository that holds a shell block."""
 
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+DOCS = (README, ROOT / "docs" / "guide.md", ROOT / "docs" / "development.md")  # run in this order
 MARKER = re.compile(r"^<!-- ?([a-z-]+)(?::\s*|\s+)?(.*?)\s*-->$")
 RUN_ELSEWHERE = {"test-command", "real-record-example"}
 EXIT = re.compile(r"#\s*exit (\d+)")
@@ -82,17 +85,31 @@ def runnable(readme: str) -> list[Block]:
     return [b for b in blocks(readme) if b.marker not in RUN_ELSEWHERE and b.marker != "doc-test: skip"]
 
 
+def _all_blocks() -> list[tuple[str, Block]]:
+    return [(doc.relative_to(ROOT).as_posix(), b) for doc in DOCS for b in blocks(doc.read_text())]
+
+
 def test_every_example_block_is_run_or_skipped_with_a_reason():
     """No example escapes the test silently: a shell or Python block is run here, by its own
     test, or skipped with a reason; a file block names its file."""
-    for b in blocks(README.read_text()):
+    for doc, b in _all_blocks():
         if b.marker == "doc-test: skip":
-            assert b.argument, f"README line {b.line}: a skipped block needs its reason"
+            assert b.argument, f"{doc} line {b.line}: a skipped block needs its reason"
         if b.marker == "doc-test: file":
-            assert b.argument and "/" not in b.argument, f"README line {b.line}: a file block names its file"
-        assert b.language in ("sh", "python", "toml", ""), f"README line {b.line}: a block in '{b.language}' the test cannot run"
-    sh = [b for b in runnable(README.read_text()) if b.language == "sh"]
+            assert b.argument and "/" not in b.argument, f"{doc} line {b.line}: a file block names its file"
+        assert b.language in ("sh", "python", "toml", ""), f"{doc} line {b.line}: a block in '{b.language}' the test cannot run"
+    sh = [b for _, b in _all_blocks() if b.language == "sh" and b.marker not in RUN_ELSEWHERE and b.marker != "doc-test: skip"]
     assert len(sh) >= 8 and sum(len(commands(b)) for b in sh) >= 40
+
+
+def test_every_document_with_examples_is_run():
+    """Every Markdown file of the repository (outside tests/) that holds a shell block is in DOCS."""
+    with_shell = {
+        p.relative_to(ROOT).as_posix()
+        for p in ROOT.rglob("*.md")
+        if "```sh" in p.read_text() and p.relative_to(ROOT).parts[0] not in {"tests", "build", ".git"}
+    }
+    assert with_shell <= {d.relative_to(ROOT).as_posix() for d in DOCS}
 
 
 def test_the_parser_reads_markers_continuations_and_exit_statuses():
@@ -113,15 +130,16 @@ def _environment(tmp: Path) -> dict:
     return env
 
 
+@pytest.mark.slow
 def test_readme_examples_run_in_order(tmp_path):
-    """Every README command, in order, in one folder (files made by one example are read by
-    the next), exits as its comment says."""
+    """Every command of the README and the guide, in order, in one folder (files made by one
+    example are read by the next), exits as its comment says."""
     work = tmp_path / "work"
     work.mkdir()
     for name in REPO_FOLDERS:
         (work / name).symlink_to(ROOT / name)
     env, ran = _environment(tmp_path), 0
-    for b in runnable(README.read_text()):
+    for b in (b for doc in DOCS for b in runnable(doc.read_text())):
         if b.marker == "doc-test: file":
             (work / b.argument).write_text(b.text)
         elif b.language == "python":
@@ -138,7 +156,7 @@ def test_readme_examples_run_in_order(tmp_path):
 
 def _check(result: subprocess.CompletedProcess, expected: int, what: str) -> None:
     if result.returncode != expected:
-        pytest.fail(f"README: {what!r} exited {result.returncode}, expected {expected}\n{result.stderr[-3000:]}")
+        pytest.fail(f"docs: {what!r} exited {result.returncode}, expected {expected}\n{result.stderr[-3000:]}")
     if expected == 0:
         assert "Traceback" not in result.stderr, (what, result.stderr)
 

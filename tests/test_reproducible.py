@@ -34,6 +34,7 @@ np.savez(sys.argv[1], M=result.calibration.basis.M, D=result.calibration.interac
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs CPU affinity (Linux)")
 def test_a_run_is_the_same_on_one_thread_and_on_two(tmp_path):
     out = {}

@@ -218,10 +218,10 @@ def test_overrides_re_derive_what_they_make_stale():
     assert kept.observation.binning == 1 and kept.observation.magnitude_r == 13.0
 
 
-def test_the_readme_shows_the_resolved_default_the_tool_prints(capsys):
+def test_the_guide_shows_the_resolved_default_the_tool_prints(capsys):
     from soulctl.cli.app import main
 
-    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    readme = (Path(__file__).parents[1] / "docs" / "guide.md").read_text()
     block = readme.split("<!-- print-config -->", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
     assert main(["loop", "run", "--print-config"]) == 0
     assert capsys.readouterr().out == block

@@ -3,7 +3,6 @@ issue's acceptance criteria, and its rows are combined across sessions by code f
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -14,11 +13,8 @@ _PATH = Path(__file__).resolve().parent.parent / "validation" / "optimize_magnit
 
 
 @pytest.fixture(scope="module")
-def grid():
-    spec = importlib.util.spec_from_file_location("optimize_magnitudes", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def grid(validation):
+    return validation("optimize_magnitudes")
 
 
 def _row(variant: str, before: float, after: float, seed: int = 1, code: str = "abc", diverged_at=None) -> dict:
@@ -156,15 +152,8 @@ def test_the_shared_evaluation_takes_what_evaluate_takes(grid):
     assert wrapped == list(inspect.signature(optimize.evaluate).parameters)
 
 
-def _split_module():
-    spec = importlib.util.spec_from_file_location("mgm_split", _PATH.parent / "mgm_split.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_split_swaps_one_group_at_a_time():
-    split = _split_module()
+def test_the_split_swaps_one_group_at_a_time(validation):
+    split = validation("mgm_split")
     initial, final = np.full(250, 0.5), np.full(250, 0.2)
     sets = split.gain_sets(initial, final)
     tt = sets["initial with MGM's tip-tilt"]
@@ -175,8 +164,8 @@ def test_the_split_swaps_one_group_at_a_time():
     assert initial[0] == 0.5 and final[0] == 0.2  # the swaps copy, not alias
 
 
-def test_the_split_pairs_window_by_window():
-    split = _split_module()
+def test_the_split_pairs_window_by_window(validation):
+    split = validation("mgm_split")
     reference = [0.40, 0.45, 0.38, 0.47]  # the turbulence moves every window; the pairing removes it
     rows = [
         {"gains": "initial", "windows": reference},

@@ -16,14 +16,12 @@ Found at R11.9 1.5" seed 3 (mgm+ogtl), where the earlier reading of a lost Tip
 whose projection on Tip is large, while the pyramid's mean signal stays at zero
 (docs/physics.md, "Over the magnitudes").  ~5 min per point on one core at R11.9.
 
-Run:  python validation/edge_runaway.py --mag 11.9 --seeing 1.5 --seed 3 [--out FILE]
+Run:  python -m validation.edge_runaway --mag 11.9 --seeing 1.5 --seed 3 [--out FILE]
 """
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -31,9 +29,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.auxloops import summary
 from soulctl.loop.optimize import OptimizeResult, _live_phases, band_wavelength
 from soulctl.loop.simulation import LoopDiverged
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, machine, point_arguments, point_loops  # noqa: E402
+from validation.optimize_magnitudes import point_arguments, point_loops
+from validation.provenance import provenance
 
 STEP_S = 0.4  # the path's sampling
 EDGE_R, INNER_R = 0.95, 0.5  # the edge ring and the inner half, in pupil radii
@@ -237,7 +234,7 @@ def main() -> None:
     p = point_arguments(__doc__)
     a = p.parse_args()
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "wfs_field_arcsec": a.wfs_field}
-    out |= {"code": code_fingerprint(), "machine": machine()}
+    out |= {**provenance()}
     out |= run_path(a.mag, a.seeing, a.seed, a.variant, a.wfs_field)
     for row in out["path"]:
         print(line(row), flush=True)

@@ -9,7 +9,7 @@ loop (issue: MGM and OGTL that never drive the loop unstable).  Not in CI (~15 m
   its gains take to settle (paper: about a minute), with the time series plotted;
 * OGTL alone at R17.5 for 60 s: k within [1, k_max], the loop closed.
 
-Run:  python validation/faint_cases.py [--seeds 1,2,3] [--transient-s 60] [--ogtl-s 60] [--out FILE]
+Run:  python -m validation.faint_cases [--seeds 1,2,3] [--transient-s 60] [--ogtl-s 60] [--out FILE]
       [--only R13,R16.5,ogtl,transient] [--vibrations lbt|lbt-onsky|FILE] [--wfs-field ARCSEC]
 ``--vibrations`` replaces the default Tip/Tilt vibrations of the two paper cases (e.g. the
 on-sky level, ``lbt-onsky``: whether MGM, as on sky, brings those loops to the paper's range).
@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -44,10 +43,8 @@ from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.plots.gains import write_gain_figures
 from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
-
-sys.path.insert(0, str(Path(__file__).parent))
-from gain_optimisation import observation, settling_time  # noqa: E402
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from validation.gain_optimisation import observation, settling_time  # noqa: E402
+from validation.provenance import code_fingerprint, provenance
 
 RESULTS = Path(__file__).parent / "results"
 AT_1_ARCSEC = AtmosphereSpec(seeing_arcsec=1.0)  # the paper's faint cases
@@ -201,7 +198,7 @@ def main() -> None:
     # the parts not run now are kept from the file (a re-run of one part keeps the others)
     out = json.loads(a.out.read_text()) if a.out.exists() and a.only is not None else {}
     code = code_fingerprint()  # each part says which code made it (parts may come from different runs)
-    out.update({name: {**parts[name](), "code": code} for name in only})
+    out.update({name: {**parts[name](), **provenance(code)} for name in only})
     out["wall_s"] = time.perf_counter() - t0
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(a.out, json.dumps(out, indent=1, default=float))

@@ -14,15 +14,13 @@ while one of the real field reads it at +0.013 to +0.035, and a healthy residual
 what falls outside it wraps back onto the opposite faces (docs/physics.md, "Over the
 magnitudes").  ~3x the grid's time per row (the fine pyramid's FFTs are 384 points against 192).
 
-Run:  python validation/field_of_view.py --mag 11.9 --seeing 1.5 --seed 3 [--variant mgm+ogtl] [--oversampling 4] [--out FILE]
+Run:  python -m validation.field_of_view --mag 11.9 --seeing 1.5 --seed 3 [--variant mgm+ogtl] [--oversampling 4] [--out FILE]
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
@@ -32,10 +30,9 @@ from soulctl.files import atomic_write_text
 from soulctl.optics.pupil import PupilResampler
 from soulctl.optics.pwfs import Pyramid
 from soulctl.optics.sensor import WavefrontSensor
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, machine, point_arguments, run_case  # noqa: E402
-from rim_sampling import FIELD_STOP  # noqa: E402
+from validation.optimize_magnitudes import point_arguments, run_case
+from validation.provenance import provenance
+from validation.rim_sampling import FIELD_STOP  # noqa: E402
 
 
 class WideField:
@@ -79,7 +76,7 @@ def main() -> None:
     widen(a.oversampling, FIELD_STOP)
     row = run_case(a.mag, a.seeing, a.seed, a.variant, str(default_cache_dir()), wfs_field=a.wfs_field)
     sensor = {"oversampling": a.oversampling, "field_stop_lambda_over_d": FIELD_STOP}
-    row |= {"code": code_fingerprint(), "machine": machine(), "sensor": sensor}
+    row |= {**provenance(), "sensor": sensor}
     w = row.get("windows") or {}
     print(f"diverged at {row['diverged_at']}; before {w.get('mean_before')} after {w.get('mean_after')} +- {w.get('standard_error')}")
     print(f"settled k {row.get('settled_k')}; restores {row['safety_restores']}; {row['seconds']:.0f} s")

@@ -17,7 +17,7 @@ table for both influence-function models (``asm.INFLUENCES``: the Gaussian and t
 plate).  Last, the fitting error the independent comparison with OOPAO measured (500 modes,
 examples/oopao_matched.toml's turbulence, on screens) for each model.
 
-    python validation/fitting_error_gap.py [--pixels 80] [--out FILE]
+    python -m validation.fitting_error_gap [--pixels 80] [--out FILE]
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import scipy.linalg
 from soulctl.optics.asm import INFLUENCES, AsmGeometry, best_fitting_variance, kl_basis, mirror_space
 from soulctl.optics.atmosphere import AtmosphereConfig, FrozenFlowAtmosphere, Layer, phase_covariance, r0_from_seeing
 from soulctl.optics.pupil import Pupil
+from validation.provenance import provenance
 
 OUT = Path(__file__).parent / "results" / "fitting_error_gap.json"
 L0_M, SEEING = 25.0, 1.0
@@ -113,7 +114,7 @@ def main() -> None:
         "mirror_bound_500_nm_by_coupling": couplings,
         "oopao_matched_screens_500_nm": screens | {"oopao": OOPAO_FITTING_NM},
     }
-    a.out.write_text(json.dumps(result, indent=1) + "\n")
+    a.out.write_text(json.dumps(result | provenance(), indent=1) + "\n")
     for model, rows in tables.items():
         print(f"\n{model}\n| modes | kl_basis nm | mirror bound nm | pupil KL nm | kl_basis / pupil KL |\n|---|---|---|---|---|")
         for r in rows:

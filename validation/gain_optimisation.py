@@ -11,7 +11,7 @@ gains (0.1 x the starting gains) every 5 s for 60 s: the time its gains take to 
 (paper: about a minute).
 --sky adds the error terms of the paper's conditions: 100 nm of LUCI1 NCPA, left uncompensated
 in the daytime case and compensated by reference-slope offsets (applied by OGTL) on sky.
-Run:  python validation/gain_optimisation.py [--cases 0,1] [--transient-s 60 (0: none)] [--sky] [--out FILE]
+Run:  python -m validation.gain_optimisation [--cases 0,1] [--transient-s 60 (0: none)] [--sky] [--out FILE]
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from soulctl.observation import observation_for_magnitude, tt_filter_roots
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
+from validation.provenance import provenance
 
 CASES = [
     # label, magnitude, rate, seeing, wind, paper
@@ -115,6 +116,7 @@ def main() -> None:
             transient = optimize(OptimizeRequest(low, "mgm", duration_s=args.transient_s, period_s=5.0, measure_s=args.measure_s), cache)
             row["mgm_from_low_gains"] = {**summary(transient), "settling_s": settling_time(transient)}
         row["wall_s"] = time.perf_counter() - t0
+        row |= provenance()
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "observation"}, default=float)[:2000], flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)

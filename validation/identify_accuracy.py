@@ -14,7 +14,7 @@ with or without OGTL and its probe mode), identifies it, and compares with the t
 One JSON line per case in validation/results/identify_accuracy.jsonl (appended; cases already
 there are skipped).  Usage:
 
-    python validation/identify_accuracy.py [--quick] [--out FILE]
+    python -m validation.identify_accuracy [--quick] [--out FILE]
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from soulctl.optics.detector import Detector
 from soulctl.optics.pwfs import Pyramid
 from soulctl.optics.sensor import WavefrontSensor
 from soulctl.run_config import read_run_config
+from validation.provenance import provenance
 
 ROOT = Path(__file__).resolve().parent.parent
 CASES = [
@@ -188,7 +189,7 @@ def main() -> None:
             continue
         t0 = time.perf_counter()
         tel, ident = _run(case, keep)
-        row = evaluate(case, tel, ident) | {"wall_s": time.perf_counter() - t0}
+        row = evaluate(case, tel, ident) | {"wall_s": time.perf_counter() - t0} | provenance()
         with out.open("a") as f:
             f.write(json.dumps(row) + "\n")
         print(row["case"], "delay", round(row["delay"], 3), row["delay_true"], "seeing", round(row["seeing"], 3), flush=True)

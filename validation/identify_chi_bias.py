@@ -10,7 +10,7 @@ sub-pixel translation moves to higher frequencies), and no turbulence (seeing 0.
 
 Records are kept in /tmp/soulctl-chi-bias (re-used when present); one JSON file of results.
 
-    python validation/identify_chi_bias.py [--out FILE]
+    python -m validation.identify_chi_bias [--out FILE]
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+from validation.provenance import provenance
 
 ROOT = Path(__file__).resolve().parent.parent
 WORK = Path("/tmp/soulctl-chi-bias")
@@ -64,7 +66,7 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=OUT)
     a = p.parse_args()
     WORK.mkdir(parents=True, exist_ok=True)
-    rows = [run_case(name) for name in CASES]
+    rows = [run_case(name) | provenance() for name in CASES]
     a.out.write_text(json.dumps(rows, indent=1) + "\n")
     print("| case | probe chi | group (fit) | fit / probe | chi change per 1 % excess |\n|---|---|---|---|---|")
     for r in rows:

@@ -12,7 +12,7 @@ run or from a fresh `optimize gains` of the point, ~10 min), and their two mixtu
 (``mgm_tt``: MGM's Tip/Tilt with the initial higher modes; ``mgm_high``: the converse).
 Not in CI (~3 min per gain set on one core at R11.9).
 
-Run:  python validation/lock_loss.py --mag 11.9 --seeing 1.5 --seed 3 \
+Run:  python -m validation.lock_loss --mag 11.9 --seeing 1.5 --seed 3 \
           [--gains validation/results/lock_loss_r11.9_1.5_s3_gains.npz] [--modulation L] [--evaluate] [--out FILE]
 
 ``--modulation``: the pyramid modulated at L lambda/D instead of the table's, the same gain
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +32,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import _new_loop, evaluate, evaluation_settle_s, optimize
 from soulctl.loop.run import closing_frames
 from soulctl.loop.simulation import LoopDiverged
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, point_loops  # noqa: E402
+from validation.optimize_magnitudes import point_loops
+from validation.provenance import provenance
 
 STEP_S = 0.2  # the path's sampling
 
@@ -108,7 +106,7 @@ def main() -> None:
             np.savez(a.gains, initial=initial, mgm=mgm)
     sets = gain_sets(initial, mgm)
     modulation = point.request.run.observation.modulation_lambda_over_d
-    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "modulation": modulation, "code": code_fingerprint(), "sets": {}}
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "modulation": modulation, **provenance(), "sets": {}}
     for name in a.sets.split(","):
         out["sets"][name] = res = settle_path(point, sets[name])
         worst = max(res["path"], key=lambda s: abs(s["tt_mean_nm"][0]))

@@ -9,7 +9,7 @@ frame rate, binning and modes, seeing on the line of sight, default gains (not o
          night's, validation/paper_nights.py.)
   R13     980 Hz 20x20, seeing 1.0": FeII SR 0.61-0.67 on sky with MGM (simulations 0.58).
   R16.5   390 Hz 10x10, seeing 1.0": Ks SR 0.19-0.23.
-Run:  python validation/loop_operating_points.py [--duration 2] [--seeds 1] [--cases 0,3] [--vibrations lbt-onsky]
+Run:  python -m validation.loop_operating_points [--duration 2] [--seeds 1] [--cases 0,3] [--vibrations lbt-onsky]
       [--influence thin-plate] [--wfs-field ARCSEC]
       [--out validation/results.json]
 ``--wfs-field``: the pyramid's field of view (default the runs', SOUL's 2.1"; 0: the sampled
@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -38,9 +37,7 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import AtmosphereSpec, ControllerSpec, RunConfig
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from validation.provenance import provenance
 
 CASES = [
     # label, magnitude, rate, binning, modes, tt_control, tt_gain (None: default), seeing, band, paper
@@ -151,7 +148,7 @@ def main() -> None:
         )
     Console().print(t)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps({"code": code_fingerprint(), "duration_s": args.duration, "rows": rows}, indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps({**provenance(), "duration_s": args.duration, "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

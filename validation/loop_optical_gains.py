@@ -8,14 +8,13 @@ push-pull response is projected on its calibrated column, as ``optics.optical_ga
 around the model's residuals.  A ratio gamma_i / gamma_30 of the loop above the table's means
 MGM sees less loop gain on mode i than there is.  Not in CI (~1-2 min per point on one core).
 
-Run:  python validation/loop_optical_gains.py --mag 16.5 --seeing 0.6 --seed 2 [--snapshots 12] [--out FILE]
+Run:  python -m validation.loop_optical_gains --mag 16.5 --seeing 0.6 --seed 2 [--snapshots 12] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +23,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.chi_model import optical_gain_table
 from soulctl.loop.optimize import settled_evaluation_loop
 from soulctl.optics.calibration import calibration_sensor, mode_maps, push_pull
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, point_loops  # noqa: E402
+from validation.optimize_magnitudes import point_loops
+from validation.provenance import provenance
 
 MODES = (1, 2, 3, 10, 30, 60, 100)  # Tip, Tilt, focus, a few orders up; 30 is OGTL's probe
 
@@ -68,7 +66,7 @@ def main() -> None:
     mean = g.mean(axis=0)
     out = {
         "point": {"mag": a.mag, "seeing": a.seeing, "seed": a.seed},
-        "code": code_fingerprint(),
+        **provenance(),
         "k_settled": loop.rtc_parameters.sensitivity,
         "k_gamma_probe": loop.rtc_parameters.sensitivity * float(mean[probe]),
         "modes": modes,

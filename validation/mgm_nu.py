@@ -18,7 +18,7 @@ nothing, MGM's / nu recover most of MGM's loss - MGM's optimum is itself low the
 difference to the initial gains is given with the standard error of its paired windows.
 Not in CI (~25 min at R14.5 on one core).
 
-Run:  python validation/mgm_nu.py --mag 14.5 --seeing 1.0 --seed 2 [--windows 24] [--out FILE]
+Run:  python -m validation.mgm_nu --mag 14.5 --seeing 1.0 --seed 2 [--windows 24] [--out FILE]
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +37,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_request  # noqa: E402
+from validation.optimize_magnitudes import WINDOWS, point_request
+from validation.provenance import code_fingerprint, provenance
 
 
 def paired(result, metrics) -> tuple[float, float | None]:
@@ -106,7 +104,7 @@ def main() -> None:
     k_ratio = result.sensitivities[1] / result.before.settled.k
     scales = [float(s) for s in a.scales.split(",")]
     out["sets"] = evaluate_sets(request, result, cache, gain_sets(initial, final, nu, scales, k_ratio))
-    out["code"] = launched
+    out |= provenance(launched)
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
 

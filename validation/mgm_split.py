@@ -9,15 +9,14 @@ window by window against it (the standard error of the paired differences).
 The sets are independent: run them as separate processes (``--sets``) and pair the files
 with ``--pair``.  Not in CI (~10 min per set at R14.5 on 24 windows on one core).
 
-Run:  python validation/mgm_split.py RESULT.json --sets initial,"initial with MGM's tip-tilt" --out FILE
-      python validation/mgm_split.py --pair FILE...
+Run:  python -m validation.mgm_split RESULT.json --sets initial,"initial with MGM's tip-tilt" --out FILE
+      python -m validation.mgm_split --pair FILE...
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -30,9 +29,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import FrozenK, OptimizeResult, evaluate, session_seconds
 from soulctl.loop.run import calibration_for, closed_loop_for
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint, point_request  # noqa: E402
+from validation.optimize_magnitudes import point_request
+from validation.provenance import code_fingerprint, provenance
 
 
 def swapped(gains: np.ndarray, other: np.ndarray, group: slice) -> np.ndarray:
@@ -110,7 +108,7 @@ def main() -> None:
     recorded = json.loads(a.result.read_text())
     out = {k: recorded[k] for k in ("mag", "seeing", "seed", "variant", "windows", "settled_k")}
     out["sets"] = evaluate_sets(recorded, a.sets.split(","))
-    out["code"] = launched
+    out |= provenance(launched)
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
 

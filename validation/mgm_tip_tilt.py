@@ -17,14 +17,12 @@ The model's inputs are taken from the run itself (``noise_aware_gains`` wrapped 
 the optimisation makes), so that check 1 uses exactly what the run used.  Not in CI (~12 min
 at R14.5 on one core).
 
-Run:  python validation/mgm_tip_tilt.py --mag 14.5 --seeing 0.6 --seed 2 [--out FILE]
+Run:  python -m validation.mgm_tip_tilt --mag 14.5 --seeing 0.6 --seed 2 [--out FILE]
 """
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -37,9 +35,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_arguments, point_request  # noqa: E402
+from validation.optimize_magnitudes import WINDOWS, point_arguments, point_request
+from validation.provenance import code_fingerprint, provenance
 
 SEGMENTS = (256, 512, 1024, 2048, 4096, 8192)
 SYNTHETIC_FRAMES = 2**20  # ~23 min at 750 Hz: the long-series estimate is the Welch estimator's mean
@@ -147,7 +144,7 @@ def main() -> None:
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "influence": a.influence, "windows": windows}
     out["welch"] = welch_bias(calls[0])
     out["scan"] = scan(request, result, cache, [float(s) for s in a.scales.split(",")])
-    out["code"] = launched
+    out |= provenance(launched)
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
 

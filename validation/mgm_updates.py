@@ -8,14 +8,12 @@ standard error is one the data cannot tell from no change.
 
 Not in CI (the point's own cost: ~21 min at R14.5 1.0" with 24 windows on one core).
 
-Run:  python validation/mgm_updates.py --mag 14.5 --seeing 1.0 --seed 2 --windows 24 [--out FILE]
+Run:  python -m validation.mgm_updates --mag 14.5 --seeing 1.0 --seed 2 --windows 24 [--out FILE]
 """
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -25,9 +23,8 @@ from soulctl.files import atomic_write_text
 from soulctl.loop import auxloops
 from soulctl.loop.optimize import optimize
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import WINDOWS, code_fingerprint, point_arguments, point_request  # noqa: E402
+from validation.optimize_magnitudes import WINDOWS, point_arguments, point_request
+from validation.provenance import code_fingerprint, provenance
 
 GROUPS = {"Tip/Tilt": slice(0, 2), "modes 3-120": slice(2, 120), "modes 121-N": slice(120, None)}
 
@@ -97,7 +94,7 @@ def main() -> None:
     strehl = [m.strehl if m is not None else None for m in (result.before, result.after)]
     print(f"Strehl {strehl[0]} -> {strehl[1]}")
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "windows": request.windows, "updates": rows}
-    out |= {"initial_gains": list(result.initial_gains), "gains": list(result.gains), "code": launched}
+    out |= {"initial_gains": list(result.initial_gains), "gains": list(result.gains), **provenance(launched)}
     out |= {"strehl": strehl}
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))

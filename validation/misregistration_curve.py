@@ -7,7 +7,7 @@ mis-registration is a result, not an error: the reconstructor then drives modes 
 no longer makes.  Each row also has the verdict of the eigenmodes of R D' (``control.coupling``:
 how many are unstable, the gain margin), to set beside the Strehl ratio the loop reached.
 
-    python validation/misregistration_curve.py [--duration 1] [--seeds 1] [--cases 0,1] [--out FILE]
+    python -m validation.misregistration_curve [--duration 1] [--seeds 1] [--cases 0,1] [--out FILE]
 
 Writes the rows as JSON and a figure (Strehl against shift, rotation and magnification) beside
 them.  ~40 s per point on one core at R9.7.
@@ -27,6 +27,7 @@ from soulctl.loop.run import run
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.registration import Misregistration
 from soulctl.run_config import RunConfig
+from validation.provenance import provenance
 
 OUT = Path(__file__).parent / "results" / "misregistration_curve.json"
 CASES = [("R9.7", {"star.magnitude_r": 9.7, "run.band": "H"}), ("R13", {"star.magnitude_r": 13.0, "run.band": "FeII"})]
@@ -73,7 +74,7 @@ def main() -> None:
             for kind, value, registration in points():
                 if (label, kind, value, seed) in have:
                     continue
-                row = {"case": label, "kind": kind, "value": value, "seed": seed, **one(base, registration, cache)}
+                row = {"case": label, "kind": kind, "value": value, "seed": seed, **one(base, registration, cache), **provenance()}
                 print(json.dumps(row), flush=True)
                 done.append(row)
                 atomic_write_text(a.out, "".join(json.dumps(d) + "\n" for d in done))

@@ -17,7 +17,7 @@ along u (chi/k (-a . u)) meets the falling branch where the loop sits (a false e
 integrator on a falling response pushes away from the right one); at half the target, the
 falling branch's trough is above it and the loop comes back.
 
-    python validation/ncpa_false_lock.py [--case R10.9|R9.7] [--seeds 1,2,3,4] [--fractions 1,0.5] [--duration 10] [--out FILE]
+    python -m validation.ncpa_false_lock [--case R10.9|R9.7] [--seeds 1,2,3,4] [--fractions 1,0.5] [--duration 10] [--out FILE]
 
 ~2.3 min per run on one core; appends rows to ``--out`` (JSON lines) and skips those present.
 """
@@ -41,6 +41,7 @@ from soulctl.loop.run import calibration_for, closed_loop_for
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import controlled_part, ncpa_opd
 from soulctl.run_config import read_run_config
+from validation.provenance import provenance
 
 OUT = Path(__file__).parent / "results" / "ncpa_false_lock.jsonl"
 CONFIG = Path(__file__).parents[1] / "examples" / "paper_r10.9_1212hz.toml"
@@ -157,6 +158,7 @@ def main() -> None:
                 row = one(args.case, seed, fraction, args.duration, cache, keep)
                 if row["false_lock"] and not any("response_curve" in d for d in done):
                     row["response_curve"] = response_curve(keep, cache)
+                row |= provenance()
                 print(json.dumps(row), flush=True)
                 done.append(row)
                 atomic_write_text(args.out, "".join(json.dumps(d) + "\n" for d in done))

@@ -21,7 +21,7 @@ the interaction matrix (the same estimate as the test's).  Two loops:
 Snapshots are taken every ``SNAPSHOT_EVERY`` of an update period over the run's second half;
 k's last three updates are compared with their mean gamma.
 
-Run:  python validation/ogtl_bright.py [--wfs-field 2.1] [--seeds 2] [--only small,lut]
+Run:  python -m validation.ogtl_bright [--wfs-field 2.1] [--seeds 2] [--only small,lut]
       [--lut-s 8] [--out FILE]
 """
 
@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -160,10 +159,9 @@ def main() -> None:
             rows.append(lut_case(a.wfs_field, seed, a.lut_s, cache))
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "k"}), flush=True)
     out = a.out or RESULTS / f"ogtl_bright_wfs_field_{a.wfs_field:g}.json"
-    sys.path.insert(0, str(Path(__file__).parent))  # here, not on import: the CI test imports this module
-    from optimize_magnitudes import code_fingerprint
+    from validation.provenance import provenance  # here, not on import: a test imports this module by its path
 
-    atomic_write_text(out, json.dumps({"code": code_fingerprint(), "tolerance": TOLERANCE, "rows": rows}, indent=1) + "\n")
+    atomic_write_text(out, json.dumps({**provenance(), "tolerance": TOLERANCE, "rows": rows}, indent=1) + "\n")
     print(f"{sum(r['ok'] for r in rows)}/{len(rows)} within {TOLERANCE:.0%}; wrote {out}")
 
 

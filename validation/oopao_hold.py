@@ -22,7 +22,7 @@ as ``pyramid_hold.py`` and the Marechal H-band Strehl ratio.
 Not in CI (OOPAO is not a dependency of soulctl): install it apart, e.g.
 
     python -m venv --system-site-packages /tmp/oopao && /tmp/oopao/bin/pip install ".[oopao]"
-    /tmp/oopao/bin/python validation/oopao_hold.py [--seeings 1.0,1.2,1.4,1.6] [--gain 0.25]
+    /tmp/oopao/bin/python -m validation.oopao_hold [--seeings 1.0,1.2,1.4,1.6] [--gain 0.25]
         [--frames 2550] [--linear 510] [--out FILE]
 
 ~3 min per seeing on one core after a 30 s calibration.
@@ -43,7 +43,6 @@ from OOPAO.DeformableMirror import DeformableMirror
 from OOPAO.Pyramid import Pyramid
 from OOPAO.Source import Source
 from OOPAO.Telescope import Telescope
-from pyramid_hold import spans  # the same spans and Strehl scale as soulctl's run (this folder)
 
 from soulctl.control.delay import fractional_taps
 from soulctl.files import atomic_write_text
@@ -51,6 +50,8 @@ from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 from soulctl.optics.pupil import LBT_DIAMETER_M, LBT_OBSTRUCTION
 from soulctl.optics.pwfs import SUBAPERTURES_BIN1, WFS_WAVELENGTH_M, PyramidConfig
+from validation.provenance import provenance
+from validation.pyramid_hold import spans  # the same spans and Strehl scale as soulctl's run (this folder)
 
 OUT = Path(__file__).parent / "results" / "pyramid_hold_oopao.json"
 PYRAMID = PyramidConfig()  # soulctl's default: 40 sub-apertures, oversampling 2, 3 lambda/D
@@ -140,7 +141,7 @@ def main() -> None:
     system = optical_system(r97.frame_rate_hz, r97.modes)
     rows = []
     for seeing in (float(s) for s in a.seeings.split(",")):
-        row = hold(system, seeing, a.gain, a.frames, a.linear, r97.delay_frames, a.seed)
+        row = hold(system, seeing, a.gain, a.frames, a.linear, r97.delay_frames, a.seed) | provenance()
         print(json.dumps(row), flush=True)
         rows.append(row)
     atomic_write_text(a.out, json.dumps(rows, indent=1))

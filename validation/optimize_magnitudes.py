@@ -28,12 +28,12 @@ appended to a JSON-lines file as points finish (a stopped run keeps what it did 
 by running again with the same --out, on the same code: rows of other code are run again);
 the summary table is printed at the end.
 
-Run:  python validation/optimize_magnitudes.py [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
+Run:  python -m validation.optimize_magnitudes [--mags 16.5,17.5] [--seeings 0.6,1.0,1.5]
       [--seeds 1,2,3] [--variants mgm+ogtl,trial+ogtl,mgm,trial] [--windows 6] [--window 1.0]
       [--influence gaussian|thin-plate] [--workers 2] [--out FILE]
 Table of several files' rows made with the current code (each row carries the fingerprint of
 the code that made it, ``code_fingerprint``; ``--code any`` takes every row):
-      python validation/optimize_magnitudes.py --table FILE [FILE ...] [--code HASH[,HASH...]|any]
+      python -m validation.optimize_magnitudes --table FILE [FILE ...] [--code HASH[,HASH...]|any]
       [--code-before-give-up HASH[,HASH...]] [--code-without-ogtl HASH[,HASH...]]
       [--code-without-restores HASH[,HASH...]] [--code-without-mgm HASH[,HASH...]]
       [--code-calibrated-k HASH[,HASH...]]
@@ -50,14 +50,11 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
 import math
-import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
-from importlib.metadata import version
 from pathlib import Path
 from typing import NamedTuple
 
@@ -65,7 +62,6 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-import soulctl
 from soulctl import defaults
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import gain_groups
@@ -79,7 +75,7 @@ from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec
 from soulctl.run_config import AtmosphereSpec, RunConfig
-from soulctl.tables import tables_dir
+from validation.provenance import code_fingerprint, machine, provenance
 
 MAGS = (8.0, 9.7, 10.9, 11.9, 13.0, 14.5, 15.5, 16.5, 17.5, 18.5)
 SEEINGS = (0.6, 1.0, 1.5)
@@ -92,38 +88,6 @@ FEWEST_RESTORES = SafetyNet(1).give_up // SafetyNet.IN_A_ROW
 WINDOWS, WINDOW_S = 6, 1.0  # the checks' paired evaluation: six consecutive windows of 1 s at least ...
 REFERENCE_RATE_HZ = 750.0  # ... and as many frames as six of 1 s at R14.5's 750 Hz (``windows_for``)
 OUT = Path(__file__).parent / "results" / "optimize_magnitudes.jsonl"
-
-
-def code_fingerprint(package: Path | None = None, tables: Path | None = None) -> str:
-    """12 hex digits of the SHA-256 of the soulctl sources and tables the rows were made with
-    (each .py of the package and each file of its tables, by relative path and content; the
-    compiled core is not included).  Rows of different sessions belong in one table when their
-    fingerprints agree: the grid takes longer than a session and the code moves between them."""
-    h = hashlib.sha256()
-    package = package or Path(soulctl.__file__).resolve().parent
-    files = [(f"soulctl/{f.relative_to(package)}", f) for f in package.rglob("*.py")]
-    files += [(f"tables/{f.name}", f) for f in (tables or tables_dir()).iterdir() if f.is_file()]
-    for name, f in sorted(files):
-        h.update(name.encode() + b"\0" + f.read_bytes() + b"\0")
-    return h.hexdigest()[:12]
-
-
-def machine() -> dict:
-    """What besides the code moves a row's numbers: the libraries pip resolved for the session
-    and the CPU's widest vector extension (the core is built with -march=native and OpenBLAS
-    picks its kernels per CPU).  A faint loop amplifies a last-bit difference: R14.5 1.0" seed
-    2, MGM with OGTL, on one code in two sessions (another machine, the libraries pip resolved
-    for each), 0.4003 -> 0.3896 and 0.3968 -> 0.3897 (docs/physics.md, "Over the magnitudes")."""
-    flags = next((line.split(":", 1)[1].split() for line in _cpuinfo() if line.startswith("flags")), [])
-    simd = next((x for x in ("avx512f", "avx2", "sse4_2") if x in flags), platform.machine())
-    return {"simd": simd, **{name: version(name) for name in ("numpy", "scipy")}}
-
-
-def _cpuinfo() -> list[str]:
-    try:
-        return Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:  # not Linux
-        return []
 
 
 def _run(obs, seeing: float, seed: int, influence: str = DEFAULT_INFLUENCE, wfs_field: float = defaults.WFS_FIELD_ARCSEC):
@@ -529,7 +493,7 @@ def run_grid(todo: list[tuple], out: Path, workers: int, windows: int, window_s:
         futures = [pool.submit(run_point, *p, points[p], cache, windows, window_s, influence) for p in order]
         for fut in as_completed(futures):
             for row in fut.result():
-                row["code"] = launched
+                row |= provenance(launched)
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 outcome = f"{row['before']} -> {row['after']} (windows: {_judged_text(row)}; diverged at {row['diverged_at']})"

@@ -4,14 +4,13 @@
 its evaluation; now both gain sets start from k before with OGTL running: ``evaluate_pair``).
 Not in CI (~8 min for a 20x20 point on one core).
 
-Run:  python validation/paired_split.py --mag 11.9 --seeing 1.5 --seed 1 [--variant mgm+ogtl] [--out FILE]
+Run:  python -m validation.paired_split --mag 11.9 --seeing 1.5 --seed 1 [--variant mgm+ogtl] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from soulctl.cli.common import default_cache_dir
@@ -21,9 +20,8 @@ from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, o
 from soulctl.loop.run import calibration_for
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, code_fingerprint, windows_for  # noqa: E402
+from validation.optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, windows_for
+from validation.provenance import provenance
 
 
 def main() -> None:
@@ -54,7 +52,7 @@ def main() -> None:
     groups = {name: [float(r.initial_gains[m].mean()), float(r.gains[m].mean())] for name, m in gain_groups(len(r.gains))}
     print("group mean gains, initial -> optimised:", {n: f"{g[0]:.3f} -> {g[1]:.3f}" for n, g in groups.items()}, flush=True)
     out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "k": [k0, k1], "strehl": cells, "gain_groups": groups}
-    out["code"] = code_fingerprint()
+    out |= provenance()
     if a.out is not None:
         atomic_write_text(a.out, json.dumps(out, indent=1))
 

@@ -21,7 +21,7 @@ gives 27.1, 9.5, 6.8 and 2.7 where the captions say 25, 5, 6 and 2 (docs/physics
 three seeings (paired, as `optimize gains --method both`), though the caption gives the MGM
 image at 1.07" and the trial-and-error one at 0.95".
 
-Run:  python validation/paper_nights.py [--nights R9.4,R10.9-mgm,...] [--seeds 1,2,3] [--out FILE]
+Run:  python -m validation.paper_nights [--nights R9.4,R10.9-mgm,...] [--seeds 1,2,3] [--out FILE]
 Rows are appended to FILE (JSON lines) as they finish; a night and seed already there from
 this code is not run again.  --table FILE prints the table of a file's rows.
 """
@@ -33,7 +33,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,11 +45,9 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.loop.optimize import OPTIMISER_OGTL, OptimizeRequest, optimize
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import AtmosphereSpec, RunConfig
-
-sys.path.insert(0, str(Path(__file__).parent))
-from faint_cases import r165_observation  # noqa: E402
-from gain_optimisation import observation  # noqa: E402
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from validation.faint_cases import r165_observation  # noqa: E402
+from validation.gain_optimisation import observation  # noqa: E402
+from validation.provenance import code_fingerprint, provenance
 
 RESULTS = Path(__file__).parent / "results"
 MEASURE_S = 1.0  # each window of the paired evaluation, as the faint cases
@@ -132,7 +129,7 @@ def run_night(key: str, seed: int, cache: ArrayCache) -> dict:
         "k": r.loop.rtc_parameters.sensitivity,
         "safety_restores": r.safety_events,
         "seconds": time.perf_counter() - t0,
-        "code": code_fingerprint(),
+        **provenance(),
     }
 
 

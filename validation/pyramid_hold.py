@@ -5,7 +5,7 @@ matrix, optical gain 1, no noise), then on the modelled pyramid with its detecto
 If the loop at 1.6" falls from the linear sensor's residual to the one it reaches when closed
 on the pyramid from a flat mirror, the pyramid cannot hold it, whatever the closing procedure.
 
-    python validation/pyramid_hold.py [--seeings 1.0,1.6] [--linear-s 0.3] [--duration 1.5]
+    python -m validation.pyramid_hold [--seeings 1.0,1.6] [--linear-s 0.3] [--duration 1.5]
         [--wavelengths 750] [--oversampling 2] [--field-stop 0] [--twin GAIN] [--out FILE]
 
 Residual RMS (nm, all pupil pixels) over spans before and after the switch, with the Marechal
@@ -37,6 +37,7 @@ from soulctl.optics.cache import ArrayCache
 from soulctl.optics.calibration import calibrate
 from soulctl.optics.pwfs import WFS_WAVELENGTH_M
 from soulctl.run_config import RunConfig
+from validation.provenance import provenance
 
 OUT = Path(__file__).parent / "results" / "pyramid_hold.json"
 H_NM = 1650.0
@@ -147,7 +148,7 @@ def main() -> None:
     bands = [tuple(float(w) for w in band.split("+")) for band in a.wavelengths.split(",")]
     for seeing, nm in ((float(s), band) for s in a.seeings.split(",") for band in bands):
         for og in (False, True) if seeing > 1.0 and a.og == "both" else (False,):
-            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling, a.field_stop, a.twin)
+            row = one(seeing, a.linear_s, a.duration, og, cache, nm, a.oversampling, a.field_stop, a.twin) | provenance()
             print(json.dumps(row), flush=True)
             rows.append(row)
     atomic_write_text(a.out, json.dumps(rows, indent=1))

@@ -4,14 +4,13 @@ with OGTL, default options) is optimised, then its final gains are evaluated on 
 screens with only modes 3-10 scaled, and with the initial gains at the final k.  Not in CI
 (~10 min on one core).
 
-Run:  python validation/r13_low_order_scan.py [--seed 2] [--out FILE]
+Run:  python -m validation.r13_low_order_scan [--seed 2] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +21,9 @@ from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import RunConfig
-
-sys.path.insert(0, str(Path(__file__).parent))
-from faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402
-from gain_optimisation import observation  # noqa: E402
-from optimize_magnitudes import code_fingerprint  # noqa: E402
+from validation.faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402
+from validation.gain_optimisation import observation  # noqa: E402
+from validation.provenance import provenance
 
 SCALES = (1.25, 1.5, 1.75)
 LOW = slice(2, 10)  # modes 3-10
@@ -65,7 +62,7 @@ def main() -> None:
     r = optimize(request, cache)
     assert r.before is not None and r.after is not None, r.failure()
     k_before, k_after = r.sensitivities
-    out = {"seed": a.seed, "code": code_fingerprint(), "k": [k_before, k_after], "before": list(r.before.window_strehls)}
+    out = {"seed": a.seed, **provenance(), "k": [k_before, k_after], "before": list(r.before.window_strehls)}
     out["after"] = list(r.after.window_strehls)
     out["scan"] = {}
     for name, gains in scanned_gains(r.initial_gains, r.gains, k_before, k_after).items():

@@ -15,14 +15,13 @@ The paper's R13 case (20x20, 980 Hz, FeII, 1.0", 5 m/s, seed 2, no NCPA) at fixe
    3 s from the evaluation's start: the true residual variance of modes 3-10 (whose minimum
    is the optimum MGM aims at) and the FeII Strehl ratio.
 
-Run:  python validation/r13_mgm_windows.py [--seed 2] [--out FILE]
+Run:  python -m validation.r13_mgm_windows [--seed 2] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,10 +30,8 @@ from soulctl.control import mgm
 from soulctl.files import atomic_write_text
 from soulctl.loop.metrics import band_wavelength, pseudo_open_loop
 from soulctl.loop.optimize import mgm_machine, plant_model, settled_evaluation_loop
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint  # noqa: E402
-from r13_low_order_scan import r13_case  # noqa: E402
+from validation.provenance import provenance
+from validation.r13_low_order_scan import r13_case  # noqa: E402
 
 K = 3.3  # OGTL's k at the end of the optimisation (r13_low_order_scan.json: 3.25-3.29)
 # MGM's final g k per group at this seed (modes 1-2, 3-10, 11-30, 31-60, 61-120, 121-250)
@@ -112,7 +109,7 @@ def main() -> None:
     gains = np.empty(cal.basis.n_modes)
     for modes, gk in PRODUCTS:
         gains[modes] = gk / K
-    out = {"seed": a.seed, "code": code_fingerprint(), "k": K, "spans": spans_of_mgm(request, cal, cache, design, gains)}
+    out = {"seed": a.seed, **provenance(), "k": K, "spans": spans_of_mgm(request, cal, cache, design, gains)}
     out["scan"] = scan_in_evaluation_frames(request, cal, design, gains)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(a.out, json.dumps(out, indent=1))

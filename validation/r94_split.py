@@ -18,7 +18,7 @@ If MGM's gains lose at one fixed k as much as with OGTL, the gains do it; if the
 with OGTL, it is the k that OGTL reaches with them.  Every evaluation is the mean of the
 windows' Strehl ratios (4 windows of 1 s, FeII), paired with the *before* of its own kind.
 
-Run:  python validation/r94_split.py [--night R9.4] [--seed 3] [--out FILE]
+Run:  python -m validation.r94_split [--night R9.4] [--seed 3] [--out FILE]
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -37,10 +36,8 @@ from soulctl.control.gains import TIP_TILT
 from soulctl.loop.optimize import OptimizeRequest, evaluate, ogtl_task, optimize
 from soulctl.loop.run import calibration_for
 from soulctl.optics.cache import ArrayCache
-
-sys.path.insert(0, str(Path(__file__).parent))
-from optimize_magnitudes import code_fingerprint  # noqa: E402
-from paper_nights import NIGHTS, night_request  # noqa: E402
+from validation.paper_nights import NIGHTS, night_request  # noqa: E402
+from validation.provenance import code_fingerprint, provenance
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -110,7 +107,7 @@ def main() -> None:
         "safety_restores": result.safety_events,
         "gains": {"before": result.initial_gains.tolist(), "after": result.gains.tolist()},
         "evaluations": split(request, cache, result),
-        "code": code,
+        **provenance(code),
     }
     row["seconds"] = time.perf_counter() - t0
     a.out.write_text(json.dumps(row, default=float, indent=1) + "\n")

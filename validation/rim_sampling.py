@@ -24,13 +24,12 @@ not, the false lock is the simulation's sampling; if both read ~0, the pyramid's
 Found at R11.9 1.5" seed 3 (mgm+ogtl; docs/physics.md, "Over the magnitudes").  ~6 min per
 point on one core, plus ~1 min per snapshot for the fine sensor.
 
-Run:  python validation/rim_sampling.py --seed 3 --times 11.6,12.4,13.2,14.0,16.0,20.0 [--out FILE]
+Run:  python -m validation.rim_sampling --seed 3 --times 11.6,12.4,13.2,14.0,16.0,20.0 [--out FILE]
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -41,10 +40,9 @@ from soulctl.files import atomic_write_text
 from soulctl.optics.pupil import PupilResampler
 from soulctl.optics.pwfs import Pyramid, PyramidConfig
 from soulctl.optics.sensor import WavefrontSensor
-
-sys.path.insert(0, str(Path(__file__).parent))
-from edge_runaway import live_phases, weak_directions  # noqa: E402
-from optimize_magnitudes import code_fingerprint, machine, point_arguments, point_loops  # noqa: E402
+from validation.edge_runaway import live_phases, weak_directions  # noqa: E402
+from validation.optimize_magnitudes import point_arguments, point_loops
+from validation.provenance import provenance
 
 FIELD_STOP = PyramidConfig(field_of_view_arcsec=SOUL_FIELD_OF_VIEW_ARCSEC).stop_lambda_over_d  # the 2.1" field's radius, lambda/D
 SMALL = 0.02  # the linear copy's scale
@@ -158,7 +156,7 @@ def main() -> None:
         if a.snapshots:
             np.savez_compressed(a.snapshots, **{f"{t:g}": v for t, v in snapshots.items()})
     print(f"diverged {diverged}; field stop {FIELD_STOP:.1f} lambda/D", flush=True)
-    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, "code": code_fingerprint(), "machine": machine()}
+    out = {"mag": a.mag, "seeing": a.seeing, "seed": a.seed, "variant": a.variant, **provenance()}
     out |= {"field_stop_lambda_over_d": FIELD_STOP, "sensors": SENSORS, "diverged": diverged, "snapshots": read(point, snapshots)}
     if a.out:
         atomic_write_text(a.out, json.dumps(out, indent=1))

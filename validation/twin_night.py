@@ -7,7 +7,7 @@ The night: the paper's R13 operating point (980 Hz, 20x20, 250 modes) at seeing 
 L0 30 m, with vibration lines unlike tables/lbt_vibrations.toml (11.2, 17.5 and 44 Hz).
 Writes validation/results/twin_night.json and twin_night.png.
 
-    python validation/twin_night.py [--duration 30]
+    python -m validation.twin_night [--duration 30]
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import numpy as np
 from soulctl.files import atomic_write_text
 from soulctl.identify.plant import read_plant
 from soulctl.plots.figure import new_figure, save_figure
+from validation.provenance import provenance
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "validation" / "results"
@@ -108,7 +109,7 @@ def main() -> None:
         },
     }
     OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(OUT / "twin_night.json", json.dumps(report, indent=1))
+    atomic_write_text(OUT / "twin_night.json", json.dumps(report | provenance(), indent=1))
     fig = new_figure((6.4, 4.8))
     ax = fig.subplots()
     for i, (name, s) in enumerate(spectra.items()):

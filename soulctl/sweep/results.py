@@ -214,6 +214,21 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
     at = f"{where}, line {line}"
     if len(fields) != len(columns):
         raise InputError(f"{at}: {len(fields)} fields where the header has {len(columns)}")
+    row = _parsed(fields, columns, at)
+    if not row["case_id"]:
+        raise InputError(f"{at}: the case_id is empty")
+    if row["status"] not in STATUS:
+        raise InputError(f"{at}: status must be {', '.join(STATUS[:-1])} or {STATUS[-1]}, got '{row['status'] or ''}'")
+    _check_parameters(row, at)
+    _check_metrics(row, dict(zip(columns, fields)), at)
+    case = (cases or {}).get(row["case_id"])
+    if case is not None:
+        _check_against_case(row, {**DEFAULTS, **case}, at)
+    return row
+
+
+def _parsed(fields: list[str], columns: tuple[str, ...], at: str) -> dict:
+    """Each known column's value parsed (unknown columns kept as text)."""
     row: dict = {}
     for name, text in zip(columns, fields):
         if name not in COLUMNS:
@@ -223,10 +238,11 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
             row[name] = _value(name, text.strip())
         except ValueError:
             raise InputError(f"{at}: {name} must be {_kind(name)}, got '{text}'") from None
-    if not row["case_id"]:
-        raise InputError(f"{at}: the case_id is empty")
-    if row["status"] not in STATUS:
-        raise InputError(f"{at}: status must be {', '.join(STATUS[:-1])} or {STATUS[-1]}, got '{row['status'] or ''}'")
+    return row
+
+
+def _check_parameters(row: dict, at: str) -> None:
+    """Every parameter given (or optional) and in its range, checked in place."""
     for name, p in PARAMETERS.items():
         if row[name] is None:
             if name not in OPTIONAL:
@@ -236,7 +252,10 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
             row[name] = p.check(row[name], name)
         except InputError as e:
             raise InputError(f"{at}: {e}") from None
-    texts = dict(zip(columns, fields))
+
+
+def _check_metrics(row: dict, texts: dict[str, str], at: str) -> None:
+    """An ok row has finite metrics; any row's metrics are finite or empty; run_seconds >= 0."""
     for name in METRICS:
         empty = texts[name].strip() == ""
         if row["status"] == "ok" and not math.isfinite(row[name]):
@@ -248,16 +267,16 @@ def _row(fields: list[str], columns: tuple[str, ...], line: int, where: str, cas
             raise InputError(f"{at}: {name} must be a finite number or empty, got '{texts[name]}'")
     if row["run_seconds"] is not None and not (math.isfinite(row["run_seconds"]) and row["run_seconds"] >= 0):
         raise InputError(f"{at}: run_seconds must be a finite number >= 0, got {row['run_seconds']}")
-    case = (cases or {}).get(row["case_id"])
-    if case is not None:
-        expected = {**DEFAULTS, **case}
-        for name in PARAMETERS:
-            if row[name] != expected.get(name):
-                raise InputError(
-                    f"{at}: the row of case {row['case_id']} has {name} = {_text(row[name]) or 'empty'} where the "
-                    f"grid's case has {_text(expected.get(name)) or 'none'}: correct or delete the row"
-                )
-    return row
+
+
+def _check_against_case(row: dict, expected: dict, at: str) -> None:
+    """The row's parameters are its grid case's."""
+    for name in PARAMETERS:
+        if row[name] != expected.get(name):
+            raise InputError(
+                f"{at}: the row of case {row['case_id']} has {name} = {_text(row[name]) or 'empty'} where the "
+                f"grid's case has {_text(expected.get(name)) or 'none'}: correct or delete the row"
+            )
 
 
 # -------------------------------------------------------------------------------- the lock

@@ -476,11 +476,7 @@ def read_lbt(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
         raise InputError(f"telemetry folder {path} is not a folder")
     tn = tracking_number(folder)
     notes: list[Note] = []
-    counter, _ = _read_fits(folder / f"FramesCounter_{tn}.fits")
-    if counter is None or counter.ndim != 1 or counter.size < 1 or counter.dtype.kind not in "iuf":
-        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold a 1-D frame counter (numbers) of at least 1 frame")
-    if not np.all(np.isfinite(counter) & (counter == np.floor(counter)) & (np.abs(counter) < 2**62)):
-        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold whole frame numbers (no NaN)")
+    counter = _frame_counter(folder, tn)
     frames = counter.size
     arrays: dict = {"frame_counter": counter.astype(np.int64) - int(counter[0])}
     wfs = _wfs_keywords(folder, notes)
@@ -524,6 +520,16 @@ def read_lbt(path: str | Path, required: tuple[str, ...] = REQUIRED) -> Telemetr
             break
     unit = {} if extras.exists() else {"slopes_unit": "LBT slope units (normalised)"}
     return TelemetryReader.from_arrays(path, arrays, attributes, required, tuple(notes), **unit)
+
+
+def _frame_counter(folder: Path, tn: str) -> np.ndarray:
+    """FramesCounter_<TN>.fits: a 1-D counter of whole frame numbers, at least one frame."""
+    counter, _ = _read_fits(folder / f"FramesCounter_{tn}.fits")
+    if counter is None or counter.ndim != 1 or counter.size < 1 or counter.dtype.kind not in "iuf":
+        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold a 1-D frame counter (numbers) of at least 1 frame")
+    if not np.all(np.isfinite(counter) & (counter == np.floor(counter)) & (np.abs(counter) < 2**62)):
+        raise InputError(f"telemetry folder {folder}: FramesCounter_{tn}.fits must hold whole frame numbers (no NaN)")
+    return counter
 
 
 def _gains(folder: Path, tn: str, sav: AdsecSav, n_modes: int | None, arrays: dict) -> None:

@@ -13,6 +13,7 @@ import pytest
 SCRIPT = Path(__file__).resolve().parents[2] / "examples" / "ci" / "check_params.sh"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("soulctl") is None, reason="needs the installed soulctl command")
 def test_ci_chain_on_a_simulated_night(tmp_path):
     def run(*args):

@@ -159,6 +159,7 @@ def test_a_plot_folder_is_created_with_its_parents(tmp_path, capsys):
     assert "modal_variance.png" in names and names <= set(LOOP_FIGURES)  # 12 frames: a loop not settled, no PSF
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("failure, status", [(RuntimeError("a late bug"), 1), ("input", 2)])
 def test_a_failing_command_leaves_no_output(failure, status, tmp_path, capsys, monkeypatch):
     """The telemetry is written, then the figures fail: nothing lands, no temporary stays, and
@@ -192,6 +193,7 @@ sys.exit(app.main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum, status, word", [(signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "Ctrl-C")])
 def test_an_interrupt_removes_the_temporaries_and_says_so(signum, status, word, tmp_path):
     out = tmp_path / "out"

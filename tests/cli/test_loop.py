@@ -140,6 +140,7 @@ def test_gain_file_per_mode(tmp_path, capsys, cache_dir):
     assert status == 2 and "3 gains but 90 modes" in err
 
 
+@pytest.mark.slow
 def test_the_default_pyramid_has_soul_s_field_of_view(capsys, cache_dir):
     """SOUL's 2.1" WFS field is the default (``defaults.WFS_FIELD_ARCSEC``): the run records it, and
     --wfs-field 0 (the sampled field, no stop) is another loop; out of range is one line."""

@@ -356,6 +356,7 @@ def _config_edit(member, value):
     return change
 
 
+@pytest.mark.slow
 @settings(
     max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow]
 )
@@ -379,6 +380,7 @@ def test_any_corruption_exits_2_with_one_line_or_0_with_gains_loop_run_accepts(e
         np.testing.assert_allclose(g, json.loads(out)["gains"], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_the_recorded_probe_mode_sets_mgms_plant(env, capsys, tmp_path):
     """A run made with --probe-mode 10: offline MGM takes chi_i = gamma_i / gamma_10 (it assumed
     mode 30, the default, whatever the run had probed); a file whose probe mode is not a mode

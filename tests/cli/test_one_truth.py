@@ -51,6 +51,7 @@ def _table_value(out: str, label: str) -> str:
     return match.group(1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(RUNS))
 def test_loop_run_table_json_plot_and_psd_agree(name, tmp_path, capsys, monkeypatch, cache_dir):
     common = ["loop", "run", *RUNS[name], *CHEAP_PYRAMID, "--seed", "5", "--cache-dir", cache_dir]

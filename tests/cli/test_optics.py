@@ -28,6 +28,7 @@ def test_atmosphere_json_against_the_seeing_relations(capsys):
     assert d["tilt_rms_per_axis_mas"] == pytest.approx(expected_mas, rel=0.02)
 
 
+@pytest.mark.slow
 def test_calibrate_uses_and_fills_the_cache(tmp_path, capsys):
     args = ["optics", "calibrate", *SMALL, "--cache-dir", str(tmp_path), "--json"]
     status, out, _ = run(args, capsys)
@@ -116,6 +117,7 @@ def test_the_field_of_view_of_option_description_and_default(tmp_path, capsys, c
     assert status == 0 and json.loads(out)["wfs_field_arcsec"] == 1.5
 
 
+@pytest.mark.slow
 def test_a_description_gives_the_whole_pyramid_and_mirror_it_runs(tmp_path, capsys, cache_dir):
     """--config gives the calibration `loop run --config` makes (its oversampling, field and
     influence functions, not only its star): the same cache key, the same interaction matrix;

@@ -53,6 +53,7 @@ def recorded(tmp_path_factory, cache_dir):
     return path
 
 
+@pytest.mark.slow
 def test_an_optimiser_waits_for_a_calibrated_k(monkeypatch, capsys, cache_dir):
     """OGTL's probe never reaches the SNR threshold (every estimate replaced by one at SNR 1):
     k stays uncalibrated at 1 through the settling, and the optimiser does not run - its gains
@@ -74,6 +75,7 @@ def test_an_optimiser_waits_for_a_calibrated_k(monkeypatch, capsys, cache_dir):
         assert d["strehl_difference"]["mean"] == 0.0
 
 
+@pytest.mark.slow
 def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, cache_dir, monkeypatch):
     """Both methods on one seed, with OGTL; MGM alone on that seed then gives MGM's gains and
     figures to the bit (the same seed, the same numbers, whichever way the command ran it)."""
@@ -127,6 +129,7 @@ def test_both_methods_side_by_side_with_gain_file_and_figures(tmp_path, capsys, 
     assert alone["gains"] == d["mgm"]["gains"] and alone["before"] == d["mgm"]["before"] and alone["after"] == d["mgm"]["after"]
 
 
+@pytest.mark.slow
 def test_table_output_and_same_seed_same_gains(capsys, cache_dir):
     """The table (read without OGTL: its k row then says so, and OGTL's settling is most of a
     run's time), and the same seed giving the same gains and figures as the run's JSON (with
@@ -147,6 +150,7 @@ def _vibration_file(path, tip, tilt):
     return path
 
 
+@pytest.mark.slow
 def test_mgm_decouples_tip_and_tilt_with_different_vibrations(tmp_path, capsys, cache_dir):
     """The paper's decoupling: the axis with the stronger 13 Hz vibration gets the higher gain,
     and swapping the vibrations swaps the order."""
@@ -341,6 +345,7 @@ def test_loop_run_refuses_a_period_too_short_for_mgm_and_a_run_too_short_for_it(
     assert status == 2 and "--duration must be at least 2.12 s" in err
 
 
+@pytest.mark.slow
 def test_faint_star_optimisation_with_every_default_holds(capsys, cache_dir):
     """`optimize gains --mag 16.5` with every option at its default diverged (OGTL drove k to
     3.8-4.6 on estimates it could not trust, before MGM had made one update).  Now: exit 0,
@@ -379,6 +384,7 @@ def test_the_default_period_is_valid_at_every_magnitude():
     assert resolving_segment(100.0) == 128 and resolving_segment(250.0) == 256 and resolving_segment(1700.0) == 512
 
 
+@pytest.mark.slow
 def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     """`--mag 18` refused its own default period; now one MGM update runs on it (the period's
     window is what was refused: one is enough to show it is accepted).  The period is the same
@@ -392,6 +398,7 @@ def test_faintest_table_row_runs_with_its_default_period(capsys, cache_dir):
     assert json.loads(out)["mgm_updates"] == 1
 
 
+@pytest.mark.slow
 def test_ogtl_alone_in_a_noise_dominated_loop_stays_in_bounds(capsys, cache_dir):
     """R17.5 (1.7 photons per sub-aperture per frame): OGTL keeps k in [1, k_max] and the loop
     closed (validation/faint_cases.py runs it for 60 s)."""
@@ -403,6 +410,7 @@ def test_ogtl_alone_in_a_noise_dominated_loop_stays_in_bounds(capsys, cache_dir)
     assert og["updates"] >= int(20 / default_period_s(observation_for_magnitude(17.5))) - 1 and d["metrics"]["strehl"] > 0
 
 
+@pytest.mark.slow
 def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
     """Gains at a tenth of their usual values (0.05 on every mode): MGM raises them and the
     residual falls.  *before* and *after* are paired (the same turbulence and noise; only the
@@ -438,6 +446,7 @@ def test_mgm_repairs_a_mistuned_loop(capsys, cache_dir):
     assert np.mean(ratios) < 0.95, ratios
 
 
+@pytest.mark.slow
 def test_offline_mgm_repairs_a_mistuned_recorded_loop(tmp_path, capsys, cache_dir):
     """The offline optimum is tested by what it does, not by re-deriving it from the command's
     own output: telemetry of a loop at gains 0.05 on every mode, MGM's gain file from it, and
@@ -466,6 +475,7 @@ def hopeless(monkeypatch):
     monkeypatch.setattr(SafetyNet, "_trouble", lambda self, x: 1.5)
 
 
+@pytest.mark.slow
 def test_a_loop_the_safety_net_could_not_recover_exits_3(hopeless, tmp_path, capsys, cache_dir):
     """The issue's "exit 3 only when it could not recover": a given-up loop that has not diverged is no
     valid result either (it exited 0).  `loop run` still writes its telemetry, `optimize gains`
@@ -493,6 +503,7 @@ def test_a_loop_the_safety_net_could_not_recover_exits_3(hopeless, tmp_path, cap
     assert "could not recover the loop" in err and "no gain file written" in err and not gains.exists()
 
 
+@pytest.mark.slow
 def test_a_sweep_case_whose_safety_net_could_not_recover_is_diverged(hopeless, cache_dir):
     """The sweep's status "diverged" follows the same rule (a default case runs OGTL, and its
     safety net, when it lasts long enough)."""
@@ -511,6 +522,7 @@ def test_a_sweep_case_whose_safety_net_could_not_recover_is_diverged(hopeless, c
     assert row["status"] == "diverged" and row["reason"].startswith("the safety net could not recover the loop (gave up at frame ")
 
 
+@pytest.mark.slow
 def test_optimised_gains_that_leave_a_misregistered_loop_lost_exit_3(tmp_path, capsys, cache_dir):
     """The mis-registration verdict of `loop run` (control.coupling) also judges the gains an
     optimisation ends with: two pitches of shift, which the optimisers cannot repair, give no

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import subprocess
 
+import pytest
+
 from soulctl.cli import progress
 
 
@@ -38,6 +40,7 @@ def test_lines_say_the_first_time_work_then_every_tenth_then_the_end(monkeypatch
     assert len(lines) == 12 and lines[-1].startswith("soulctl: closed loop: done in ")
 
 
+@pytest.mark.slow
 def test_soulctl_progress_writes_lines_into_a_log_also_with_json(tmp_path):
     """`soulctl --progress ... --json` into a log: the JSON alone on stdout, progress lines on
     stderr (the designs per rate); without --progress stderr stays empty."""

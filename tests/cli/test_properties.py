@@ -259,6 +259,7 @@ def check_contract(args: list[str], limit: float) -> None:
         json.loads(out, parse_constant=no_constants)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command, base, option, values, limit", CASES, ids=[f"{c[0]} {c[2]}" for c in CASES])
 def test_every_numeric_option_keeps_the_contract(command, base, option, values, limit, tmp_path_factory):
     cache = str(tmp_path_factory.getbasetemp() / "property-cache")
@@ -310,6 +311,7 @@ def test_every_numeric_option_keeps_the_contract(command, base, option, values, 
 SEEDED = [(c, b, lim) for c, b, o, _, lim in CASES if o == "--seed"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command, base, limit", SEEDED, ids=[c for c, _, _ in SEEDED])
 @pytest.mark.parametrize("seed", [0, 2**32, 2**63 - 1])
 def test_every_seed_in_the_stated_range_runs(command, base, limit, seed, tmp_path_factory):

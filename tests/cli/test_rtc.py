@@ -104,6 +104,7 @@ def test_rtc_description_missing_matrix_is_exit_2(tmp_path, capsys):
     assert status == 2 and "missing Sigma" in err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noise", [{}, {"calibration.photons_per_frame": 50.0}], ids=["noiseless", "calibration noise"])
 def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, capsys, cache_dir):
     """`rtc check --misregistration` judges the coupled loop of the moved mirror as `loop run`
@@ -154,6 +155,7 @@ def test_misregistration_verdict_before_an_upload_is_loop_runs(noise, tmp_path, 
         assert status == 3 and "mis-registration: unstable eigenmodes" in out and "NOT safe" in out
 
 
+@pytest.mark.slow
 def test_a_coupled_gain_margin_below_the_criterion_is_named(tmp_path, capsys, cache_dir):
     """A moved loop that is stable but with less common gain margin than --gain-margin fails
     the check, and the verdict says why (the per-mode margins all pass)."""

@@ -21,6 +21,7 @@ def run(args, capsys, cache_dir):
     return status, out, err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "options",
     [

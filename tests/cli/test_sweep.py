@@ -48,6 +48,7 @@ def cli(args, capsys, cache_dir):
     return status, out, err
 
 
+@pytest.mark.slow
 def test_local_cluster_equals_loop_run_case_by_case_and_resume(grid, tmp_path, capsys, cache_dir):
     out_dir = tmp_path / "out"
     status, out, err = cli(
@@ -106,6 +107,7 @@ def _worker_processes():
     return out
 
 
+@pytest.mark.slow
 def test_a_killed_worker_loses_and_duplicates_no_row(tmp_path, cache_dir):
     cases = parse_grid({"magnitude": [16.0, 17.0, 17.5], "seeing": [0.8, 1.0], "oversampling": 1, "wfs_field": 0, "duration": 0.5})
     killed = []
@@ -152,6 +154,7 @@ def _start_scheduler(port: int, cwd) -> subprocess.Popen:
     raise AssertionError(f"the Dask scheduler did not listen on 127.0.0.1:{port} within 60 s")
 
 
+@pytest.mark.slow
 def test_an_external_scheduler_and_worker(grid, tmp_path, capsys, cache_dir):
     """`dask scheduler` and `dask worker` started by hand (as the README shows), then the sweep
     sent to them with --scheduler."""
@@ -280,6 +283,7 @@ class _Listener:
         self.sock.close()
 
 
+@pytest.mark.slow
 def test_a_silent_listener_is_refused_within_the_bound_and_the_process_exits(tmp_path):
     """The connect bound (10 s) holds for a listener that never speaks, and nothing lingers:
     the command line, in its own process, ends within the bound of the connection (and within
@@ -432,6 +436,7 @@ def test_resume_accepts_a_spreadsheets_file_and_keeps_its_columns(tmp_path, caps
 # ------------------------------------------------------------------- rows appended, one line each
 
 
+@pytest.mark.slow
 def test_rows_are_appended_a_line_at_a_time_and_a_torn_line_is_resumed(tmp_path, capsys, cache_dir, monkeypatch):
     """Each finished case appends one complete line to the same file (no rewrite per case); the
     file is put in the grid's order at the end; an incomplete last line (a crash during a
@@ -506,6 +511,7 @@ def test_a_second_sweep_into_the_same_folder_is_refused(tmp_path, capsys, cache_
 BIG = "magnitude = [16.6, 17.0, 17.5]\nseeing = [0.6, 0.8, 1.0, 1.2, 1.4]\nseed = {seeds}\nduration = 0.5\n"
 
 
+@pytest.mark.slow
 def test_the_estimate_is_printed_and_in_the_json(tmp_path, capsys, cache_dir):
     grid = tmp_path / "grid.toml"
     grid.write_text(TINY)
@@ -583,6 +589,7 @@ def test_a_scheduler_without_workers_is_refused_within_the_wait(grid, tmp_path, 
         scheduler.wait(timeout=30)
 
 
+@pytest.mark.slow
 def test_a_run_description_field_is_a_grid_axis_by_its_dotted_name(tmp_path, capsys, cache_dir):
     """Dotted names reach the run (the rows equal `loop run --config` with those fields), and
     their values are columns of the results."""

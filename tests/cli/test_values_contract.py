@@ -269,6 +269,7 @@ def test_a_loop_that_has_not_settled_has_no_closed_loop_figures(capsys, cache_di
     assert json.loads(out)["metrics"]["strehl"] is not None
 
 
+@pytest.mark.slow
 def test_no_line_no_rejection(capsys, cache_dir):
     """Without vibrations there is no 13 Hz line: the rejection is not a figure of the run."""
     args = ["loop", "run", "--mag", "14.51", *CHEAP_PYRAMID, "--duration", "1", "--no-vibrations", "--json"]
@@ -370,6 +371,7 @@ def test_calibration_and_loop_refuse_the_same_sampling(capsys, cache_dir):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args",
     [

@@ -16,6 +16,7 @@ def design_1700():
     return design_tt_filter(1700.0)  # the defaults of `soulctl filter design --rate 1700`
 
 
+@pytest.mark.slow
 def test_1700_hz_design_rejects_13_hz_twice_as_well_without_more_127_hz(design_1700):
     """The issue's result: rejection at 13 Hz at least 2x the constrained integrator's, with
     |T(127 Hz)| no larger than the integrator's."""

@@ -70,6 +70,7 @@ def test_every_method_has_a_call():
     assert len(MEMBERS) >= 31  # 14 + 11 + 6 today: the enumeration found the properties too
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cls_name, member, is_property", MEMBERS, ids=[f"{c}.{n}" for c, n, _ in MEMBERS])
 def test_member_of_uninitialised_object_raises_type_error(cls_name, member, is_property, tmp_path):
     call = f"{{}}.{member}" if is_property else CALLS[cls_name][member]

@@ -107,6 +107,7 @@ def test_time_series_needs_a_rate_above_twice_each_line():
         VibrationSpectrum.lbt_default().time_series(10, 100.0, np.random.default_rng(0))
 
 
+@pytest.mark.slow
 def test_onsky_profile_gives_the_papers_pseudo_open_loop_jitter():
     """tables/lbt_vibrations_onsky.toml: 3-425 Hz pseudo-open-loop Tip/Tilt per axis (with the
     night's turbulence) in the paper's 34-43 mas, its ends at the scales the file gives."""

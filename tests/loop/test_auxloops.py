@@ -3,9 +3,7 @@ frames, records), OGTL converging to the model's optical gain of its mode, the t
 scan, and the probe on the mirror."""
 
 import dataclasses
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,7 +28,6 @@ def ClosedLoop(*args, **kwargs):  # noqa: N802 - the loop, with every frame kept
 
 
 OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0)
-_VALIDATION = Path(__file__).resolve().parents[2] / "validation"
 
 
 @pytest.fixture(scope="module")
@@ -84,20 +81,20 @@ def test_probe_is_on_the_mirror_and_k_scales_the_slopes(small_calibration):
     )
 
 
-def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(optics_cache):
+@pytest.mark.slow
+def test_ogtl_converges_to_the_models_optical_gain_of_its_mode(optics_cache, validation):
     """The sensitivity k OGTL settles on makes chi = gamma k = 1 for mode 30, so 1/k must be
     the PWFS's optical gain of mode 30 around the loop's own residual phases (push-pull of
     the optical model around snapshots of the residual): the issue's bright-loop check, by
     ``validation/ogtl_bright.py`` (which runs it on SOUL's field too) on the sampled field."""
-    spec = importlib.util.spec_from_file_location("ogtl_bright", _VALIDATION / "ogtl_bright.py")
-    check = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(check)
+    check = validation("ogtl_bright")
     row = check.small_case(0.0, 2, optics_cache)
     assert row["k"][0] > 1.2 and row["settled"]  # it moved, then settled
     assert 0.2 < row["gamma_model"] < 0.8  # a real loss of sensitivity, not the diffraction-limited 1
     assert abs(row["relative_error"]) <= 0.10 and row["ok"], row
 
 
+@pytest.mark.slow
 def test_trial_and_error_scans_the_groups_in_order_and_keeps_the_best(small_calibration):
     scans = [scan_gains(0.6, 4), scan_gains(0.6, 4)]
     task = TrialAndErrorTask(54, scans, settle=30, measure=70)
@@ -404,6 +401,7 @@ def test_the_fewest_restores_before_giving_up_is_reached():
     assert net.gave_up and net.events == net.give_up // net.IN_A_ROW
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [4, 6])
 def test_the_safety_net_is_quiet_in_a_steady_loop(small_calibration, seed):
     """The turbulence alone moves the commands' RMS by up to 2.3x within 2 s (seed 6 of 1-8;

@@ -39,6 +39,7 @@ def setup(optics_cache):
     return request, cal, design
 
 
+@pytest.mark.slow
 def test_the_same_gains_give_the_same_figures_and_other_gains_others(setup):
     request, cal, design = setup
     g = design.per_mode(54)
@@ -52,6 +53,7 @@ def test_the_same_gains_give_the_same_figures_and_other_gains_others(setup):
     assert all(np.isfinite([a.strehl, a.residual_nm, a.tt_jitter_mas]))
 
 
+@pytest.mark.slow
 def test_mgm_and_trial_and_error_on_one_seed_see_the_same_turbulence(setup):
     """The session's screens are sized for the longer of the two methods (``session_seconds``):
     the two optimisers' evaluations of the same gains on one seed are the same numbers, so MGM
@@ -72,6 +74,7 @@ def _ogtl_request(request, period_s=None):
     return request if period_s is None else dataclasses.replace(request, period_s=period_s)
 
 
+@pytest.mark.slow
 def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
     """With OGTL the evaluation closes each loop much as the run did, OGTL from k = 1 (a fresh
     task per loop): an optimiser that kept the initial gains scores exactly zero, however far k
@@ -98,6 +101,7 @@ def test_with_ogtl_k_is_the_loops_and_kept_gains_score_zero(setup):
     assert result.before.sensitivity <= ogtl_model.SENSITIVITY_RANGE[1]
 
 
+@pytest.mark.slow
 def test_with_ogtl_both_loops_measure_their_windows_at_befores_settled_k(setup):
     """Each loop's OGTL settles from k = 1, then stops, and both loops' windows run at the k
     *before*'s OGTL settled to: with OGTL running through the windows the two k paths part and
@@ -146,6 +150,7 @@ def test_the_evaluation_settles_ogtl_for_the_runs_longest_settling(setup):
     assert session_seconds(long) >= evaluation_settle_s(long.period, True) + long.windows * long.window
 
 
+@pytest.mark.slow
 def test_the_evaluations_ogtl_makes_the_runs_most_updates_before_the_windows(setup):
     """Both gain sets' loops run OGTL for the run's longest settling before they are measured,
     not for the run's own count: with the count (four or five updates where the run's settling

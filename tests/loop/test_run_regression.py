@@ -14,6 +14,7 @@ def both(optics_cache):
     return recorded, figures(str(optics_cache.directory))
 
 
+@pytest.mark.slow
 def test_linear_paths_give_the_recorded_figures(both):
     recorded, now = both
     assert now.keys() == recorded.keys()

@@ -246,6 +246,7 @@ def test_thin_plate_influence_functions_are_the_position_controlled_shells():
     assert sparse.nnz < 0.12 * dense.size  # ~62 actuators per pixel of 672
 
 
+@pytest.mark.slow
 def test_the_thin_plate_mirror_closes_most_of_the_fitting_gap():
     """The thin-plate functions fill the space between actuators: the best 500 modes of that
     mirror fit von Karman turbulence 6 % better than the Gaussian's (102.0 against 108.9 nm at

@@ -643,6 +643,7 @@ def test_a_ten_minute_run_has_no_periodicity():
     assert np.max(lag_correlations(periodic, TEN_MINUTES, LAGS_10_TO_300_S)) > 0.99
 
 
+@pytest.mark.slow
 def test_the_default_profile_does_not_repeat_in_ten_minutes():
     """The LBT profile at the default wind (3.3 / 4.6 / 8.0 / 16.6 m/s towards 0 / 20 / 45 /
     90°) on a coarse grid (16 px of 0.5 m): 10 minutes without repetition (the 20° and 45°

@@ -120,6 +120,7 @@ def test_without_turbulence_the_offsets_cancel_their_fraction_of_the_controlled_
     assert np.sqrt(np.mean(outside**2)) < 0.8 * 30  # the offsets have something to remove
 
 
+@pytest.mark.slow
 def test_ogtl_applies_the_offsets_once_k_is_calibrated(calibration, optics_cache):
     """With OGTL the offsets wait until the probed mode's chi is within 20 % of 1 (k ~ 1 /
     gamma_30 ~ 2.7 here), then enter once; the loop keeps lock and gains over the same run

@@ -113,6 +113,7 @@ def _aot_system(kind: str, frames: int = 600, commands: bool = True, seed: int =
     return system, {"slopes": slopes, "r": r, "m2c": m2c, "modes": modes}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["pyramid", "shack-hartmann"])
 def test_soulctl_reads_aot_files_built_with_aotpy(kind, tmp_path, capsys, recorded):
     system, truth = _aot_system(kind)

@@ -87,14 +87,15 @@ def test_arte_snapshot(records, tmp_path, capsys):
         assert run(["telemetry", "convert", path, target], capsys)[0] == 0
 
 
-README = REAL.parents[2] / "README.md"
+GUIDE = REAL.parents[2] / "docs" / "guide.md"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("soulctl") is None, reason="needs the installed soulctl command")
-def test_the_readme_example_runs_as_written(tmp_path):
-    """The lines of README's "soulctl on another AO system's records", run as written in a
+def test_the_guides_example_runs_as_written(tmp_path):
+    """The lines of the guide's "soulctl on another AO system's records", run as written in a
     folder where tests/ is the repository's: each exits 0."""
-    text = README.read_text()
+    text = GUIDE.read_text()
     block = text[text.index("<!-- real-record-example") :].split("```sh\n", 1)[1].split("```", 1)[0]
     (tmp_path / "tests").symlink_to(REAL.parents[1])
     for line in block.strip().splitlines():
