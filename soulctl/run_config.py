@@ -206,7 +206,43 @@ class AuxiliarySpec:
 
 @dataclass(frozen=True, kw_only=True)
 class RunConfig:
-    """A whole simulated run (see the module for its TOML form)."""
+    """A whole simulated run (see the module for its TOML form: each field is a section).
+
+    Parameters
+    ----------
+    observation : Observation
+        [star], [wfs], [control] (modes, Tip/Tilt filter), [delay], [photometry].
+    atmosphere : AtmosphereSpec
+        [atmosphere]: seeing, L0, wind or explicit layers.
+    vibrations : VibrationSpectrum or None
+        [vibrations]: the Tip/Tilt lines; None: none.
+    structure : StructuralResonance or None
+        [structure]: the 127 Hz resonance; None: none.
+    registration : Misregistration
+        [misregistration]: the mirror on the pyramid against the calibration.
+    ncpa : NcpaSpec
+        [ncpa]: the science path's static aberration and its offsets.
+    calibration : CalibrationNoise
+        [calibration]: the interaction matrix's flux and correction level.
+    noise : bool
+        [detector] noise.
+    influence : str
+        [mirror] influence: the influence-function model.
+    controller : ControllerSpec
+        [control]: gains (per group or per mode), forgetting, allow_unstable.
+    auxiliary : AuxiliarySpec
+        [auxiliary]: MGM, OGTL, their period and probe.
+    duration_s : float
+        [run] simulated time (s).
+    band : str
+        [run] science band of the Strehl ratio.
+    seed : int
+        [run] seed of every random draw.
+    oversampling : int
+        [run] simulation pixels per binning-1 detector pixel.
+    wfs_field_arcsec : float
+        [run] the pyramid's simulated field (a diameter, arcsec); 0: as sampled, no stop.
+    """
 
     observation: Observation = field(default_factory=lambda: observation_for_magnitude(defaults.MAGNITUDE_R))
     atmosphere: AtmosphereSpec = AtmosphereSpec()

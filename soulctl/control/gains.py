@@ -96,8 +96,17 @@ def _check_gain(value: float, name: str) -> None:
 
 @dataclass(frozen=True)
 class LoopGains:
-    """The gains a run starts with: one per paper group, or one per mode (``modes``, a gain
-    file, which overrides the groups); ``forgetting``: the leaky integrators' factor."""
+    """The gains a run starts with: one per paper group, or one per mode.
+
+    Parameters
+    ----------
+    tip_tilt, mid, high : float
+        The gains of the paper's groups: Tip/Tilt, modes 3-120, modes 121-last.
+    forgetting : float
+        The leaky integrators' factor (0..1; 1: pure integrators).
+    modes : tuple of float or None
+        One gain per mode (a gain file), which overrides the groups; None: the groups.
+    """
 
     tip_tilt: float
     mid: float

@@ -102,9 +102,24 @@ _INVPHI = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618..., the golden-section ratio
 
 @dataclass(frozen=True)
 class MgmSettings:
-    """nu, rho of Eq. gainUpdate; the stability margin; the Welch segment and the coarse grid;
-    the factor bounding one update; the standard errors a predicted fall of J must exceed for a
-    gain to move (0: every gain moves, the paper's Eq. gainUpdate alone)."""
+    """The Modal Gain Machine's settings (paper, Eq. gainUpdate and Eq. cost).
+
+    Parameters
+    ----------
+    nu, rho : float
+        The update's factors: g(t+1) = (1 - rho) g(t) + rho nu g_hat (paper, Eq. gainUpdate).
+    margin : float
+        The stability margin: gains bounded at (1 - margin) of each mode's maximum stable gain.
+    segment : int
+        Welch segment of the pseudo-open-loop PSDs (frames, a power of two).
+    grid : int
+        Points of the coarse gain grid before the golden-section search.
+    max_change : float
+        The factor bounding one update of a gain (inf: Eq. gainUpdate alone).
+    significance : float
+        The standard errors a predicted fall of J must exceed for a gain to move (0: every
+        gain moves).
+    """
 
     nu: float = 0.9
     rho: float = 0.5
@@ -305,7 +320,26 @@ def cost(psd, L1, gains, whitening=None) -> np.ndarray:
 def optimal_gains(psd, L1, upper, grid: int = MgmSettings.grid, whitening=None) -> np.ndarray:
     """g_hat_i = argmin J_i over [0, upper_i] (paper, Eq. cost; ``cost``): a grid of ``grid``
     gains, then a golden-section search over the grid cells around the best point, all modes
-    at once, to REL_TOL * upper_i.  A mode with J flat (psd = 0) gets 0."""
+    at once, to REL_TOL * upper_i.  A mode with J flat (psd = 0) gets 0.
+
+    Parameters
+    ----------
+    psd : ndarray, (n_modes, F)
+        Phi_i(f): the pseudo-open loop's PSD of each mode (prewhitened with ``whitening``).
+    L1 : ndarray, (n_modes, F)
+        Each mode's open loop at unit gain at the PSD's frequencies.
+    upper : ndarray, (n_modes,)
+        Each mode's largest gain searched (its stability bound).
+    grid : int
+        Points of the coarse grid (>= 8).
+    whitening : ndarray or None
+        A_i(f), the prewhitening filter; None: A = 1.
+
+    Returns
+    -------
+    ndarray, (n_modes,)
+        The gains minimising J_i.
+    """
     psd, c, a, b = _parts(psd, L1, whitening)
     upper = np.asarray(upper, dtype=float)
     if upper.shape != (psd.shape[0],) or not (np.isfinite(upper).all() and (upper >= 0).all()):

@@ -89,10 +89,24 @@ def build_rtc(
     modes_to_commands: np.ndarray,
     state_size: int = SOUL_STATE_SIZE,
 ) -> RTCMatrices:
-    """Assemble Lambda, Xi, Sigma, Delta.
+    """Assemble Lambda, Xi, Sigma, Delta of the RTC equation (paper, Eq. RTC):
+    zeta(k) = Lambda zeta(k-1) + Delta Xi s(k), c(k) = Sigma zeta(k).
 
-    filters: one per mode (None: not controlled); modes beyond len(filters) are not controlled.
-    reconstructor: R, (n_modes, n_slopes).  modes_to_commands: M, (n_commands, n_modes).
+    Parameters
+    ----------
+    filters : sequence of Filter or None
+        One per mode (None: not controlled); modes beyond ``len(filters)`` are not controlled.
+    reconstructor : ndarray, (n_modes, n_slopes)
+        R: the modes of the slopes.
+    modes_to_commands : ndarray, (n_commands, n_modes)
+        M: the actuator commands of each mode.
+    state_size : int
+        The RTC's state vector length (SOUL's 672 by default); the filters' states must fit.
+
+    Returns
+    -------
+    RTCMatrices
+        Lambda, Xi, Sigma, the diagonal of Delta and each mode's block of states.
     """
     R = np.asarray(reconstructor, dtype=float)
     M = np.asarray(modes_to_commands, dtype=float)

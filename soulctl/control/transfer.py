@@ -254,7 +254,23 @@ def _at(fun, f_hz: float, nyquist: float) -> float | None:
 
 def analyze(loop: Loop, vibration_hz: float = VIBRATION_HZ, resonance_hz: float = RESONANCE_HZ) -> LoopAnalysis:
     """Margins, rejection and bandwidth of a loop (stable or not: an unstable loop gets its
-    figures too, with stable False and a gain margin below 1)."""
+    figures too, with stable False and a gain margin below 1).
+
+    Parameters
+    ----------
+    loop : Loop
+        The controller, the plant chi z^-d (and the structure) and the frame rate.
+    vibration_hz : float
+        Where the rejection |S| is read (13 Hz, LBT's vibration).
+    resonance_hz : float
+        Where the noise transfer |T| is read (127 Hz, the structural resonance).
+
+    Returns
+    -------
+    LoopAnalysis
+        Gain, phase and modulus margins, the maximum stable gain, |S(vibration_hz)|,
+        |T(resonance_hz)|, the -3 dB bandwidths and the verdict.
+    """
     f = frequency_grid(loop.rate_hz)
     g = loop.controller.gain
     g_max = max_stable_gain(loop, f)

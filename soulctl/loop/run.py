@@ -44,7 +44,45 @@ CLOSED_LOOP_FIGURES = ("strehl", "tt_jitter_mas", "tt_jitter_pol_mas", "tt_jitte
 @dataclass(frozen=True)
 class RunRequest:
     """What ``run`` needs, resolved: built by ``soulctl.run_config.RunConfig.request`` (the
-    run description's one factory) or directly by the Python API."""
+    run description's one factory) or directly by the Python API.
+
+    Parameters
+    ----------
+    observation : Observation
+        The star's set-up: binning, modes, frame rate, Tip/Tilt controller, delay.
+    seeing_arcsec, wind_m_s, L0_m : float
+        Seeing at 500 nm (arcsec), effective wind of the LBT profile (m/s), outer scale (m).
+    duration_s : float
+        Simulated time (s).
+    gains : LoopGains or None
+        The gains the run starts from; None: ``control.gains.design_gains``.
+    band : str
+        Science band of the Strehl ratio (``loop.metrics.BANDS``).
+    seed : int
+        Seed of every random draw of the run (turbulence, noise, vibrations).
+    noise : bool
+        Detector noise on.
+    vibrations : VibrationSpectrum or None
+        Tip/Tilt vibration lines; None: none.
+    oversampling : int
+        Simulation pixels per binning-1 detector pixel.
+    structure : StructuralResonance or None
+        The adaptive secondary's 127 Hz resonance; None: none.
+    allow_unstable : bool
+        Run gains the stability check refuses.
+    layers : tuple of Layer or None
+        Explicit turbulence layers; None: the LBT profile at ``wind_m_s``.
+    registration : Misregistration or None
+        The mirror on the pyramid against the calibration; None: as calibrated.
+    ncpa : NcpaSpec or None
+        The science path's static aberration; None: none.
+    calibration_noise : CalibrationNoise or None
+        The interaction matrix measured at a finite flux; None: noiseless.
+    influence : str
+        The mirror's influence-function model (``optics.asm.INFLUENCES``).
+    field_of_view_arcsec : float
+        The pyramid's simulated field (a diameter, arcsec); 0: as sampled, no stop.
+    """
 
     observation: Observation
     seeing_arcsec: float = defaults.SEEING_ARCSEC
@@ -365,10 +403,30 @@ def run(
     sink: Sink | None = None,
 ) -> RunResult:
     """Calibrate, close the loop for ``request.frames`` frames, reduce (see the module).
-    ``aux`` (``optimize.LiveOptimisers``: `loop run --mgm --ogtl`) adds auxiliary loops once
-    the loop has closed; ``calibration``: the request's, already computed (a sweep shares it);
-    ``sink``: where every frame's records go (``telemetry.stream.Hdf5Writer``), described
-    (rate, delay, modes, configuration) before the first frame."""
+
+    Parameters
+    ----------
+    request : RunRequest
+        The resolved run (``run_config.RunConfig.request`` builds it from a description).
+    cache : ArrayCache
+        Where the calibration (basis, interaction matrix) is reused from; none by default.
+    progress : callable or None
+        Called with the frames done after each frame; None: silent.
+    aux : loop.optimize.LiveOptimisers or None
+        MGM and/or OGTL beside the loop once it has closed (`loop run --mgm --ogtl`).
+    calibration : Calibration or None
+        The request's calibration, already computed (a sweep shares it); None: computed or
+        read from ``cache``.
+    sink : Sink or None
+        Where every frame's records go (``telemetry.stream.Hdf5Writer``), described (rate,
+        delay, modes, configuration) before the first frame.
+
+    Returns
+    -------
+    RunResult
+        The request, the gains the run ended with, the calibration, the telemetry kept in
+        memory, the metrics (None for a loop that never closed) and the long-exposure PSF.
+    """
     obs = request.observation
     structure = request.sampled_structure()
     gains = request.design_gains()
