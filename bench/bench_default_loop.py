@@ -33,7 +33,7 @@ from rich.table import Table
 from bench.results_file import save
 from soulctl.cli.common import default_cache_dir
 from soulctl.cli.loop import IDEAL
-from soulctl.loop.optimize import LiveOptimisers
+from soulctl.loop.optimisers import LiveOptimisers
 from soulctl.loop.run import calibration_for, run
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import read_run_config

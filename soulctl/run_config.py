@@ -60,7 +60,7 @@ from .control.structure import StructuralResonance
 from .disturbance.vibrations import LINE_KEYS, VibrationLine, VibrationSpectrum
 from .errors import InputError
 from .loop.metrics import BANDS
-from .loop.optimize import LiveOptimisers
+from .loop.optimisers import LiveOptimisers
 from .loop.run import RunRequest
 from .observation import Observation, observation_for_magnitude, tt_filter_roots
 from .optics.asm import DEFAULT_INFLUENCE, check_influence

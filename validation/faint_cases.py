@@ -36,8 +36,10 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.disturbance.vibrations import VibrationSpectrum
 from soulctl.files import atomic_write_text
 from soulctl.loop.auxloops import summary as aux_summary
-from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, optimize
+from soulctl.loop.optimisers import LiveOptimisers
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import run
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec

@@ -1,5 +1,5 @@
 """A grid point's `optimize gains` row with a pyramid whose simulated field covers the WFS's
-field of view: every loop of the optimisation (``optimize._new_loop``) reads its residual OPD,
+field of view: every loop of the optimisation (``evaluation._new_loop``) reads its residual OPD,
 interpolated on a finer pupil (``optics.pupil.PupilResampler``), through a pyramid at oversampling
 ``--oversampling`` with the 2.1" field stop (``rim_sampling.FIELD_STOP``), instead of the table's
 pupil of 80 pixels whose focal plane is +-40 lambda/D (0.75") with no stop.  The calibration,
@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
+import soulctl.loop.evaluation as evaluation_module
 import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
@@ -57,8 +58,9 @@ class WideField:
 
 
 def widen(oversampling: int, stop: float) -> None:
-    """Every loop ``optimize`` makes from now on reads through a ``WideField`` pyramid."""
-    new_loop = optimize_module._new_loop
+    """Every loop ``optimize`` makes from now on reads through a ``WideField`` pyramid (its
+    session's, ``optimize``, and its evaluations', ``evaluation``)."""
+    new_loop = evaluation_module._new_loop
 
     def wide_loop(*args, **kwargs):
         loop = new_loop(*args, **kwargs)
@@ -66,7 +68,7 @@ def widen(oversampling: int, stop: float) -> None:
         loop.sensor = WavefrontSensor(WideField(s.pyramid, oversampling, stop), s.detector, s.photons_per_frame)
         return loop
 
-    optimize_module._new_loop = wide_loop
+    optimize_module._new_loop = evaluation_module._new_loop = wide_loop
 
 
 def main() -> None:

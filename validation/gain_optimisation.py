@@ -30,7 +30,8 @@ from soulctl import tables
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, optimize
+from soulctl.loop.optimize import optimize
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.observation import observation_for_magnitude, tt_filter_roots
 from soulctl.optics.cache import ArrayCache
 from soulctl.optics.ncpa import NcpaSpec

@@ -29,8 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import _new_loop, evaluate, evaluation_settle_s, optimize
+from soulctl.loop.evaluation import _new_loop, evaluate
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import closing_frames
+from soulctl.loop.schedule import evaluation_settle_s
 from soulctl.loop.simulation import LoopDiverged
 from validation.optimize_magnitudes import point_loops
 from validation.provenance import provenance

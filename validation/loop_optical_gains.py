@@ -21,7 +21,7 @@ import numpy as np
 
 from soulctl.files import atomic_write_text
 from soulctl.loop.chi_model import optical_gain_table
-from soulctl.loop.optimize import settled_evaluation_loop
+from soulctl.loop.evaluation import settled_evaluation_loop
 from soulctl.optics.calibration import calibration_sensor, mode_maps, push_pull
 from validation.optimize_magnitudes import point_loops
 from validation.provenance import provenance

@@ -30,12 +30,14 @@ from pathlib import Path
 
 import numpy as np
 
-import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
+from soulctl.loop.evaluation import evaluate
+from soulctl.loop.optimisers import request_ogtl_task
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.optics.cache import ArrayCache
 from validation.optimize_magnitudes import WINDOWS, point_request
 from validation.provenance import code_fingerprint, provenance
@@ -67,7 +69,7 @@ def evaluate_sets(request: OptimizeRequest, result, cache: ArrayCache, sets: dic
     noise = result.loop.sensor.modal_noise_nm(cal.reconstructor)
     rows = []
     for name, gains in sets.items():
-        task = optimize_module.request_ogtl_task(request, cal, cache, noise)
+        task = request_ogtl_task(request, cal, cache, noise)
         m = evaluate(request, cal, design, gains, k, offsets, None, task, result.before.settled)
         diff, error = paired(result, m)
         groups = {g: float(gains[idx].mean()) for g, idx in gain_groups(len(gains))}

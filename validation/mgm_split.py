@@ -22,12 +22,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-import soulctl.loop.optimize as optimize_module
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import FrozenK, OptimizeResult, evaluate, session_seconds
+from soulctl.loop.evaluation import FrozenK, evaluate
+from soulctl.loop.optimisers import request_ogtl_task
+from soulctl.loop.optimize import OptimizeResult
 from soulctl.loop.run import calibration_for, closed_loop_for
+from soulctl.loop.schedule import session_seconds
 from soulctl.optics.cache import ArrayCache
 from validation.optimize_magnitudes import point_request
 from validation.provenance import code_fingerprint, provenance
@@ -66,7 +68,7 @@ def evaluate_sets(recorded: dict, names: list[str]) -> list[dict]:
     rows = []
     for name in names:
         freeze = None if name == "initial" else FrozenK(k, False)
-        task = optimize_module.request_ogtl_task(request, cal, cache, noise)
+        task = request_ogtl_task(request, cal, cache, noise)
         m = evaluate(request, cal, design, sets[name], k, False, None, task, freeze)
         groups = {g: float(sets[name][idx].mean()) for g, idx in gain_groups(len(sets[name]))}
         own = m.settled.k if m.settled else None

@@ -26,14 +26,17 @@ import json
 
 import numpy as np
 
-import soulctl.loop.optimize as optimize_module
+import soulctl.loop.gain_policy as gain_policy
 from soulctl.cli.common import default_cache_dir
 from soulctl.control import mgm
 from soulctl.control.gains import unit_loops
 from soulctl.disturbance.turbulence import TurbulenceTipTilt
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
+from soulctl.loop.evaluation import evaluate
+from soulctl.loop.optimisers import request_ogtl_task
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.optics.cache import ArrayCache
 from validation.optimize_magnitudes import WINDOWS, point_arguments, point_request
 from validation.provenance import code_fingerprint, provenance
@@ -108,7 +111,7 @@ def scan(request: OptimizeRequest, result, cache: ArrayCache, scales: list[float
     sets["MGM's"] = final
     rows = []
     for name, gains in sets.items():
-        m = evaluate(request, cal, design, gains, k, offsets, None, optimize_module.request_ogtl_task(request, cal, cache, noise))
+        m = evaluate(request, cal, design, gains, k, offsets, None, request_ogtl_task(request, cal, cache, noise))
         row = {"gains": name, "tip_tilt": gains[:2].tolist(), "strehl": m.strehl, "windows": list(m.window_strehls)}
         rows.append({**row, "tt_jitter_mas": m.tt_jitter_mas, "k": m.sensitivity})
         tt = np.round(gains[:2], 3)
@@ -127,17 +130,17 @@ def main() -> None:
     windows = request.windows
     cache = ArrayCache(default_cache_dir())
     calls = []
-    model = optimize_module.noise_aware_gains
+    model = gain_policy.noise_aware_gains
 
     def recorded(*args, **kwargs):  # the run's own model inputs, for check 1
         calls.append(args)
         return model(*args, **kwargs)
 
-    optimize_module.noise_aware_gains = recorded
+    gain_policy.noise_aware_gains = recorded
     try:
         result = optimize(request, cache)
     finally:
-        optimize_module.noise_aware_gains = model
+        gain_policy.noise_aware_gains = model
     if result.diverged_at is not None:
         raise SystemExit(f"the optimisation diverged at frame {result.diverged_at}")
     print(f"MGM: Tip/Tilt {np.round(result.initial_gains[:2], 3)} -> {np.round(result.gains[:2], 3)}", flush=True)

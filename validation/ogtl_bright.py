@@ -40,7 +40,7 @@ from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import LoopGains
 from soulctl.files import atomic_write_text
 from soulctl.loop.auxloops import OgtlTask
-from soulctl.loop.optimize import LiveOptimisers
+from soulctl.loop.optimisers import LiveOptimisers
 from soulctl.loop.run import calibration_for, closed_loop_for, closing_frames
 from soulctl.loop.simulation import ClosedLoop
 from soulctl.observation import observation_for_magnitude

@@ -68,8 +68,9 @@ from soulctl.control.gains import gain_groups
 from soulctl.loop import optimize as optimize_module
 from soulctl.loop.auxloops import SafetyNet, summary
 from soulctl.loop.chi_model import plant_model
-from soulctl.loop.optimize import OptimizeRequest, _session, default_period_s, optimize, session_seconds
+from soulctl.loop.optimize import _session, optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest, default_period_s, session_seconds
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.asm import DEFAULT_INFLUENCE, INFLUENCES
 from soulctl.optics.cache import ArrayCache

@@ -16,8 +16,10 @@ from pathlib import Path
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import gain_groups
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, default_period_s, evaluate, optimize
+from soulctl.loop.evaluation import evaluate
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest, default_period_s
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.cache import ArrayCache
 from validation.optimize_magnitudes import DURATION_PERIODS, MEASURE_S, WINDOW_S, WINDOWS, _run, windows_for

@@ -42,7 +42,8 @@ from rich.console import Console
 from rich.table import Table
 
 from soulctl.cli.common import default_cache_dir
-from soulctl.loop.optimize import OPTIMISER_OGTL, OptimizeRequest, optimize
+from soulctl.loop.optimize import optimize
+from soulctl.loop.schedule import OPTIMISER_OGTL, OptimizeRequest
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import AtmosphereSpec, RunConfig
 from validation.faint_cases import r165_observation  # noqa: E402

@@ -17,8 +17,10 @@ import numpy as np
 
 from soulctl.cli.common import default_cache_dir
 from soulctl.files import atomic_write_text
-from soulctl.loop.optimize import OptimizeRequest, evaluate, optimize
+from soulctl.loop.evaluation import evaluate
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.optics.cache import ArrayCache
 from soulctl.run_config import RunConfig
 from validation.faint_cases import NO_NCPA, R13_NIGHT  # noqa: E402

@@ -28,8 +28,10 @@ import numpy as np
 
 from soulctl.control import mgm
 from soulctl.files import atomic_write_text
+from soulctl.loop.evaluation import settled_evaluation_loop
 from soulctl.loop.metrics import band_wavelength, pseudo_open_loop
-from soulctl.loop.optimize import mgm_machine, plant_model, settled_evaluation_loop
+from soulctl.loop.optimisers import mgm_machine
+from soulctl.loop.optimize import plant_model
 from validation.provenance import provenance
 from validation.r13_low_order_scan import r13_case  # noqa: E402
 

@@ -33,8 +33,11 @@ import numpy as np
 
 from soulctl.cli.common import default_cache_dir
 from soulctl.control.gains import TIP_TILT
-from soulctl.loop.optimize import OptimizeRequest, evaluate, ogtl_task, optimize
+from soulctl.loop.evaluation import evaluate
+from soulctl.loop.optimisers import ogtl_task
+from soulctl.loop.optimize import optimize
 from soulctl.loop.run import calibration_for
+from soulctl.loop.schedule import OptimizeRequest
 from soulctl.optics.cache import ArrayCache
 from validation.paper_nights import NIGHTS, night_request  # noqa: E402
 from validation.provenance import code_fingerprint, provenance

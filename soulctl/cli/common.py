@@ -302,7 +302,7 @@ def run_description(config: Path | None, mag: str | None, overrides: dict) -> Ru
 def _quick(description: RunConfig) -> RunConfig:
     """A run description at SOULCTL_QUICK's cost (``cli.quick``): its duration capped, the
     auxiliary loops at their shortest update period unless one is given."""
-    from ..loop.optimize import shortest_period_s  # only here: the optimiser's imports are heavy
+    from ..loop.schedule import shortest_period_s  # only here: the optimiser's imports are heavy
 
     duration = quick.cap_duration(description.duration_s)
     values: dict = {"run.duration_s": duration}

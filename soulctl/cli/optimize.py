@@ -18,7 +18,8 @@ from ..control.ogtl import PROBE_MODE as PROBE_MODE_DEFAULT
 from ..control.ogtl import OgtlSettings
 from ..errors import InputError
 from ..files import atomic_write_text, check_output_folder, check_output_path
-from ..loop.optimize import METHODS, OPTIMISER_OGTL, OptimizeRequest, OptimizeResult, optimize, shortest_period_s
+from ..loop.optimize import OptimizeResult, optimize
+from ..loop.schedule import METHODS, OPTIMISER_OGTL, OptimizeRequest, shortest_period_s
 from ..offline.mgm import MAX_WINDOW_S, REASONS, PlantInputs, offline_mgm
 from ..optics.optical_gains import read_optical_gain_table
 from ..plots.gains import gain_figure_names, write_gain_figures

@@ -52,8 +52,8 @@ from ..control.ogtl import HELD, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_coefficients
 from ..errors import InputError
 from ..loop.chi_model import mgm_chi, optical_gain_table
-from ..loop.optimize import welch_settings
 from ..loop.run import calibration_for
+from ..loop.schedule import welch_settings
 from ..observation import Observation
 from ..optics.cache import ArrayCache
 from ..optics.optical_gains import CHI_TABLE_SEEING_ARCSEC

@@ -12,9 +12,10 @@ import traceback
 
 from .. import __version__, defaults, tables
 from ..errors import InputError
-from ..loop.optimize import OPTIMISER_OGTL, OptimizeRequest, default_period_s, optimize
+from ..loop.optimize import optimize
 from ..loop.run import RunRequest, run
 from ..loop.run import calibration_setup as run_calibration_setup
+from ..loop.schedule import OPTIMISER_OGTL, OptimizeRequest, default_period_s
 from ..observation import BINNINGS, Observation
 from ..optics.cache import ArrayCache
 from ..optics.calibration import Calibration, CalibrationSetup, calibrate

@@ -10,7 +10,7 @@ Frames: ``duration`` x the frame rate for a plain run; for
 ``gain_method = mgm`` the closing, OGTL's settling (at least 4 update periods, up to 12 until k
 settles: the estimate counts 4) and three times
 ``duration`` (before, optimisation, after) and the paired evaluation (two loops, each closed,
-settled for the longer of 1 s and 12 OGTL updates, ``optimize.evaluation_settle_s``, and
+settled for the longer of 1 s and 12 OGTL updates, ``schedule.evaluation_settle_s``, and
 measured for ``duration``); for ``trial`` the closing, the settling, twice
 ``duration`` and the scan (8 gains and the initial one per group, 0.25 s or 100 frames each); the auxiliary loops' own cost
 (MGM, OGTL) is not counted.
@@ -31,8 +31,8 @@ from functools import lru_cache
 
 from ..control.gains import gain_groups
 from ..errors import InputError
-from ..loop.optimize import OGTL_SETTLING_PERIODS, OPTIMISER_OGTL, TRIAL_VALUES, default_sequence_s, evaluation_settle_s
 from ..loop.run import closing_frames
+from ..loop.schedule import OGTL_SETTLING_PERIODS, OPTIMISER_OGTL, TRIAL_VALUES, default_sequence_s, evaluation_settle_s
 from ..optics.pwfs import PyramidConfig
 from .case import DEFAULTS, observation_for, optimisation_period_s
 

@@ -15,8 +15,9 @@ from soulctl.control import mgm
 from soulctl.control.gains import LoopGains, check_stability
 from soulctl.control.structure import StructuralResonance, sampled_structure
 from soulctl.loop.auxloops import SafetyNet
-from soulctl.loop.optimize import LiveOptimisers, OptimizeRequest, default_period_s, resolving_segment
+from soulctl.loop.optimisers import LiveOptimisers
 from soulctl.loop.run import RunRequest, closing_frames
+from soulctl.loop.schedule import OptimizeRequest, default_period_s, resolving_segment
 from soulctl.observation import observation_for_magnitude
 from soulctl.offline.mgm import nominal_limits
 from soulctl.sweep.case import run_case

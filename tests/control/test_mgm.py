@@ -392,7 +392,7 @@ def test_short_segments_keep_a_slow_noisy_loops_optimum():
     first bin and its optimum drops to about half the brute-force one; the prewhitened
     estimate stays within 25 % with 64- and 256-frame segments (0.98 Hz,
     ``resolving_segment``, the default period's) alike."""
-    from soulctl.loop.optimize import resolving_segment
+    from soulctl.loop.schedule import resolving_segment
 
     rate, delay = 250.0, 1.5
     rng = np.random.default_rng(0)

@@ -10,20 +10,17 @@ import pytest
 from soulctl.control import ogtl as ogtl_model
 from soulctl.loop.auxloop import RtcParameters
 from soulctl.loop.auxloops import OgtlTask
-from soulctl.loop.optimize import (
+from soulctl.loop.evaluation import FrozenK, evaluate, settled_evaluation_loop
+from soulctl.loop.optimize import OptimizeResult, evaluate_pair
+from soulctl.loop.run import RunRequest, closing_frames
+from soulctl.loop.schedule import (
     EVALUATION_SETTLE_S,
     OGTL_MAX_SETTLING_PERIODS,
     OGTL_SETTLING_PERIODS,
-    FrozenK,
     OptimizeRequest,
-    OptimizeResult,
-    evaluate,
-    evaluate_pair,
     evaluation_settle_s,
     session_seconds,
-    settled_evaluation_loop,
 )
-from soulctl.loop.run import RunRequest, closing_frames
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.calibration import CalibrationSetup, calibrate
 from soulctl.optics.pwfs import PyramidConfig

@@ -6,7 +6,7 @@ import pytest
 
 from soulctl.control.gains import LoopGains
 from soulctl.disturbance.vibrations import VibrationLine, VibrationSpectrum
-from soulctl.loop.optimize import noise_aware_gains
+from soulctl.loop.gain_policy import noise_aware_gains
 from soulctl.observation import observation_for_magnitude
 from soulctl.optics.atmosphere import AtmosphereConfig
 

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from soulctl.loop.optimize import OGTL_MAX_SETTLING_PERIODS, OGTL_SETTLING_PERIODS, OPTIMISER_OGTL
+from soulctl.loop.schedule import OGTL_MAX_SETTLING_PERIODS, OGTL_SETTLING_PERIODS, OPTIMISER_OGTL
 from soulctl.sweep.case import observation_for, optimisation_period_s
 from soulctl.sweep.estimate import CALIBRATION_S, CASE_FIXED_S, FRAME_MS, case_cost, estimate, measured_cost
 from soulctl.sweep.grid import parse_grid
@@ -46,7 +46,7 @@ def test_the_field_of_view_is_costed_at_its_sensing_oversampling():
 
 def test_the_paired_evaluation_is_counted_with_its_twelve_ogtl_updates():
     """Each of the two evaluation loops settles for OGTL_MAX_SETTLING_PERIODS updates when the
-    optimiser runs OGTL (``optimize.evaluation_settle_s``), not for the run's least settling."""
+    optimiser runs OGTL (``schedule.evaluation_settle_s``), not for the run's least settling."""
     assert OPTIMISER_OGTL
     case = {"magnitude": 16.6, "binning": 4, "oversampling": 1, "duration": 0.5, "gain_method": "mgm"}
     obs = observation_for(case)
