@@ -82,7 +82,7 @@ def paper_case(
     lines = {} if vibrations is None else {"vibrations": VibrationSpectrum.read(vibrations)}
     for seed in seeds:
         config = RunConfig(observation=obs, atmosphere=atmosphere, band=band, seed=seed, ncpa=NO_NCPA, wfs_field_arcsec=wfs_field, **lines)
-        r = optimize(OptimizeRequest(config.request(), "mgm", measure_s=1.0), cache)
+        r = optimize(OptimizeRequest(run=config.request(), method="mgm", measure_s=1.0), cache)
         records = {name: r.loop.telemetry.aux_arrays(name) for name in r.loop.telemetry.aux}
         rows.append(
             {
@@ -125,7 +125,7 @@ def transient(obs, seconds: float, cache, wfs_field: float = defaults.WFS_FIELD_
         controller=ControllerSpec(gains=tuple(0.1 * g for g in start)),
         wfs_field_arcsec=wfs_field,
     ).request()
-    r = optimize(OptimizeRequest(low, "mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
+    r = optimize(OptimizeRequest(run=low, method="mgm", duration_s=seconds, period_s=5.0, measure_s=1.0), cache)
     figures = RESULTS / ("transient_r13" if wfs_field == 0 else f"transient_r13_wfs_field_{wfs_field:g}")  # the first: the sampled field's
     figures.mkdir(parents=True, exist_ok=True)
     write_gain_figures(figures, {"mgm": r})

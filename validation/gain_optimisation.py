@@ -109,12 +109,14 @@ def main() -> None:
         ).request()
         row = {"case": label, "paper": paper, "observation": obs.to_dict()}
         t0 = time.perf_counter()
-        row["trial"] = summary(optimize(OptimizeRequest(run, "trial", measure_s=args.measure_s), cache))
-        row["mgm"] = summary(optimize(OptimizeRequest(run, "mgm", duration_s=args.mgm_s, measure_s=args.measure_s), cache))
+        row["trial"] = summary(optimize(OptimizeRequest(run=run, method="trial", measure_s=args.measure_s), cache))
+        row["mgm"] = summary(optimize(OptimizeRequest(run=run, method="mgm", duration_s=args.mgm_s, measure_s=args.measure_s), cache))
         if args.transient_s > 0:
             start = run.design_gains()
             low = dataclasses.replace(run, gains=LoopGains(0.1 * start.tip_tilt, 0.1 * start.mid, 0.1 * start.high))
-            transient = optimize(OptimizeRequest(low, "mgm", duration_s=args.transient_s, period_s=5.0, measure_s=args.measure_s), cache)
+            transient = optimize(
+                OptimizeRequest(run=low, method="mgm", duration_s=args.transient_s, period_s=5.0, measure_s=args.measure_s), cache
+            )
             row["mgm_from_low_gains"] = {**summary(transient), "settling_s": settling_time(transient)}
         row["wall_s"] = time.perf_counter() - t0
         row |= provenance()

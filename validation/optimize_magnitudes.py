@@ -170,11 +170,10 @@ def point_request(
         obs = replace(obs, modulation_lambda_over_d=modulation)
     duration = DURATION_PERIODS * default_period_s(obs)
     return OptimizeRequest(
-        _run(obs, seeing, seed, influence, wfs_field),
-        method,
-        duration,
-        None,
-        ogtl,
+        run=_run(obs, seeing, seed, influence, wfs_field),
+        method=method,
+        duration_s=duration,
+        ogtl=ogtl,
         measure_s=MEASURE_S,
         windows=windows_for(obs.frame_rate_hz, windows),
         window_s=window_s,

@@ -39,7 +39,9 @@ def main() -> None:
     windows = windows_for(obs.frame_rate_hz, WINDOWS)
     duration = DURATION_PERIODS * default_period_s(obs)
     run = _run(obs, a.seeing, a.seed)
-    request = OptimizeRequest(run, method, duration, None, ogtl, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S)
+    request = OptimizeRequest(
+        run=run, method=method, duration_s=duration, ogtl=ogtl, measure_s=MEASURE_S, windows=windows, window_s=WINDOW_S
+    )
     cache = ArrayCache(default_cache_dir())
     r = optimize(request, cache)
     cal = calibration_for(request.run, cache)

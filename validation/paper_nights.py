@@ -95,7 +95,7 @@ def night_request(key: str, seed: int) -> OptimizeRequest:
     config = RunConfig(observation=night.obs(), atmosphere=atmosphere, band=night.band, seed=seed)
     # the NCPA offsets come with the optimiser's OGTL, as `optimize gains` decides them
     run = config.request(ogtl=OPTIMISER_OGTL)
-    return OptimizeRequest(run, night.method, ogtl=OPTIMISER_OGTL, measure_s=MEASURE_S)
+    return OptimizeRequest(run=run, method=night.method, ogtl=OPTIMISER_OGTL, measure_s=MEASURE_S)
 
 
 def run_night(key: str, seed: int, cache: ArrayCache) -> dict:

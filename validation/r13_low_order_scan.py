@@ -52,7 +52,7 @@ def r13_case(seed: int):
     the calibration and the design gains."""
     run = RunConfig(observation=observation(13.0, 980.0), atmosphere=R13_NIGHT, band="FeII", seed=seed, ncpa=NO_NCPA).request()
     cache = ArrayCache(default_cache_dir())
-    return OptimizeRequest(run, "mgm", measure_s=1.0), cache, calibration_for(run, cache), run.design_gains()
+    return OptimizeRequest(run=run, method="mgm", measure_s=1.0), cache, calibration_for(run, cache), run.design_gains()
 
 
 def main() -> None:

@@ -381,7 +381,20 @@ def gains_cmd(o: GainsOptions) -> int:
     run = description.request(ogtl=o.ogtl)
     probe_of_run = description.auxiliary.probe()
     period, duration, measure, sequence, windows = _phases(o, run.observation, probe_of_run)
-    requests = {m: OptimizeRequest(run, m, duration, period, o.ogtl, probe_of_run, measure, sequence, windows=windows) for m in methods}
+    requests = {
+        m: OptimizeRequest(
+            run=run,
+            method=m,
+            duration_s=duration,
+            period_s=period,
+            ogtl=o.ogtl,
+            ogtl_settings=probe_of_run,
+            measure_s=measure,
+            trial_sequence_s=sequence,
+            windows=windows,
+        )
+        for m in methods
+    }
     results = _optimize_each(requests, cache)
     return _report(o, results)
 

@@ -41,7 +41,7 @@ SETTLING_FRAMES = 10  # ... and at least these frames (~3/g at the paper's gains
 CLOSED_LOOP_FIGURES = ("strehl", "tt_jitter_mas", "tt_jitter_pol_mas", "tt_jitter_pol_3hz_mas", "residual_nm", "rejection_13hz")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RunRequest:
     """What ``run`` needs, resolved: built by ``soulctl.run_config.RunConfig.request`` (the
     run description's one factory) or directly by the Python API.

@@ -39,7 +39,7 @@ EVALUATION_SETTLE_S = 1.0
 TRIAL_VALUES = 8  # gains per group
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class OptimizeRequest:
     run: RunRequest  # observation, conditions, initial gains, band, seed, ...
     method: str = "mgm"

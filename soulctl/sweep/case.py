@@ -133,7 +133,7 @@ def run_case(case: dict, calibration: Calibration | None = None, cache_dir: str 
             optimised = optimize(
                 # measured over the case's duration, one window, as a `loop run` case
                 OptimizeRequest(
-                    run_request, p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"], windows=1
+                    run=run_request, method=p["gain_method"], duration_s=p["duration"], period_s=period, measure_s=p["duration"], windows=1
                 ),
                 cache,
                 calibration=calibration,

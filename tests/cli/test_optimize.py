@@ -374,8 +374,8 @@ def test_the_default_period_is_valid_at_every_magnitude():
     --mgm --ogtl` alike (`--mag 18` refused its own default period)."""
     for mag in np.arange(0.0, 18.51, 0.5):
         obs = observation_for_magnitude(float(mag))
-        run = RunRequest(obs, allow_unstable=True)
-        request = OptimizeRequest(run, "mgm")  # raises InputError on an invalid period
+        run = RunRequest(observation=obs, allow_unstable=True)
+        request = OptimizeRequest(run=run, method="mgm")  # raises InputError on an invalid period
         assert request.period_s == default_period_s(obs) >= 1.0
         live = LiveOptimisers()
         assert live.period(obs) == request.period_s

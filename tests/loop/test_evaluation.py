@@ -31,7 +31,14 @@ OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0, 
 @pytest.fixture(scope="module")
 def setup(optics_cache):
     cal = calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 54), optics_cache)
-    request = OptimizeRequest(RunRequest(OBS, 0.8, seed=3, oversampling=1, field_of_view_arcsec=0.0), "mgm", 1.0, 0.5, False, measure_s=0.2)
+    request = OptimizeRequest(
+        run=RunRequest(observation=OBS, seeing_arcsec=0.8, seed=3, oversampling=1, field_of_view_arcsec=0.0),
+        method="mgm",
+        duration_s=1.0,
+        period_s=0.5,
+        ogtl=False,
+        measure_s=0.2,
+    )
     design = request.run.design_gains()
     return request, cal, design
 

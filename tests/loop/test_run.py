@@ -34,12 +34,12 @@ def test_the_resonance_is_left_out_below_twice_its_frequency():
 def test_request_limits():
     obs = observation_for_magnitude(9.7)
     with pytest.raises(InputError, match="duration"):
-        RunRequest(obs, duration_s=0.0)
+        RunRequest(observation=obs, duration_s=0.0)
     with pytest.raises(InputError, match="unknown band"):
-        RunRequest(obs, band="L")
+        RunRequest(observation=obs, band="L")
     with pytest.raises(InputError, match="too coarse for 500 modes: accepted up to 90"):
-        RunRequest(obs, oversampling=1, field_of_view_arcsec=0.0)
-    r = RunRequest(obs, duration_s=1.0)
+        RunRequest(observation=obs, oversampling=1, field_of_view_arcsec=0.0)
+    r = RunRequest(observation=obs, duration_s=1.0)
     assert r.frames == 1700 and r.skip == 340
 
 
