@@ -57,7 +57,7 @@ def case_row(label: str, repeat: int, duration: float, cache: ArrayCache) -> dic
     cal = calibration_for(request, cache)
     structure = request.sampled_structure()
     gains = request.design_gains()
-    moved = dataclasses.replace(request, registration=SHIFT)
+    moved = dataclasses.replace(request, misregistration=SHIFT)
 
     loop = closed_loop_for(moved, cal, gains, structure)  # the verdict reads its gains, k and R
 

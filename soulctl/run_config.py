@@ -218,7 +218,7 @@ class RunConfig:
         [vibrations]: the Tip/Tilt lines; None: none.
     structure : StructuralResonance or None
         [structure]: the 127 Hz resonance; None: none.
-    registration : Misregistration
+    misregistration : Misregistration
         [misregistration]: the mirror on the pyramid against the calibration.
     ncpa : NcpaSpec
         [ncpa]: the science path's static aberration and its offsets.
@@ -248,7 +248,7 @@ class RunConfig:
     atmosphere: AtmosphereSpec = AtmosphereSpec()
     vibrations: VibrationSpectrum | None = field(default_factory=VibrationSpectrum.lbt_default)
     structure: StructuralResonance | None = StructuralResonance()
-    registration: Misregistration = Misregistration()
+    misregistration: Misregistration = Misregistration()
     ncpa: NcpaSpec = NcpaSpec(rms_nm=defaults.NCPA_RMS_NM, compensated=None)  # sky-like; None: offsets with OGTL
     calibration: CalibrationNoise = CalibrationNoise()
     noise: bool = True
@@ -296,11 +296,11 @@ class RunConfig:
             structure=self.structure,
             allow_unstable=self.controller.allow_unstable,
             layers=a.layers or None,
-            registration=None if self.registration.is_identity else self.registration,
+            misregistration=None if self.misregistration.is_identity else self.misregistration,
             ncpa=ncpa if ncpa.active else None,
             calibration_noise=self.calibration if self.calibration.active else None,
             influence=self.influence,
-            field_of_view_arcsec=self.wfs_field_arcsec,
+            wfs_field_arcsec=self.wfs_field_arcsec,
         )
 
     def resolved(self) -> RunConfig:
@@ -408,7 +408,7 @@ def _to_dict(c: RunConfig) -> dict:
     d["vibrations"] = {"enabled": False} if v is None else {"enabled": True, "source": v.source, "line": [_line(x) for x in v.lines]}
     s = c.structure
     d["structure"] = {"enabled": False} if s is None else {"enabled": True, **dataclasses.asdict(s)}
-    d["misregistration"] = dataclasses.asdict(c.registration)
+    d["misregistration"] = dataclasses.asdict(c.misregistration)
     d["ncpa"] = {k: v for k, v in dataclasses.asdict(c.ncpa).items() if v is not None}
     d["calibration"] = dataclasses.asdict(c.calibration)
     d["mirror"] = {"influence": c.influence}
@@ -449,7 +449,7 @@ def _from_dict(data: dict) -> RunConfig:
             atmosphere=_atmosphere(data.get("atmosphere", {})),
             vibrations=_vibrations(data.get("vibrations", {})),
             structure=_structure(data.get("structure", {})),
-            registration=Misregistration(**{k: _number(v, f"misregistration.{k}") for k, v in data.get("misregistration", {}).items()}),
+            misregistration=Misregistration(**{k: _number(v, f"misregistration.{k}") for k, v in data.get("misregistration", {}).items()}),
             ncpa=_ncpa(data.get("ncpa", {})),
             calibration=_calibration(data.get("calibration", {})),
             noise=_bool(data.get("detector", {}), "noise", True, "detector"),

@@ -164,8 +164,8 @@ def test_the_wfs_field_round_trips_and_reaches_the_calibration():
     from soulctl.loop.run import calibration_setup
 
     sampled = RunConfig().with_values({"run.wfs_field_arcsec": 0.0})
-    assert RunConfig().wfs_field_arcsec == SOUL_FIELD_OF_VIEW_ARCSEC == 2.1 and RunConfig().request().field_of_view_arcsec == 2.1
-    assert round_trip(sampled) == sampled and sampled.request().field_of_view_arcsec == 0.0
+    assert RunConfig().wfs_field_arcsec == SOUL_FIELD_OF_VIEW_ARCSEC == 2.1 and RunConfig().request().wfs_field_arcsec == 2.1
+    assert round_trip(sampled) == sampled and sampled.request().wfs_field_arcsec == 0.0
     assert sampled.to_dict()["run"]["wfs_field_arcsec"] == 0.0 and RunConfig().to_dict()["run"]["wfs_field_arcsec"] == 2.1
     plain, sensed = (calibration_setup(c.request()) for c in (sampled, RunConfig()))
     assert (plain.pyramid.sensing_oversampling, sensed.pyramid.sensing_oversampling) == (2, 3)

@@ -44,7 +44,7 @@ def points() -> list[tuple[str, float, Misregistration]]:
 
 def one(base: RunConfig, registration: Misregistration, cache) -> dict:
     t0 = time.perf_counter()
-    r = run(dataclasses.replace(base, registration=registration).request(), cache)
+    r = run(dataclasses.replace(base, misregistration=registration).request(), cache)
     m = r.metrics
     row = {"diverged_at": r.diverged_at, "seconds": round(time.perf_counter() - t0, 1)}
     if m is not None:

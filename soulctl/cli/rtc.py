@@ -161,7 +161,7 @@ def _coupling(description, gains_chi: np.ndarray, delay: float, cache: ArrayCach
     R the reconstructor `loop run` would hold (the modelled calibration, measured with the
     description's [calibration] noise when it has some), D' the moved mirror's response, and
     the gains times the check's chi_i; None when the mirror is registered."""
-    registration = description.registration
+    registration = description.misregistration
     if registration.is_identity:
         return None
     request = description.request()

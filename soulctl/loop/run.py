@@ -72,7 +72,7 @@ class RunRequest:
         Run gains the stability check refuses.
     layers : tuple of Layer or None
         Explicit turbulence layers; None: the LBT profile at ``wind_m_s``.
-    registration : Misregistration or None
+    misregistration : Misregistration or None
         The mirror on the pyramid against the calibration; None: as calibrated.
     ncpa : NcpaSpec or None
         The science path's static aberration; None: none.
@@ -80,7 +80,7 @@ class RunRequest:
         The interaction matrix measured at a finite flux; None: noiseless.
     influence : str
         The mirror's influence-function model (``optics.asm.INFLUENCES``).
-    field_of_view_arcsec : float
+    wfs_field_arcsec : float
         The pyramid's simulated field (a diameter, arcsec); 0: as sampled, no stop.
     """
 
@@ -98,11 +98,11 @@ class RunRequest:
     structure: StructuralResonance | None = field(default_factory=StructuralResonance)
     allow_unstable: bool = False
     layers: tuple[Layer, ...] | None = None  # explicit turbulence layers; None: the LBT profile at wind_m_s
-    registration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
+    misregistration: Misregistration | None = None  # the mirror on the pyramid against the calibration; None: as calibrated
     ncpa: NcpaSpec | None = None  # the science path's static aberration; None: none
     calibration_noise: CalibrationNoise | None = None  # the loop's D measured at a finite flux; None: noiseless
     influence: str = DEFAULT_INFLUENCE  # the mirror's influence-function model (``optics.asm``)
-    field_of_view_arcsec: float = defaults.WFS_FIELD_ARCSEC  # the pyramid's simulated field (``PyramidConfig``); 0: as sampled, no stop
+    wfs_field_arcsec: float = defaults.WFS_FIELD_ARCSEC  # the pyramid's simulated field (``PyramidConfig``); 0: as sampled, no stop
 
     def __post_init__(self):
         DURATION_S.check(self.duration_s, "duration")
@@ -114,7 +114,7 @@ class RunRequest:
         band_wavelength(self.band)
         check_sampling(self.observation.modes, self.oversampling)
         check_influence(self.influence)
-        WFS_FIELD_OF_VIEW_ARCSEC.check(self.field_of_view_arcsec, "WFS field of view")
+        WFS_FIELD_OF_VIEW_ARCSEC.check(self.wfs_field_arcsec, "WFS field of view")
 
     def sampled_structure(self) -> StructuralResonance | None:
         """The structural resonance as the frame rate samples it (None above Nyquist)."""
@@ -206,7 +206,7 @@ def run_configuration(r: RunRequest, gains: LoopGains) -> dict:
         "seed": r.seed,
         "noise": r.noise,
         "oversampling": r.oversampling,
-        "field_of_view_arcsec": r.field_of_view_arcsec,
+        "field_of_view_arcsec": r.wfs_field_arcsec,
         "gains": asdict(gains),
         "vibrations": [asdict(line) for line in r.vibrations.lines] if r.vibrations else [],
         "structure": asdict(r.structure) if r.structure else None,
@@ -268,7 +268,7 @@ def calibration_setup(request: RunRequest) -> CalibrationSetup:
         binning=obs.binning,
         modulation_lambda_over_d=obs.modulation_lambda_over_d,
         oversampling=request.oversampling,
-        field_of_view_arcsec=request.field_of_view_arcsec,
+        field_of_view_arcsec=request.wfs_field_arcsec,
     )
     return CalibrationSetup(config, obs.modes, BasisSetup(AsmGeometry(influence=request.influence)))
 
@@ -286,7 +286,7 @@ def registration_stability(
     (what MGM and OGTL ended with), chi_i = k gamma_i with gamma_i the noiseless calibration's
     optical-gain table at the run's seeing (computed once per seeing, then cached); None when
     the mirror is where it was calibrated."""
-    registration = request.registration
+    registration = request.misregistration
     if registration is None or registration.is_identity:
         return None
     obs = request.observation
@@ -367,7 +367,7 @@ def closed_loop_for(
         seed=request.seed,
         structure=structure,
         sink=sink,
-        registration=request.registration,
+        registration=request.misregistration,
         ncpa=None if request.ncpa is None else non_common_path(request.ncpa, pupil, cal.basis.shapes(pupil), cal.interaction_matrix),
         duration_s=request.duration_s if duration_s is None else duration_s,
     )

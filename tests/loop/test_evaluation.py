@@ -32,7 +32,7 @@ OBS = dataclasses.replace(observation_for_magnitude(9.7), frame_rate_hz=1000.0, 
 def setup(optics_cache):
     cal = calibrate(CalibrationSetup(PyramidConfig(binning=4, oversampling=1), 54), optics_cache)
     request = OptimizeRequest(
-        run=RunRequest(observation=OBS, seeing_arcsec=0.8, seed=3, oversampling=1, field_of_view_arcsec=0.0),
+        run=RunRequest(observation=OBS, seeing_arcsec=0.8, seed=3, oversampling=1, wfs_field_arcsec=0.0),
         method="mgm",
         duration_s=1.0,
         period_s=0.5,

@@ -38,7 +38,7 @@ def test_request_limits():
     with pytest.raises(InputError, match="unknown band"):
         RunRequest(observation=obs, band="L")
     with pytest.raises(InputError, match="too coarse for 500 modes: accepted up to 90"):
-        RunRequest(observation=obs, oversampling=1, field_of_view_arcsec=0.0)
+        RunRequest(observation=obs, oversampling=1, wfs_field_arcsec=0.0)
     r = RunRequest(observation=obs, duration_s=1.0)
     assert r.frames == 1700 and r.skip == 340
 
@@ -74,12 +74,12 @@ def test_the_thin_plate_mirror_reaches_the_loop(optics_cache):
     config = RunConfig(observation=obs, oversampling=1, duration_s=0.05, wfs_field_arcsec=0.0).with_values(
         {"mirror.influence": "thin-plate"}
     )
-    request = dataclasses.replace(config.request(), registration=Misregistration(shift_x_pitch=0.2))
+    request = dataclasses.replace(config.request(), misregistration=Misregistration(shift_x_pitch=0.2))
     cal = calibration_for(request, optics_cache)
     assert cal.basis.geometry.influence == "thin-plate"
     loop = closed_loop_for(request, cal, default_gains(obs), None)
     g, pupil = cal.basis.geometry, loop.mirror.pupil
-    moved = g.sparse_influence_functions(pupil, registration=request.registration)
+    moved = g.sparse_influence_functions(pupil, registration=request.misregistration)
     assert abs(loop.mirror.influence - moved).max() == 0.0
     assert abs(dataclasses.replace(g, influence="gaussian").sparse_influence_functions(pupil) - moved).max() > 0.1
     loop.run(request.frames)

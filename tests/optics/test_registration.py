@@ -128,7 +128,7 @@ def test_the_loop_loses_strehl_as_the_mirror_moves_and_the_description_keeps_it(
     base = RunConfig(observation=obs, duration_s=0.5, oversampling=1, wfs_field_arcsec=0.0).with_values({"atmosphere.seeing_arcsec": 0.6})
     residual, verdicts = [], []
     for shift in (0.0, 1.0, 2.0):
-        config = dataclasses.replace(base, registration=Misregistration(shift_x_pitch=shift))
+        config = dataclasses.replace(base, misregistration=Misregistration(shift_x_pitch=shift))
         assert RunConfig.from_dict(config.to_dict()) == config  # the TOML form keeps it
         result = run(config.request(), optics_cache)
         assert result.diverged_at is None

@@ -38,7 +38,7 @@ class Reader(AuxLoop):
 
 @pytest.fixture(scope="module")
 def calibration(optics_cache):
-    return calibration_for(RunRequest(observation=OBS, oversampling=1, field_of_view_arcsec=0.0), optics_cache)
+    return calibration_for(RunRequest(observation=OBS, oversampling=1, wfs_field_arcsec=0.0), optics_cache)
 
 
 def test_ring_series_and_moments_hold_what_numpy_computes():
