@@ -147,11 +147,11 @@ def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> LineSearch:
     return search_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
 
 
-def _turbulence(record: LoopRecord, d: float, chi: np.ndarray, noise: np.ndarray, cache: ArrayCache, missing: dict):
-    """Seeing and L0 from the pseudo-open-loop variances less the noise, corrected for the
-    record's length (``seeing.record_length``); L0 into ``missing`` where the record is too
-    short for it."""
-    whole, first, second = (pol_variance(record, d, chi, mo) - np.nan_to_num(noise) / chi**2 for mo in (None, *record.half_moments))
+def _turbulence(record: LoopRecord, whole: np.ndarray, d: float, chi: np.ndarray, noise: np.ndarray, cache: ArrayCache, missing: dict):
+    """Seeing and L0 from the pseudo-open-loop variances less the noise (``whole``, over the
+    window), corrected for the record's length by its halves' (``seeing.record_length``); L0
+    into ``missing`` where the record is too short for it."""
+    first, second = (pol_variance(record, d, chi, mo) - np.nan_to_num(noise) / chi**2 for mo in record.half_moments)
     variance, n_low = seeing.record_length(whole, 0.5 * (first + second))
     L0s: tuple[float, ...]
     if record.description is None:
@@ -172,7 +172,7 @@ def _turbulence(record: LoopRecord, d: float, chi: np.ndarray, noise: np.ndarray
     best = table[L0s.index(t.L0_m)] if t.L0_m in L0s else table[0]
     if len(L0s) > 1 and n_low < seeing.MIN_CORRELATION_TIMES:
         missing["L0"] = (
-            f"the record's {record.frames / record.rate_hz:.3g} s span ~{n_low:.0f} correlation times of modes 3-14 "
+            f"the record's {record.frames / record.rate_hz:.3g} s span ~{n_low:.0f} correlation times of modes {seeing.LOW_MODES} "
             f"(their variance over half the record against the whole); L0 needs {seeing.MIN_CORRELATION_TIMES:g} or more: "
             "record longer (the lowest orders decorrelate over ~D/wind)"
         )
@@ -208,7 +208,7 @@ def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayC
     variance = pol_variance(record, rej.delay.value, chi) - np.nan_to_num(noise) / chi**2
     turbulence, model_variance = None, None
     if record.n_modes >= MIN_SEEING_MODES:
-        turbulence, model_variance = _turbulence(record, rej.delay.value, chi, noise, cache, missing)
+        turbulence, model_variance = _turbulence(record, variance, rej.delay.value, chi, noise, cache, missing)
     else:
         missing["turbulence"] = f"seeing and L0 need modes beyond Tip/Tilt (at least {MIN_SEEING_MODES}; the record holds {record.n_modes})"
     clock["turbulence"] = time.perf_counter()

@@ -48,7 +48,8 @@ L0_GRID = (8.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0, 50.0, 70.0, 100.0)
 UNKNOWN_L0_M = 25.0  # stated (sigma inf) for a foreign basis, whose variances are Kolmogorov's
 FIRST_MODE = 3
 LAST_FRACTION = 0.5
-LOW_ORDERS = (2, 4)  # radial orders (modes 3-14) whose variances against the others' carry L0
+LOW_ORDERS = (2, 4)  # radial orders whose variances against the others' carry L0 ...
+LOW_MODES = "3-14"  # ... their modes (mode 1 = Tip: ``disturbance.modal_psd.radial_order``)
 MIN_CORRELATION_TIMES = 20.0  # their variances read ~5 % low or less: L0 is stated
 NM_PER_RAD = LAMBDA_REF_M * 1e9 / (2 * math.pi)
 NOLL = special.gamma(29 / 6) * 0.448 / (2 * special.gamma(1 / 6))  # fixes the Tip variance 0.448 (D/r0)^(5/3)

@@ -206,6 +206,14 @@ def test_the_records_halves_are_read_with_the_whole(files, monkeypatch):
         assert mo[:, 1] == pytest.approx(c[lo:hi].var(axis=0), rel=1e-9)
 
 
+def test_the_low_orders_modes_are_stated_as_numbered():
+    from soulctl.disturbance.modal_psd import radial_order
+
+    n = radial_order(np.arange(1, 40))
+    modes = np.flatnonzero((n >= seeing.LOW_ORDERS[0]) & (n <= seeing.LOW_ORDERS[1])) + 1
+    assert seeing.LOW_MODES == f"{modes.min()}-{modes.max()}"
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_record_length_corrects_a_short_records_variances_and_counts_its_correlation_times(seed):
     """Unit-variance AR(1) modes (a = 0.99: 199 frames per correlation time, Sokal's
