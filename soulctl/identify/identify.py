@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from ..optics.calibration import controlled_basis
 from ..telemetry.figures import pseudo_open_loop
 from . import seeing
 from .lines import LIMIT_HZ, LineEstimate, LineSearch, search_lines
-from .plant import OpticalGainGroup, PlantModel, chi_per_mode
+from .plant import OpticalGainGroup, PlantModel, Turbulence, chi_per_mode
 from .probe import ProbeFit, fit_probe
 from .record import LoopRecord, pol_variance, read_record
 from .rejection import RejectionFit, fit_rejection, tip_tilt_noise
@@ -90,7 +91,7 @@ class Identification:
         }  # fmt: skip
 
 
-def _finite(x):
+def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(float(x)) else float(x)
 
 
@@ -147,7 +148,9 @@ def _vibrations(record: LoopRecord, d: float, chi_tt: float) -> LineSearch:
     return search_lines(pol[_skipped(d) :] / record.loop.nm_per_mas, record.rate_hz)
 
 
-def _turbulence(record: LoopRecord, whole: np.ndarray, d: float, chi: np.ndarray, noise: np.ndarray, cache: ArrayCache, missing: dict):
+def _turbulence(
+    record: LoopRecord, whole: np.ndarray, d: float, chi: np.ndarray, noise: np.ndarray, cache: ArrayCache, missing: dict
+) -> tuple[Turbulence, np.ndarray]:
     """Seeing and L0 from the pseudo-open-loop variances less the noise (``whole``, over the
     window), corrected for the record's length by its halves' (``seeing.record_length``); L0
     into ``missing`` where the record is too short for it."""
@@ -183,7 +186,9 @@ def _turbulence(record: LoopRecord, whole: np.ndarray, d: float, chi: np.ndarray
 MIN_SEEING_MODES = 20  # the seeing fit (modes 3 to half the record's) needs a few radial orders: 3-10 at least
 
 
-def identify(path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None), structure: str = "auto") -> Identification:
+def identify(
+    path: str | Path, delay_frames: float | None = None, cache: ArrayCache = ArrayCache(None), structure: str = "auto"
+) -> Identification:
     """The plant of the record at ``path`` (see the module); what the record cannot give is
     None with the reason in ``not_estimated``."""
     clock = {"start": time.perf_counter()}

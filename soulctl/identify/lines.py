@@ -68,14 +68,14 @@ def _oscillator(f: np.ndarray, f0: float, zeta: float) -> np.ndarray:
     return (8 * zeta / w0) * w0**4 / ((w0**2 - w**2) ** 2 + (2 * zeta * w0 * w) ** 2)
 
 
-def _fit_peak(f: np.ndarray, p: np.ndarray, base: np.ndarray, i: int):
-    """(f0, zeta, variance, f0 sigma) of the oscillator on top of ``base`` near bin i."""
+def _fit_peak(f: np.ndarray, p: np.ndarray, base: np.ndarray, i: int) -> tuple[float, float, float]:
+    """(f0, zeta, f0 sigma) of the oscillator on top of ``base`` near bin i."""
     df = f[1] - f[0]
     band = np.abs(f - f[i]) <= max(PEAK_HALF_WIDTH_HZ, 3 * df)
     fb, pb, bb = f[band], p[band], base[band]
     var0 = max(float(np.sum(pb - bb) * df), 1e-12)
 
-    def resid(x):
+    def resid(x: np.ndarray) -> np.ndarray:
         f0, lz, lv = x
         return np.log(bb + np.exp(lv) * _oscillator(fb, f0, math.exp(lz))) - np.log(pb)
 
@@ -91,7 +91,7 @@ def _fit_peak(f: np.ndarray, p: np.ndarray, base: np.ndarray, i: int):
     return f0, zeta, sf
 
 
-def _axis_variance(f, p_axis, base_axis, f0, zeta, segments: int) -> Estimate:
+def _axis_variance(f: np.ndarray, p_axis: np.ndarray, base_axis: np.ndarray, f0: float, zeta: float, segments: int) -> Estimate:
     df = f[1] - f[0]
     half = min(max(PEAK_HALF_WIDTH_HZ, 8 * zeta * f0), MAX_BAND_HZ)
     band = np.abs(f - f0) <= half
@@ -125,7 +125,7 @@ def _baseline(f: np.ndarray, p: np.ndarray, width: int, masked: np.ndarray, dof:
     return np.exp(np.interp(f, f[keep], smooth)) / (chi2.median(dof) / dof)
 
 
-def _candidates(f, mean, base, inside, threshold) -> list[int]:
+def _candidates(f: np.ndarray, mean: np.ndarray, base: np.ndarray, inside: np.ndarray, threshold: float) -> list[int]:
     peaks = [i for i in np.flatnonzero(inside)[1:-1] if mean[i] >= mean[i - 1] and mean[i] >= mean[i + 1] and mean[i] > threshold * base[i]]
     return sorted(peaks, key=lambda i: -(mean[i] - base[i]))
 

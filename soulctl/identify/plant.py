@@ -152,19 +152,19 @@ def _text(s: str) -> str:
     return '"' + str(s).replace("\\", "\\\\").replace('"', '\\"').replace("\n", " ") + '"'
 
 
-def _root(r) -> str:
+def _root(r: complex) -> str:
     """A zero or pole: a number when real, [re, im] when complex (a recorded filter's)."""
     r = complex(r)
     return _num(r.real) if r.imag == 0 else f"[{_num(r.real)}, {_num(r.imag)}]"
 
 
-def _num(x) -> str:
+def _num(x: float | None) -> str:
     if x is None or not math.isfinite(float(x)):
         return "inf" if x is not None and float(x) == math.inf else "nan"
     return repr(float(x))
 
 
-def _number(data: dict, key: str, where: str, default=InputError) -> float:
+def _number(data: dict, key: str, where: str, default: object = InputError) -> float:
     v = data.get(key, default)
     if v is InputError:
         raise InputError(f"{where}: missing {key}")
@@ -219,7 +219,7 @@ def read_plant(path: str | Path) -> PlantModel:
     )  # fmt: skip
 
 
-def _controller(c, where: str) -> Filter | None:
+def _controller(c: object, where: str) -> Filter | None:
     """The [controller] Tip/Tilt filter (real zeros and poles, the gain), None without one."""
     if c is None:
         return None
@@ -232,13 +232,13 @@ def _controller(c, where: str) -> Filter | None:
     return Filter.iir(zeros, poles, _number(c, "tip_tilt_gain", where))
 
 
-def _is_root(x) -> bool:
+def _is_root(x: object) -> bool:
     """A finite real number, or a [re, im] pair of them."""
     parts = x if isinstance(x, list) and len(x) == 2 else [x]
     return all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in parts)
 
 
-def _tables(section, key: str, where: str) -> list:
+def _tables(section: object, key: str, where: str) -> list:
     if not isinstance(section, dict):
         raise InputError(f"{where}: [{key}] must be a table")
     items = section.get(key, [])
@@ -255,7 +255,7 @@ def _group(g: dict, where: str) -> OpticalGainGroup:
     return OpticalGainGroup(lo, hi, chi, _number(g, "sigma", where, math.inf))
 
 
-def _turbulence(t, where: str) -> Turbulence:
+def _turbulence(t: object, where: str) -> Turbulence:
     if not isinstance(t, dict):
         raise InputError(f"{where}: [turbulence] must be a table")
     seeing = SEEING_ARCSEC.check(_number(t, "seeing_arcsec", where), f"{where}: turbulence.seeing_arcsec")

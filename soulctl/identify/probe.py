@@ -18,6 +18,7 @@ uncertainty is the lock-in's own, from the same demodulation at off-probe freque
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +37,7 @@ class ProbeFit:
     delay: Estimate
 
 
-def _delay_from_phase(response, phase: float, w: float, near: float) -> float:
+def _delay_from_phase(response: Callable[[float], complex], phase: float, w: float, near: float) -> float:
     """The d >= 0 closest to ``near`` whose plant ``response(d)`` has the phase ``phase`` (w: the
     probe's rad/frame, whose period in frames bounds the search)."""
 

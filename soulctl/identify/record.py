@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import scipy.fft
+from numpy.typing import ArrayLike
 
 from ..control.filters import Filter
 from ..control.transfer import Plant
@@ -92,7 +94,7 @@ class LoopRecord:
         return self.loop.structure_ba
 
 
-def _description(tm: TelemetryReader, path) -> RunConfig | None:
+def _description(tm: TelemetryReader, path: str | Path) -> RunConfig | None:
     try:
         return recorded_run(tm, None, path)
     except InputError:
@@ -131,7 +133,7 @@ def _window(tm: TelemetryReader, frames: int, first: int) -> tuple[int, int, np.
     return start, settled, k, np.asarray(tm.read("gains") if gains is None else gains, dtype=float)
 
 
-def read_record(path, delay_frames: float | None = None, structure: str = "auto") -> LoopRecord:
+def read_record(path: str | Path, delay_frames: float | None = None, structure: str = "auto") -> LoopRecord:
     """The window of the record at ``path`` as spectra (see the module); InputError for a
     record identification cannot use (decimated, diverged, shorter than ``MIN_WINDOW_S``);
     ``structure``: ``recorded.STRUCTURE_CHOICES``."""
@@ -243,7 +245,7 @@ class _Accumulator:
         if self.n == self.half:
             self.at_half = (s.copy(), self.n)
 
-    def spectrum(self, rate: float):
+    def spectrum(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
         scale = 1.0 / (rate * np.sum(self.window**2) * max(1, self.count))
         double = np.ones(self.segment // 2 + 1)
         double[1 : -1 if self.segment % 2 == 0 else None] = 2.0
@@ -292,7 +294,7 @@ def pol_variance(record: LoopRecord, delay_frames: float, chi: np.ndarray, momen
     return x**2 * mo[:, 0] + var_dc + 2 * x * cross
 
 
-def plant_response(record: LoopRecord, delay_frames: float, tip_tilt: bool, f_hz) -> np.ndarray:
+def plant_response(record: LoopRecord, delay_frames: float, tip_tilt: bool, f_hz: ArrayLike) -> np.ndarray:
     """The mirror's response to the commands at f_hz: z^-d as the delay line interpolates it,
     times 1 + G on Tip/Tilt (``transfer.Plant`` with chi = 1, the structure where the record has it)."""
     plant = Plant(delay_frames, 1.0, record.structure_ba if tip_tilt else None)

@@ -72,7 +72,9 @@ class RejectionFit:
 class _Likelihood:
     """-log L (Whittle, sigma_i profiled) of the chosen modes as a function of d and chi."""
 
-    def __init__(self, record: LoopRecord, modes: np.ndarray, f_low: float, structure=None, dropped: np.ndarray | None = None):
+    def __init__(
+        self, record: LoopRecord, modes: np.ndarray, f_low: float, structure: tuple | None = None, dropped: np.ndarray | None = None
+    ):
         self.record, self.modes, self.structure = record, modes, structure
         band = record.f_hz >= f_low
         band[-1] = False  # the Nyquist bin has half the degrees of freedom
@@ -162,7 +164,7 @@ def _chis(record: LoopRecord, fits: list[_Likelihood], d_hat: float) -> tuple[li
     return chis, leverage
 
 
-def _with_noise(record, groups, fits, delay: Estimate, chis, f_low: float, leverage) -> RejectionFit:
+def _with_noise(record: LoopRecord, groups: list, fits: list, delay: Estimate, chis: list, f_low: float, leverage: list) -> RejectionFit:
     """The fit with each mode's noise at the estimates (every mode of a group, not the spread ones)."""
     d_hat = delay.value
     noise = np.full(record.n_modes, np.nan)

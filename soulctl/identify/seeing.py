@@ -33,6 +33,7 @@ record at R9.7, N ~ 51, seeing 1.008, L0 20 +- 5.4 m (20 +- 10 before).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import special
@@ -56,7 +57,7 @@ NOLL = special.gamma(29 / 6) * 0.448 / (2 * special.gamma(1 / 6))  # fixes the T
 
 
 @blas.on_one_thread
-def basis_variances(basis: ModalBasis, pupil: Pupil, L0_values) -> np.ndarray:
+def basis_variances(basis: ModalBasis, pupil: Pupil, L0_values: Sequence[float]) -> np.ndarray:
     """(len(L0_values), n_modes) V_i(L0), rad^2 at 500 nm for r0 = 1 m: s_i^T C s_i / n_p^2."""
     shapes = basis.shapes(pupil)  # (n_valid, n_modes)
     n_p = shapes.shape[0]
@@ -94,7 +95,7 @@ def _low_to_high(variances: np.ndarray, modes: np.ndarray) -> np.ndarray:
     return variances[:, modes[low]].sum(axis=1) / np.maximum(variances[:, modes[~low]].sum(axis=1), 1e-300)
 
 
-def _L0_interval(variances: np.ndarray, modes: np.ndarray, best: int, L0_values, spread: float) -> list[float]:
+def _L0_interval(variances: np.ndarray, modes: np.ndarray, best: int, L0_values: Sequence[float], spread: float) -> list[float]:
     """The L0s whose low-to-high variance ratio is within ``spread`` (relative) of the best
     one's, interpolated in log-log between the grid's points (the ratio grows with L0)."""
     if spread <= 0:
@@ -115,7 +116,9 @@ def _ratio_uncertainty(correlation_times: float) -> float:
     return math.hypot(1 / N, math.sqrt(2 / ((LOW_ORDERS[1] - LOW_ORDERS[0] + 1) * N)))
 
 
-def fit_turbulence(pol_variance_nm2: np.ndarray, variances: np.ndarray, L0_values, correlation_times: float = math.inf) -> Turbulence:
+def fit_turbulence(
+    pol_variance_nm2: np.ndarray, variances: np.ndarray, L0_values: Sequence[float], correlation_times: float = math.inf
+) -> Turbulence:
     """r0 and L0 (see the module) from each mode's pseudo-open-loop variance (nm^2, noise
     removed) and the (L0, mode) table of V_i; L0's uncertainty includes the low orders'
     variance over a record of ``correlation_times`` (``record_length``)."""

@@ -40,13 +40,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from .. import defaults
 from ..control import mgm
 from ..control.delay import fractional_taps
+from ..control.filters import Filter
 from ..control.gains import DEFAULT_FORGETTING, unit_loops
 from ..control.ogtl import HELD, PROBE_MODE, STATUS
 from ..control.structure import StructuralResonance, sampled_coefficients
@@ -130,7 +133,7 @@ class OfflineMgmResult:
         }
 
 
-def filter_limits(filters, delay_frames: float, rate_hz: float, structures, margin: float) -> np.ndarray:
+def filter_limits(filters: Sequence[Filter], delay_frames: float, rate_hz: float, structures: Sequence, margin: float) -> np.ndarray:
     """Per mode, (1 - margin) of the maximum stable gain of its filter at chi = 1 (the check of
     `loop run`), the least over ``structures`` ((b, a) or None) on Tip/Tilt, at most LOOP_GAIN.hi."""
     ones = np.ones(len(filters))
@@ -146,12 +149,14 @@ def nominal_limits(observation: Observation, structure: StructuralResonance | No
     return filter_limits(unit, observation.delay_frames, rate, resonances(rate, structure, StructuralResonance()), margin)
 
 
-def resonances(rate_hz: float, *structures) -> list:
+def resonances(rate_hz: float, *structures: StructuralResonance | None) -> list:
     """The distinct (b, a) of the structures the rate samples, and None (no resonance)."""
     return list({sampled_coefficients(s, rate_hz) for s in (*structures, None)})
 
 
-def reasons_of(previous, optimum, stepped, moves, capped, settings: mgm.MgmSettings) -> tuple[str, ...]:
+def reasons_of(
+    previous: np.ndarray, optimum: np.ndarray, stepped: np.ndarray, moves: np.ndarray, capped: np.ndarray, settings: mgm.MgmSettings
+) -> tuple[str, ...]:
     """Per mode, why the gain MGM applies is not its optimum (the keys of REASONS)."""
     free = (1.0 - settings.rho) * np.asarray(previous) + settings.rho * settings.nu * np.asarray(optimum)
     out = []
@@ -203,7 +208,7 @@ def mode_blocks(n_modes: int, frames: int) -> list[slice]:
     return [slice(lo, min(n_modes, lo + width)) for lo in range(0, n_modes, width)]
 
 
-def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bool, path) -> list:
+def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bool, path: str | Path) -> list:
     """Read and check /measured_modes and /command_modes over the window, block by block;
     the blocks' data if ``keep`` (else []).  InputError for modes whose measurement is constant."""
     kept, flat = [], []
@@ -222,7 +227,7 @@ def _window_data(tm: TelemetryReader, rows: slice, blocks: list[slice], keep: bo
     return kept
 
 
-def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int | None:
+def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path: str | Path) -> int | None:
     """The mode OGTL probed (``/aux/ogtl/mode`` at its last update; 1-based), or PROBE_MODE in
     files written before it was recorded: MGM's chi_i = gamma_i / gamma_probe needs it (a run
     made with --probe-mode 10 read as mode 30 got the wrong chi for every mode).  None in a file
@@ -241,7 +246,7 @@ def recorded_probe_mode(tm: TelemetryReader, n_modes: int, path) -> int | None:
     return int(mode)
 
 
-def check_ogtl_calibrated(tm: TelemetryReader, path) -> None:
+def check_ogtl_calibrated(tm: TelemetryReader, path: str | Path) -> None:
     """InputError if the file's OGTL never acted on an estimate (``/aux/ogtl/status`` all held:
     probe SNR below the threshold, commands growing or no estimate): its k was not calibrated,
     so chi_i = gamma_i / gamma_probe, MGM's plant with OGTL, does not hold and the loop's optical
@@ -262,7 +267,7 @@ def check_ogtl_calibrated(tm: TelemetryReader, path) -> None:
         )
 
 
-def recorded_run(tm: TelemetryReader, observation: Observation | None, path) -> RunConfig:
+def recorded_run(tm: TelemetryReader, observation: Observation | None, path: str | Path) -> RunConfig:
     """The run a telemetry file records: its stored run description, else (files written
     before soulctl stored one) what its configuration attribute holds, which is checked in
     either case; ``observation``, when given, replaces the file's."""
@@ -297,7 +302,7 @@ def own_record(tm: TelemetryReader) -> bool:
     return tm.has("run_description") or "observation" in tm.configuration()
 
 
-def _check_recording(tm: TelemetryReader, n_modes: int, config: RunConfig | None, path) -> None:
+def _check_recording(tm: TelemetryReader, n_modes: int, config: RunConfig | None, path: str | Path) -> None:
     """A stable loop's record whose modes and frame rate are the configuration's (InputError
     naming the field)."""
     diverged = tm.attribute("diverged_at", -1)
@@ -314,7 +319,7 @@ def _check_recording(tm: TelemetryReader, n_modes: int, config: RunConfig | None
     checked_rate(tm.attribute("rate_hz"), config.observation.frame_rate_hz, path)
 
 
-def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | None, path) -> float:
+def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | None, path: str | Path) -> float:
     """The delay given, else the record's (which must be the configuration's), else the
     configuration's, else InputError saying how to give one."""
     if given is not None:
@@ -333,7 +338,9 @@ def _loop_delay(tm: TelemetryReader, config: RunConfig | None, given: float | No
     return expected if recorded is None else recorded
 
 
-def _optical_gains(tm, loop: RecordedLoop, config: RunConfig | None, plant: PlantInputs, cache, seeing_given) -> tuple:
+def _optical_gains(
+    tm: TelemetryReader, loop: RecordedLoop, config: RunConfig | None, plant: PlantInputs, cache: ArrayCache, seeing_given: float | None
+) -> tuple:
     """(gamma_i, where from, the table's seeing or None, where that came from): given; the
     pyramid's model for a pyramid (from the configuration's calibration); 1 for another sensor."""
     if plant.optical_gains is not None:
@@ -365,7 +372,7 @@ def plant_seeing(tm: TelemetryReader, description: RunConfig, given: float | Non
 
 
 def offline_mgm(
-    path,
+    path: str | Path,
     observation: Observation | None = None,
     cache: ArrayCache = ArrayCache(None),
     settings: mgm.MgmSettings | None = None,

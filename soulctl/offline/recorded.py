@@ -21,6 +21,7 @@ from time stamps differs from the nominal one by ~1e-4); the record's rate is us
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from ..control.filters import Filter, filter_of_coefficients
 from ..control.gains import unit_loops
@@ -58,7 +59,7 @@ class RecordedLoop:
         return delay_frames + self.controller_delay
 
 
-def checked_rate(record_hz: float, configured_hz: float, path, what: str = "the record") -> tuple[float, str | None]:
+def checked_rate(record_hz: float, configured_hz: float, path: str | Path, what: str = "the record") -> tuple[float, str | None]:
     """The rate of a record (or of what was identified from one: ``what``) when it is the
     configuration's within RATE_TOLERANCE (a note when they differ at all), else InputError
     naming both."""
