@@ -9,7 +9,6 @@ import os
 import platform
 from pathlib import Path
 
-from soulctl import __version__
 from soulctl.files import atomic_write_text
 from validation.provenance import provenance as study_provenance
 
@@ -19,7 +18,7 @@ def provenance() -> dict:
     studies' record and the cores and platform."""
     record = study_provenance()
     machine = {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": platform.processor()}
-    return {"soulctl": __version__, **record, "machine": machine | record["machine"]}
+    return {**record, "machine": machine | record["machine"]}
 
 
 def save(out: Path, payload: dict, console) -> None:

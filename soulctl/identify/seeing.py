@@ -49,8 +49,7 @@ L0_GRID = (8.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0, 50.0, 70.0, 100.0)
 UNKNOWN_L0_M = 25.0  # stated (sigma inf) for a foreign basis, whose variances are Kolmogorov's
 FIRST_MODE = 3
 LAST_FRACTION = 0.5
-LOW_ORDERS = (2, 4)  # radial orders whose variances against the others' carry L0 ...
-LOW_MODES = "3-14"  # ... their modes (mode 1 = Tip: ``disturbance.modal_psd.radial_order``)
+LOW_ORDERS = (2, 4)  # radial orders whose variances against the others' carry L0
 MIN_CORRELATION_TIMES = 20.0  # their variances read ~5 % low or less: L0 is stated
 NM_PER_RAD = LAMBDA_REF_M * 1e9 / (2 * math.pi)
 NOLL = special.gamma(29 / 6) * 0.448 / (2 * special.gamma(1 / 6))  # fixes the Tip variance 0.448 (D/r0)^(5/3)
@@ -70,6 +69,15 @@ def noll_variances(n_modes: int, diameter_m: float = LBT_DIAMETER_M) -> np.ndarr
     return (NOLL * (n + 1) * special.gamma(n - 5 / 6) / special.gamma(n + 23 / 6) * diameter_m ** (5 / 3))[None, :]
 
 
+def _low_orders(n: np.ndarray) -> np.ndarray:
+    """Which of the radial orders ``n`` are the orders ``LOW_ORDERS``."""
+    return (n >= LOW_ORDERS[0]) & (n <= LOW_ORDERS[1])
+
+
+_LOW = np.flatnonzero(_low_orders(radial_order(np.arange(1, 40)))) + 1
+LOW_MODES = f"{_LOW.min()}-{_LOW.max()}"  # their modes, as numbered (mode 1 = Tip)
+
+
 def record_length(whole: np.ndarray, halves: np.ndarray) -> tuple[np.ndarray, float]:
     """(each mode's variance corrected for the record's length, N of the orders
     ``LOW_ORDERS``) from the variances of the whole record and the mean of its halves' (see the
@@ -81,7 +89,7 @@ def record_length(whole: np.ndarray, halves: np.ndarray) -> tuple[np.ndarray, fl
         w, h = float(np.sum(whole[k])), float(np.sum(halves[k]))
         if w > 0:
             corrected[k] *= min(2.0, max(1.0, (2 * w - h) / w))
-    low = (n >= LOW_ORDERS[0]) & (n <= LOW_ORDERS[1])
+    low = _low_orders(n)
     w, h = float(np.sum(whole[low])), float(np.sum(halves[low]))
     r = h / w if w > 0 else 0.0
     return corrected, (math.inf if r >= 1 else max(0.0, (2 - r) / (1 - r)))
@@ -90,8 +98,7 @@ def record_length(whole: np.ndarray, halves: np.ndarray) -> tuple[np.ndarray, fl
 def _low_to_high(variances: np.ndarray, modes: np.ndarray) -> np.ndarray:
     """Per L0 of the table, the summed variance of the orders ``LOW_ORDERS`` over the other
     fitted modes': the shape L0 sets."""
-    n = radial_order(modes + 1)
-    low = (n >= LOW_ORDERS[0]) & (n <= LOW_ORDERS[1])
+    low = _low_orders(radial_order(modes + 1))
     return variances[:, modes[low]].sum(axis=1) / np.maximum(variances[:, modes[~low]].sum(axis=1), 1e-300)
 
 
